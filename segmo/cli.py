@@ -1,0 +1,55 @@
+"""The `segmo` command.
+
+Every sub-command lives next to the code it drives and exposes `main(argv: list[str])`;
+this module only maps names to those functions, importing them lazily so that
+`segmo --help` stays fast. Training sub-commands (`fit`, `validate`, `test`) go to the
+LightningCLI wrapper in `segmo.training.cli`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# name -> (module, function, one-line help)
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "demo": ("segmo.demo", "main", "run the whole flow on the built-in corpus"),
+    "synth": ("segmo.synth.corpus", "main", "build the built-in synthetic corpus"),
+    "render": ("segmo.render", "main", "render a motion (.npy features or joints) to GIF/MP4"),
+    "segment-texts": ("segmo.text.preprocess", "segment_texts_main", "extract text segments offline"),
+    "encode-texts": ("segmo.text.preprocess", "encode_texts_main", "cache text-encoder features"),
+    "fit": ("segmo.training.cli", "main", "train a stage from a YAML config (LightningCLI)"),
+    "validate": ("segmo.training.cli", "main", "validate a stage (LightningCLI)"),
+    "test": ("segmo.training.cli", "main", "test a stage (LightningCLI)"),
+    "export": ("segmo.export", "main", "export a checkpoint to a self-describing model directory"),
+    "generate": ("segmo.pipeline.cli", "generate_main", "generate motions from text"),
+    "ground": ("segmo.pipeline.cli", "ground_main", "ground a text in a motion"),
+    "evaluate": ("segmo.evaluation.cli", "main", "evaluate a model and write a report"),
+}
+
+
+def _usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = ["usage: segmo COMMAND [ARGS...]", "", "commands:"]
+    lines += [f"  {name:<{width}}  {help_}" for name, (_, _, help_) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        sys.exit(f"segmo: unknown command {name!r}\n\n{_usage()}")
+    module, function, _ = COMMANDS[name]
+    command = getattr(importlib.import_module(module), function)
+    if module == "segmo.training.cli":
+        command([name, *rest])  # LightningCLI needs the sub-command itself
+    else:
+        command(rest)
+
+
+if __name__ == "__main__":
+    main()

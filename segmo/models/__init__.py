@@ -1,0 +1,1 @@
+"""Pure `torch.nn` models (no Lightning): tokenizer, transformers, heads."""
