@@ -43,6 +43,20 @@ class SkeletonSpec:
         return 4 + (j - 1) * 3 + (j - 1) * 6 + j * 3 + 4
 
     @property
+    def rotation_parents(self) -> tuple[int, ...]:
+        """Joint whose accumulated rotation each joint's local rotation is relative to, in
+        the HumanML3D convention used by the rotation features: along each kinematic chain
+        the previous joint, but the first joint after a chain's start is relative to the
+        root (so in t2m the collars' rotations are relative to the pelvis, not to spine3,
+        exactly as HumanML3D's Skeleton does). -1 for the root."""
+        rot_parents = [-1] * self.num_joints
+        for chain in self.kinematic_chains:
+            rot_parents[chain[1]] = 0
+            for previous, joint in zip(chain[1:-1], chain[2:]):
+                rot_parents[joint] = previous
+        return tuple(rot_parents)
+
+    @property
     def mirror_permutation(self) -> tuple[int, ...]:
         perm = list(range(self.num_joints))
         for left, right in self.mirror_pairs:

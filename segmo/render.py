@@ -1,0 +1,265 @@
+"""Stick-figure rendering of motions: notebook figures and GIF/MP4 animations.
+
+    >>> fig = plot_motion(joints, title="a person walks forward")        # key frames
+    >>> save_animation(features, "walk.gif", title="a person walks forward")
+
+A motion is either joints (t, j, 3) or features (t, d) (converted with
+`features_to_joints`; pass `mean`/`std` for z-scored features). Data are y-up; the plot
+maps (x, y, z) -> (x, -z, y) because matplotlib's 3-D axes are z-up (a rotation, so the
+figure is not mirrored). Left limbs are blue, right limbs red.
+
+CLI: `segmo render FILE.npy --out OUT.gif [--title T] [--skeleton t2m] [--fps N]
+[--stride K] [--mean M.npy --std S.npy]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from segmo.motion.features import features_to_joints
+from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+
+__all__ = ["as_joints", "plot_motion", "save_animation", "main"]
+
+LEFT, RIGHT, CENTRE = "#1f5fbf", "#d62728", "#333333"
+FLOOR_HALF_SIZE = 1.0  # metres of floor shown around the root (at least)
+GRID_STEP = 0.5  # metres between floor grid lines
+
+
+def as_joints(
+    motion: Any,
+    skeleton: str | SkeletonSpec = "t2m",
+    mean: Any = None,
+    std: Any = None,
+) -> np.ndarray:
+    """Joints (t, j, 3) or features (t, d) (numpy or torch) -> joints (t, j, 3) float64,
+    in metres (the skeleton's `unit` applied)."""
+    spec = get_skeleton(skeleton)
+    if hasattr(motion, "detach"):
+        motion = motion.detach().cpu().numpy()
+    motion = np.asarray(motion, dtype=np.float64)
+    if motion.ndim == 3 and motion.shape[1:] == (spec.num_joints, 3):
+        joints = motion
+    elif motion.ndim == 2 and motion.shape[1] == spec.feature_dim:
+        if (mean is None) != (std is None):
+            raise ValueError("as_joints: pass both mean and std (z-scored features) or neither")
+        if mean is not None:
+            motion = motion * np.asarray(std, dtype=np.float64) + np.asarray(mean, dtype=np.float64)
+        joints = features_to_joints(motion, spec)
+    else:
+        raise ValueError(
+            f"expected joints (t, {spec.num_joints}, 3) or features (t, {spec.feature_dim}) for "
+            f"skeleton {spec.name!r}, got shape {motion.shape}"
+        )
+    if len(joints) == 0:
+        raise ValueError("cannot render a motion with 0 frames")
+    return joints * spec.unit
+
+
+def _to_plot(points: np.ndarray) -> np.ndarray:
+    """(..., 3) y-up data -> (..., 3) z-up plot coordinates (x, -z, y)."""
+    return np.stack([points[..., 0], -points[..., 2], points[..., 1]], axis=-1)
+
+
+def _chain_colours(spec: SkeletonSpec) -> list[str]:
+    colours = []
+    for chain in spec.kinematic_chains:
+        names = " ".join(spec.joint_names[j] for j in chain[1:])
+        colours.append(LEFT if "left" in names else RIGHT if "right" in names else CENTRE)
+    return colours
+
+
+class _StickFigure:
+    """The artists of one 3-D axes, updated in place frame by frame (fast animation)."""
+
+    def __init__(self, ax, joints: np.ndarray, spec: SkeletonSpec, trajectory: bool = True):
+        self.ax, self.joints, self.spec = ax, joints, spec
+        self.height = max(float(joints[..., 1].max()), 1.0)
+        self.num_grid = int(2 * FLOOR_HALF_SIZE / GRID_STEP) + 2
+        self.grid = [ax.plot([], [], [], color="#bbbbbb", lw=0.6)[0] for _ in range(2 * self.num_grid)]
+        self.trajectory = ax.plot([], [], [], color="#8c564b", lw=1.2)[0] if trajectory else None
+        self.bones = [
+            ax.plot([], [], [], color=colour, lw=2.5 if colour == CENTRE else 2.0,
+                    solid_capstyle="round")[0]
+            for colour in _chain_colours(spec)
+        ]
+        ax.set_box_aspect((1, 1, 1), zoom=1.25)
+        ax.view_init(elev=15, azim=-60)
+        ax.set_axis_off()
+
+    def update(self, frame: int) -> None:
+        pose = self.joints[frame]
+        root_x, root_z = pose[0, 0], pose[0, 2]
+        half = max(FLOOR_HALF_SIZE, 0.55 * self.height + 0.1)
+        # Floor grid on world coordinates, windowed around the root: the figure walks
+        # over the grid while the camera follows it.
+        lines = []
+        for centre, axis in ((root_x, 0), (root_z, 2)):
+            first = np.floor((centre - half) / GRID_STEP) * GRID_STEP
+            for k in range(self.num_grid):
+                lines.append((axis, first + k * GRID_STEP))
+        for artist, (axis, value) in zip(self.grid, lines):
+            if axis == 0:
+                seg = np.array([[value, 0.0, root_z - half], [value, 0.0, root_z + half]])
+            else:
+                seg = np.array([[root_x - half, 0.0, value], [root_x + half, 0.0, value]])
+            inside = abs(value - (root_x if axis == 0 else root_z)) <= half
+            seg = _to_plot(seg if inside else seg[:0])
+            artist.set_data_3d(seg[:, 0], seg[:, 1], seg[:, 2])
+        if self.trajectory is not None:
+            path = self.joints[: frame + 1, 0] * np.array([1.0, 0.0, 1.0])
+            # 3-D lines are not clipped to the axes box: hide what lies off the floor.
+            off = (np.abs(path[:, 0] - root_x) > half) | (np.abs(path[:, 2] - root_z) > half)
+            path[off] = np.nan
+            path = _to_plot(path)
+            self.trajectory.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
+        for artist, chain in zip(self.bones, self.spec.kinematic_chains):
+            points = _to_plot(pose[list(chain)])
+            artist.set_data_3d(points[:, 0], points[:, 1], points[:, 2])
+        self.ax.set_xlim(root_x - half, root_x + half)
+        self.ax.set_ylim(-root_z - half, -root_z + half)
+        self.ax.set_zlim(0.0, 2 * half)
+
+
+def _figure(figsize: tuple[float, float], dpi: int):
+    """A figure with its own Agg canvas: no pyplot state, so nothing is shown twice in a
+    notebook and nothing leaks across calls (a notebook displays the returned figure)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _wrap(title: str | None, width: int = 50) -> str | None:
+    return None if title is None else textwrap.fill(title, width)
+
+
+def plot_motion(
+    motion: Any,
+    skeleton: str | SkeletonSpec = "t2m",
+    title: str | None = None,
+    frames: int | Sequence[int] = 4,
+    mean: Any = None,
+    std: Any = None,
+    panel_size: float = 3.0,
+):
+    """Figure with one 3-D panel per key frame (`frames` evenly spaced key frames, or the
+    listed frame indices), for notebooks. Returns a matplotlib Figure."""
+    spec = get_skeleton(skeleton)
+    joints = as_joints(motion, spec, mean, std)
+    t = len(joints)
+    if isinstance(frames, int):
+        if frames < 1:
+            raise ValueError(f"plot_motion: frames must be >= 1, got {frames}")
+        indices = np.unique(np.linspace(0, t - 1, min(frames, t)).round().astype(int)).tolist()
+    else:
+        indices = [int(i) for i in frames]
+        if not indices or any(not -t <= i < t for i in indices):
+            raise ValueError(f"plot_motion: frame indices {indices} out of range for {t} frames")
+    fig = _figure((panel_size * len(indices), panel_size + (0.6 if title else 0.2)), 100)
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.85 if title else 0.95, wspace=0)
+    for k, index in enumerate(indices):
+        ax = fig.add_subplot(1, len(indices), k + 1, projection="3d")
+        _StickFigure(ax, joints, spec).update(index % t)
+        ax.set_title(f"frame {index % t}", fontsize=9)
+    if title:
+        fig.suptitle(_wrap(title, int(18 * len(indices)) + 20), fontsize=10)
+    return fig
+
+
+def save_animation(
+    motion: Any,
+    path: str | Path,
+    skeleton: str | SkeletonSpec = "t2m",
+    title: str | None = None,
+    fps: float | None = None,
+    mean: Any = None,
+    std: Any = None,
+    stride: int = 1,
+    size: float = 4.0,
+    dpi: int = 72,
+) -> Path:
+    """Write an animated stick figure to `path` (.gif with Pillow, .mp4 with ffmpeg).
+
+    stride: render every stride-th frame (fps is divided accordingly, so playback speed
+    is unchanged). fps: playback rate of the source frames; default the skeleton's.
+    """
+    from PIL import Image
+
+    spec = get_skeleton(skeleton)
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        raise ValueError(f"save_animation: unsupported output {path.name!r}; use .gif or .mp4")
+    if suffix == ".mp4" and shutil.which("ffmpeg") is None:
+        raise RuntimeError("save_animation: writing .mp4 needs ffmpeg on PATH; write a .gif instead")
+    if stride < 1:
+        raise ValueError(f"save_animation: stride must be >= 1, got {stride}")
+    joints = as_joints(motion, spec, mean, std)
+    rate = (fps or spec.fps) / stride
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    fig = _figure((size, size + (0.4 if title else 0.0)), dpi)
+    ax = fig.add_subplot(1, 1, 1, projection="3d")
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.9 if title else 1)
+    if title:
+        fig.suptitle(_wrap(title, int(10 * size)), fontsize=9)
+    figure = _StickFigure(ax, joints, spec)
+    frame_indices = range(0, len(joints), stride)
+    if suffix == ".gif":
+        images = []
+        for frame in frame_indices:
+            figure.update(frame)
+            fig.canvas.draw()
+            rgb = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+            images.append(rgb.quantize(colors=64, method=Image.Quantize.FASTOCTREE))
+        images[0].save(path, save_all=True, append_images=images[1:], loop=0,
+                       duration=int(round(1000 / rate)), disposal=2)
+    else:
+        from matplotlib.animation import FFMpegWriter
+
+        writer = FFMpegWriter(fps=rate)
+        with writer.saving(fig, str(path), dpi):
+            for frame in frame_indices:
+                figure.update(frame)
+                writer.grab_frame()
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="segmo render", description="Render a motion (.npy joints or features) to GIF/MP4."
+    )
+    parser.add_argument("file", type=Path, help="(t, j, 3) joints or (t, d) features, .npy")
+    parser.add_argument("--out", type=Path, required=True, help="output .gif or .mp4")
+    parser.add_argument("--title", default=None, help="caption shown above the figure")
+    parser.add_argument("--skeleton", default="t2m", choices=["t2m", "kit"])
+    parser.add_argument("--fps", type=float, default=None, help="default: the skeleton's fps")
+    parser.add_argument("--stride", type=int, default=1, help="render every k-th frame")
+    parser.add_argument("--mean", type=Path, default=None, help="Mean.npy, for z-scored features")
+    parser.add_argument("--std", type=Path, default=None, help="Std.npy, for z-scored features")
+    args = parser.parse_args(argv)
+    for name in ("file", "mean", "std"):
+        value = getattr(args, name)
+        if value is not None and not value.is_file():
+            parser.error(f"{name} {str(value)!r} does not exist")
+    if (args.mean is None) != (args.std is None):
+        parser.error("--mean and --std go together")
+    motion = np.load(args.file)
+    mean = None if args.mean is None else np.load(args.mean)
+    std = None if args.std is None else np.load(args.std)
+    try:
+        out = save_animation(motion, args.out, args.skeleton, args.title, args.fps, mean, std,
+                             stride=args.stride)
+    except (ValueError, RuntimeError) as error:
+        parser.error(f"{args.file}: {error}")
+    print(f"wrote {out}")

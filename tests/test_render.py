@@ -1,0 +1,79 @@
+"""Tests of segmo.render: GIF animation, key-frame figures and the `segmo render` CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from segmo.motion import T2M
+from segmo.render import as_joints, main, plot_motion, save_animation
+
+FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "humanml3d"
+
+
+def _fixture(name: str) -> np.ndarray:
+    path = FIXTURES / name
+    if not path.exists():
+        pytest.skip(f"HumanML3D fixture {path} not found (needs the shared fixtures folder)")
+    return np.load(path)
+
+
+def _frames(path: Path) -> int:
+    with Image.open(path) as image:
+        assert image.format == "GIF"
+        return image.n_frames
+
+
+def test_gif_from_fixture_joints(tmp_path):
+    joints = _fixture("012314_joints.npy")
+    out = save_animation(joints, tmp_path / "walk.gif", title="a person walks " * 8, stride=10)
+    assert out.exists() and _frames(out) > 5
+    with Image.open(out) as image:
+        assert image.info["duration"] == 500  # 20 fps / stride 10 -> 2 fps
+
+
+def test_gif_from_random_zscored_features(tmp_path):
+    g = np.random.default_rng(0)
+    mean, std = g.normal(size=263), np.abs(g.normal(size=263)) * 0.1 + 0.01
+    features = g.normal(size=(12, 263)).astype(np.float32)
+    out = save_animation(features, tmp_path / "random.gif", mean=mean, std=std)
+    assert _frames(out) > 1
+    joints = as_joints(features, "t2m", mean, std)
+    assert joints.shape == (12, 22, 3) and np.isfinite(joints).all()
+
+
+def test_plot_motion_key_frames():
+    joints = as_joints(np.zeros((5, 263)))  # a still pose at the origin
+    fig = plot_motion(joints, title="still", frames=3)
+    assert len(fig.axes) == 3 and fig.axes[1].get_title() == "frame 2"
+    assert len(plot_motion(joints, frames=[4]).axes) == 1
+    with pytest.raises(ValueError, match="out of range"):
+        plot_motion(joints, frames=[7])
+
+
+def test_input_errors(tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match=r"expected joints \(t, 22, 3\) or features \(t, 263\)"):
+        as_joints(np.zeros((10, 100)))
+    with pytest.raises(ValueError, match="unsupported output"):
+        save_animation(np.zeros((3, 22, 3)), tmp_path / "x.avi")
+    monkeypatch.setattr("segmo.render.shutil.which", lambda name: None)
+    with pytest.raises(RuntimeError, match="ffmpeg"):
+        save_animation(np.zeros((3, 22, 3)), tmp_path / "x.mp4")
+
+
+def test_cli(tmp_path, capsys):
+    features = np.zeros((6, T2M.feature_dim), dtype=np.float32)
+    features[:, 3] = 0.9  # root height
+    np.save(tmp_path / "m.npy", features)
+    main([str(tmp_path / "m.npy"), "--out", str(tmp_path / "m.gif"), "--title", "still", "--fps", "10"])
+    assert _frames(tmp_path / "m.gif") >= 1 and "wrote" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "missing.npy"), "--out", str(tmp_path / "x.gif")])
+    assert "does not exist" in capsys.readouterr().err
+    np.save(tmp_path / "bad.npy", np.zeros((6, 7)))
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "bad.npy"), "--out", str(tmp_path / "x.gif")])
+    assert "got shape (6, 7)" in capsys.readouterr().err
