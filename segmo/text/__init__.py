@@ -1,5 +1,27 @@
-"""Text side: offline text-segment extraction, text encoders and their feature cache."""
+"""Text side: offline text-segment extraction, text encoders and their feature cache.
 
-from segmo.text.rules import RuleSegmenter
+Heavy dependencies (transformers) are imported only when an LLM backend or an encoder
+is actually built.
+"""
 
-__all__ = ["RuleSegmenter"]
+from segmo.text.llm import (
+    OpenAISegmenter,
+    TransformersSegmenter,
+    get_segmenter,
+    load_prompt,
+    parse_answer,
+    validate_segments,
+)
+from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
+
+__all__ = [
+    "MAX_SEGMENTS",
+    "OpenAISegmenter",
+    "RuleSegmenter",
+    "TextSegmenter",
+    "TransformersSegmenter",
+    "get_segmenter",
+    "load_prompt",
+    "parse_answer",
+    "validate_segments",
+]

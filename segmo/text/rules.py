@@ -1,0 +1,561 @@
+"""Deterministic, model-free text-segment extraction (spec §7, paper §3.3).
+
+`RuleSegmenter` splits a motion caption into at most five temporally ordered segments
+with a small verb lexicon and a table of connectives; no NLP model is involved, so the
+result is reproducible and fast (about 6k captions per second on one busy core).
+
+Rules, in the order they are applied:
+1. Split at a connective (", then", "and then", "then", "after that", "followed by",
+   "finally", "afterwards", "next", "before", "after", "and", ",", sentence ends) only
+   when a verb phrase follows it (optionally after a subject such as "he" or "the man",
+   adverbs, or "is"), and the text before it holds a verb. "up and down", "back and
+   forth", "next to", "as if ..." therefore never split, and modifiers (speed,
+   direction, side, counts, "as if ...") stay with their verb.
+2. Simultaneous actions stay one segment: "while"/"as"/"at the same time" joins; a
+   static posture before a plain "and" ("stands and waves", "is kneeling and praying",
+   but not "stands and walks away" or "kneels and gets up") joins; a gerund after a plain "and"/"," in a finite sentence is a manner
+   ("walks forward, waving") and joins.
+3. Execution order, not mention order: "A after B" puts B first (", after B" moves B
+   before everything said before it in the sentence); "before B, A" puts B last.
+4. A segment without its own subject gets the caption's subject back ("a person walks
+   forward, turns around" -> "a person turns around"); a gerund segment in a finite
+   caption is put in the third person ("runs after walking" -> "a person walks"), and a
+   bare direction after "then" reuses the previous verb ("walks forward then back").
+   A verb right after a direction/adverb/verb starts a new action even without a comma
+   ("walks forward turns around"), unless it is usually a noun ("forward steps").
+   "raises and lowers his arms" shares the object: two segments with "his arms".
+5. At most `MAX_SEGMENTS`; the tail is merged into the last one with ", then ".
+
+Conventions chosen here: every segment has its final punctuation removed; a caption that
+yields a single segment is returned as ``[caption.strip() minus final punctuation]``,
+so an empty or whitespace-only caption gives ``[""]``. `segment` never raises on a str.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+MAX_SEGMENTS = 5
+
+
+@runtime_checkable
+class TextSegmenter(Protocol):
+    """What every backend provides. `name` names the output folder (`text_segments/<name>`)."""
+
+    name: str
+
+    def segment(self, texts: list[str]) -> list[list[str]]:
+        """One list of 1..MAX_SEGMENTS ordered segments per caption."""
+        ...
+
+
+# ---------------------------------------------------------------- verb lexicon
+# Regular verbs, base form. Words that are mostly nouns/directions in captions
+# ("left", "hand", "back", "forward", "figure") are left out on purpose.
+_REGULAR = """
+walk jog run sprint march stroll stride step stomp tiptoe sneak limp shuffle stagger stumble
+trip fall jump hop skip leap bounce land climb crawl roll flip tumble slide slip glide skate
+ski swim fly turn rotate spin twirl pivot circle twist lean bend bow crouch squat kneel sit
+stand lie rise get go come move return stop pause halt wait rest stay remain start begin
+continue proceed keep try perform do make take wave clap point reach grab pick place put
+lift raise lower drop throw toss catch push pull carry hold kick punch hit strike box jab
+block dodge duck swing shake nod stretch extend fold cross flex flap wiggle wobble sway rock
+dance balance lunge look glance stare watch touch tap pat rub scratch wipe brush wash clean
+drink eat play shoot aim fight wrestle hug salute gesture signal beckon shrug open close
+answer talk call yell sing pray juggle dribble pass stir pour cut chop sweep mop paint draw
+write type sew knit fish row paddle pedal drive ride steer imitate mimic act pretend
+shiver tremble jiggle bob swat slap stab thrust sprawl collapse recover regain straighten
+crank hammer saw dig shovel lay descend ascend mount dismount enter exit leave sidestep
+backpedal retreat approach accelerate decelerate slow speed hurry rush dash charge chase
+flail swirl wind unwind cartwheel somersault spread relax tilt arch curl hunch slouch
+squeeze shove trudge wander pace jerk kneel hover sneeze cough stamp grasp release shoot
+bring set drag spin lift flick swipe swat sway knock shield cover hide clean comb dust
+compensate counterbalance end avoid stroke receive let bump search repeat gain protect assume
+inspect beat change support check curve use circulate evade find yank stoop give listen form
+show need knee drift prepare practice practise simulate demonstrate execute complete reverse
+"""
+# "base 3sg past participle gerund" where the regular rules fail
+_IRREGULAR = {
+    e.split()[0]: tuple(e.split()[1:])
+    for e in """
+run runs ran run running | sit sits sat sat sitting | stand stands stood stood standing |
+lie lies lay lain lying | lay lays laid laid laying | fall falls fell fallen falling |
+rise rises rose risen rising | get gets got gotten getting | go goes went gone going |
+come comes came come coming | take takes took taken taking | make makes made made making |
+do does did done doing | throw throws threw thrown throwing |
+catch catches caught caught catching | hold holds held held holding |
+hit hits hit hit hitting | strike strikes struck struck striking |
+swing swings swung swung swinging | shake shakes shook shaken shaking |
+bend bends bent bent bending | spin spins spun spun spinning |
+kneel kneels knelt knelt kneeling | fly flies flew flown flying |
+swim swims swam swum swimming | leap leaps leapt leapt leaping |
+begin begins began begun beginning | keep keeps kept kept keeping | put puts put put putting |
+cut cuts cut cut cutting | set sets set set setting | bring brings brought brought bringing |
+drink drinks drank drunk drinking | eat eats ate eaten eating | sing sings sang sung singing |
+write writes wrote written writing | draw draws drew drawn drawing |
+drive drives drove driven driving | ride rides rode ridden riding |
+shoot shoots shot shot shooting | sweep sweeps swept swept sweeping |
+wind winds wound wound winding | dig digs dug dug digging | slide slides slid slid sliding |
+spread spreads spread spread spreading | hide hides hid hidden hiding |
+stride strides strode stridden striding | leave leaves left left leaving |
+seem seems seemed seemed seeming | sneak sneaks snuck snuck sneaking
+""".split("|")
+}
+# Words an inflection would make that are really nouns/directions in captions.
+_NOT_VERB_FORMS = {"left", "leaves", "lay"}
+_DOUBLED = set("""jog step trip hop skip flip slip stop pat rub tap nod flap bob drop
+shrug grab jab swat slap chop mop knit dig plan drag stab""".split())
+_STATIC = {"stand", "sit", "kneel", "lie", "stay", "remain", "hover", "wait", "rest", "balance"}
+# after a static posture these start a new action, not a simultaneous one ("stands and walks away")
+_MOVING = set("""walk run jog sprint march jump hop skip leap crawl climb fall step stride limp stumble go
+come leave turn spin rise get stand sit lie kneel squat crouch""".split())
+_PARTICLES = {"up", "down", "back", "over", "onto", "off", "out"}
+_TRANSITIVE = set("""raise lift lower swing bend move extend stretch rotate twist shake open
+close cross fold flex pick put drop throw toss catch push pull wave kick punch grab hold
+clap rub wipe tap touch spread straighten flap wiggle release""".split())
+
+
+def _inflect(base: str) -> dict[str, set[str]]:
+    if base in _IRREGULAR:
+        s3, past, pp, ing = _IRREGULAR[base]
+        return {base: {"base"}, s3: {"3sg"}, past: {"past"}, pp: {"pp"}, ing: {"ing"}}
+    if base.endswith(("s", "x", "z", "ch", "sh", "o")):
+        s3 = base + "es"
+    elif base.endswith("y") and base[-2] not in "aeiou":
+        s3 = base[:-1] + "ies"
+    else:
+        s3 = base + "s"
+    if base in _DOUBLED:
+        ing, past = base + base[-1] + "ing", base + base[-1] + "ed"
+    elif base.endswith("ie"):
+        ing, past = base[:-2] + "ying", base + "d"
+    elif base.endswith("e") and not base.endswith(("ee", "ye", "oe")):
+        ing, past = base[:-1] + "ing", base + "d"
+    elif base.endswith("y") and base[-2] not in "aeiou":
+        ing, past = base + "ing", base[:-1] + "ied"
+    else:
+        ing, past = base + "ing", base + "ed"
+    return {base: {"base"}, s3: {"3sg"}, past: {"past", "pp"}, ing: {"ing"}}
+
+
+def _build_lexicon() -> tuple[dict[str, tuple[str, frozenset[str]]], dict[str, str]]:
+    forms: dict[str, tuple[str, set[str]]] = {}
+    third: dict[str, str] = {}
+    for base in dict.fromkeys(_REGULAR.split() + list(_IRREGULAR)):
+        for form, kinds in _inflect(base).items():
+            if form in _NOT_VERB_FORMS:
+                continue
+            entry = forms.setdefault(form, (base, set()))
+            entry[1].update(kinds)
+        third[base] = next(f for f, k in _inflect(base).items() if "3sg" in k)
+    return {f: (b, frozenset(k)) for f, (b, k) in forms.items()}, third
+
+
+_FORMS, _THIRD = _build_lexicon()
+
+# ---------------------------------------------------------------- other word classes
+_PRONOUNS = {"he", "she", "they", "it", "someone", "somebody", "everyone", "i", "we"}
+_DETERMINERS = {"a", "an", "the", "this", "that", "one", "some", "another", "our"}
+_SUBJECT_NOUNS = set("""person man woman human figure subject someone somebody individual guy
+lady boy girl character people persons child kid actor player dancer humanoid avatar body
+performer athlete men women""".split())
+_RELATIVE = {"that", "who", "which"}
+_AUX = {"is", "are", "was", "were", "be", "been", "being", "am"}
+_ADVERBS = set("""then also again still just first immediately now once twice very really
+almost nearly simply slowly quickly soon later suddenly finally afterwards afterward
+eventually next gradually repeatedly continuously""".split())
+_NOT_GUESSABLE = set("""his her their its this that these those steps times degrees meters
+metres arms hands legs feet is was has as us its yes thus always sideways towards upwards
+downwards backwards forwards afterwards outwards inwards onwards stairs series something
+anything nothing everything thing ceiling""".split())
+_DIRECTIONS = set("""back backward backwards forward forwards left right around sideways away
+up down to towards home""".split())
+# after "then", these start an action that reuses the previous verb ("then two steps back")
+_COPYABLE = _DIRECTIONS | set("a an one two three four five six another 1 2 3 4 5 6".split())
+_OBJECT_STARTERS = set("""his her their the a an both its one left right arms hands arm hand
+leg legs something an object objects""".split())
+# 3sg verb forms that are mostly plural nouns when they follow another word directly
+_NOUNISH = set("""steps strides circles punches gestures moves curves hops kicks jumps waves squats
+lunges rounds stops bows dances swings rolls flips claps points lifts pushes pulls
+throws catches""".split())
+_SIMULTANEOUS_PHRASES = ("at the same time", "simultaneously", "meanwhile", "in the meantime")
+
+# connective token sequences -> kind; longer entries are tried first
+_CONNECTIVES: list[tuple[tuple[str, ...], str]] = sorted(
+    [
+        (("at", "the", "same", "time"), "simul"), (("in", "the", "meantime"), "simul"),
+        (("after", "that"), "strong"), (("after", "this"), "strong"), (("after", "which"), "strong"),
+        (("followed", "by"), "strong"), (("and",), "weak"), ((",",), "weak"), (("but",), "weak"),
+        (("then",), "strong"), (("afterwards",), "strong"), (("afterward",), "strong"),
+        (("finally",), "strong"), (("lastly",), "strong"), (("next",), "strong"),
+        (("later",), "strong"), (("subsequently",), "strong"), (("thereafter",), "strong"),
+        ((";",), "sentence"), ((".",), "sentence"), (("!",), "sentence"), (("?",), "sentence"),
+        (("before",), "before"), (("after",), "after"), (("while",), "simul"),
+        (("whilst",), "simul"), (("as",), "simul"), (("meanwhile",), "simul"),
+        (("simultaneously",), "simul"), (("during",), "simul"),
+    ],
+    key=lambda item: -len(item[0]),
+)
+_PRECEDENCE = ["weak", "strong", "sentence", "before", "after", "simul"]
+_LEADS = {"after": "after", "before": "before", "while": "simul", "whilst": "simul", "as": "simul"}
+_TOKEN_RE = re.compile(r"[A-Za-z0-9]+(?:['’/\-][A-Za-z0-9]+)*|[^\sA-Za-z0-9]")
+
+
+@dataclass
+class _Tok:
+    text: str
+    low: str
+    start: int  # character offsets into the caption
+    end: int
+
+
+@dataclass
+class _Clause:
+    """A run of tokens [start, end) describing one action, plus how it joins the previous one."""
+
+    start: int
+    end: int
+    verb: int | None  # token index of its verb, None for a copied verb ("then back")
+    own_subject: bool
+    join: str  # kind of the connective before it: lead-*, weak, strong, sentence, before, after, simul
+    wide: bool = False  # ", after ..." reaches back to the start of the sentence
+    copied_verb: str = ""
+    suffix: str = ""  # object shared from the next clause ("raises and lowers his arms")
+
+
+def _kinds(tok: _Tok) -> frozenset[str]:
+    entry = _FORMS.get(tok.low)
+    return entry[1] if entry else frozenset()
+
+
+def _verb_kinds(toks: list[_Tok], k: int | None) -> frozenset[str]:
+    """Kinds of the verb at k; an unknown verb is classed by its ending."""
+    if k is None:
+        return frozenset()
+    low = toks[k].low
+    if low in _FORMS:
+        return _FORMS[low][1]
+    return frozenset({"ing"} if low.endswith("ing") else {"past"} if low.endswith("ed") else {"3sg"})
+
+
+def _is_adverb(low: str) -> bool:
+    return low in _ADVERBS or (low.endswith("ly") and len(low) > 4 and low not in _FORMS)
+
+
+def _guess_verb(low: str) -> bool:
+    """An unknown word that looks inflected; only trusted right after a strong connective."""
+    if low in _NOT_GUESSABLE or low in _DIRECTIONS or not low.isalpha() or len(low) < 4:
+        return False
+    return low.endswith(("ing", "ed")) or (low.endswith("s") and not low.endswith(("ss", "us")))
+
+
+def _match_subject(toks: list[_Tok], k: int) -> int | None:
+    """End index of a subject noun phrase starting at k ("he", "the old man", "a figure that")."""
+    n = len(toks)
+    if k >= n:
+        return None
+    low = toks[k].low
+    if low in _PRONOUNS or (low in _SUBJECT_NOUNS and low not in _FORMS):
+        end = k + 1
+    elif low in _DETERMINERS:
+        end = next((m + 1 for m in range(k + 1, min(k + 4, n)) if toks[m].low in _SUBJECT_NOUNS), 0)
+        if not end:
+            return None
+    else:
+        return None
+    while end < n and toks[end].low in _RELATIVE:
+        end += 1
+    return end
+
+
+def _find_verb(toks: list[_Tok], j: int, join: str, main: frozenset[str], has_aux: bool):
+    """(verb index or None, own subject, copy-the-verb) if a verb phrase starts at j, else None."""
+    n = len(toks)
+    k, own, aux = j, False, False
+    end = _match_subject(toks, k)
+    if end is not None and end < n:
+        k, own = end, True
+    while k < n and (toks[k].low in _AUX or _is_adverb(toks[k].low)):
+        aux = aux or toks[k].low in _AUX
+        k += 1
+    if k >= n:
+        return None
+    kinds = _kinds(toks[k])
+    if kinds:
+        if join == "weak" and not own and not aux and "ing" not in kinds:
+            # plain "and"/"," joins verbs of the same grammatical form only: "walks and
+            # turns", but not "with arms raised and lowered"
+            allowed = set(main) | ({"3sg", "past"} if has_aux or "ing" in main else set())
+            if not kinds & allowed:
+                return None
+        return k, own, False
+    if join != "weak" and _guess_verb(toks[k].low):
+        return k, own, False
+    if join in ("strong", "sentence") and not own and k == j and (toks[k].low in _COPYABLE or toks[k].low.isdigit()):
+        return None, False, True
+    return None
+
+
+def _tokenize(text: str) -> list[_Tok]:
+    return [_Tok(m.group(), m.group().lower(), m.start(), m.end()) for m in _TOKEN_RE.finditer(text)]
+
+
+def _match_connective(toks: list[_Tok], i: int) -> tuple[int, str, bool]:
+    """Longest run of connectives at i: (end index, strongest kind, starts with a comma)."""
+    j, kind = i, ""
+    while True:
+        for words, k in _CONNECTIVES:
+            if tuple(t.low for t in toks[j : j + len(words)]) == words:
+                after = toks[j + len(words)].low if j + len(words) < len(toks) else ""
+                if (words == ("as",) and after in ("if", "though", "well")) or (words == ("next",) and after == "to"):
+                    continue
+                j += len(words)
+                kind = max(kind, k, key=lambda x: _PRECEDENCE.index(x) if x else -1)
+                break
+        else:
+            return j, kind, bool(j > i and toks[i].low == ",")
+
+
+def _has_verb(toks: list[_Tok], a: int, b: int) -> bool:
+    return any(_kinds(t) or _guess_verb(t.low) for t in toks[a:b])
+
+
+def _asyndeton(prev: _Tok, tok: _Tok) -> bool:
+    """Whether `tok`, a 3sg verb right after `prev`, starts a new action with no connective."""
+    if tok.low in _NOUNISH:  # "takes five forward steps", "draws circles"
+        return False
+    return prev.low in _DIRECTIONS - {"to"} or _is_adverb(prev.low) or "3sg" in _kinds(prev)
+
+
+def _last_verb(toks: list[_Tok], clause: _Clause) -> str:
+    """The verb an elliptic "then two steps back" reuses: the previous clause's own verb."""
+    return toks[clause.verb].text if clause.verb is not None else clause.copied_verb
+
+
+def _first_verb(toks: list[_Tok]) -> int | None:
+    """The first lexicon verb, or an unknown verb right after the subject ("a man shows")."""
+    n = len(toks)
+    first = next((k for k in range(n) if _kinds(toks[k])), None)
+    k = _match_subject(toks, 0)
+    if k is None:
+        return first
+    while k < n and (toks[k].low in _AUX or _is_adverb(toks[k].low)):
+        k += 1
+    if k < n and (first is None or k < first) and _guess_verb(toks[k].low):
+        return k
+    return first
+
+
+def _split(toks: list[_Tok]) -> list[_Clause]:
+    n = len(toks)
+    first = _first_verb(toks)
+    lead = _LEADS.get(toks[0].low) if n and first is not None else None
+    if lead and toks[1].low in ("that", "this", "which"):
+        lead = None
+    main_verb = first
+    if lead and first is not None:
+        main_verb = next((k for k in range(first + 1, n) if _kinds(toks[k]) - {"ing", "pp"}), first)
+    main = _verb_kinds(toks, main_verb)
+    has_aux = main_verb is not None and main_verb > 0 and toks[main_verb - 1].low in _AUX
+    start = 1 if lead and lead != "simul" else 0
+    clauses = [_Clause(start, n, first, False, f"lead-{lead}" if lead else "")]
+    i = first + 1 if first is not None else n
+    while i < n:
+        cur = clauses[-1]
+        j, kind, comma = _match_connective(toks, i)
+        if not kind and lead and len(clauses) == 1 and _match_subject(toks, i) is not None:
+            j, kind = i, "weak"  # "after walking a man runs": the main clause starts here
+        elif not kind and "3sg" in main and "3sg" in _kinds(toks[i]) and _asyndeton(toks[i - 1], toks[i]):
+            j, kind = i, "weak"  # "walks forward takes a turn": a comma left out
+        if kind and j < n and _has_verb(toks, cur.start, i):
+            found = _find_verb(toks, j, kind, main, has_aux)
+            if found is not None:
+                verb, own, copy = found
+                cur.end = i
+                copied = _last_verb(toks, cur) if copy else ""
+                if copy and not copied:
+                    i += 1
+                    continue
+                clauses.append(_Clause(j, n, verb, own, kind, comma and kind == "after", copied))
+                i = (verb if verb is not None else j) + 1
+                continue
+        i = max(j, i + 1)
+    return clauses
+
+
+def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozenset[str]) -> list[_Clause]:
+    """Join simultaneous clauses (rule 2) and share objects between bare verbs (rule 4)."""
+    units: list[_Clause] = []
+    for c in clauses:
+        prev = units[-1] if units else None
+        if prev is None:
+            units.append(c)
+            continue
+        text = " ".join(t.low for t in toks[c.start : c.end])
+        verb_kinds = _kinds(toks[c.verb]) if c.verb is not None else frozenset()
+        prev_base = _FORMS[toks[prev.verb].low][0] if prev.verb is not None and _kinds(toks[prev.verb]) else ""
+        verb_base = _FORMS[toks[c.verb].low][0] if verb_kinds else ""
+        static = (
+            prev_base in _STATIC
+            and verb_base not in _MOVING
+            and c.verb is not None
+            and not any(t.low in _PARTICLES for t in toks[c.verb + 1 : c.verb + 2])
+            and not any(t.low in _PARTICLES for t in toks[prev.verb + 1 : prev.end])
+            and c.join == "weak"
+            and not c.own_subject
+        )
+        manner = c.join == "weak" and not c.own_subject and verb_kinds == {"ing"} and "ing" not in main
+        if (
+            c.join == "simul"
+            or prev.join == "lead-simul" and len(units) == 1
+            or static
+            or manner
+            or (c.join in ("weak", "simul") and any(p in text for p in _SIMULTANEOUS_PHRASES))
+        ):
+            prev.end = c.end
+            continue
+        bare = prev.verb is not None and all(_is_adverb(t.low) for t in toks[prev.verb + 1 : prev.end])
+        if (
+            bare and c.join == "weak" and prev_base in _TRANSITIVE and c.verb is not None
+            and c.verb + 1 < c.end and toks[c.verb + 1].low in _OBJECT_STARTERS
+        ):
+            prev.suffix = " " + caption[toks[c.verb + 1].start : toks[c.end - 1].end]
+        units.append(c)
+    return units
+
+
+def _order(units: list[_Clause]) -> list[_Clause]:
+    """Execution order (rule 3)."""
+    order: list[_Clause] = []
+    deferred: _Clause | None = None  # "before B, A ...": B goes after the first sentence
+    sentence_start, prev_pos = 0, 0
+    for idx, u in enumerate(units):
+        if idx == 0 and u.join == "lead-before" and len(units) > 1:
+            deferred = u
+            continue
+        if u.join == "sentence" and deferred is not None:
+            order.append(deferred)
+            deferred = None
+        if u.join == "after" and order:
+            pos = sentence_start if u.wide else prev_pos
+            order.insert(pos, u)
+            prev_pos = pos
+            continue
+        if u.join == "sentence":
+            sentence_start = len(order)
+        order.append(u)
+        prev_pos = len(order) - 1
+    if deferred is not None:
+        order.append(deferred)
+    return order
+
+
+def _strip(text: str) -> str:
+    """Surrounding white space and final punctuation off, nothing else."""
+    return text.strip().rstrip(".,;:!? \t\n")
+
+
+class RuleSegmenter:
+    """Deterministic rule-based segmenter, the default backend (see the module docstring).
+
+    Example:
+        >>> RuleSegmenter().segment(["a man runs after walking."])
+        [['a man walks', 'a man runs']]
+    """
+
+    name = "rule"
+
+    def __init__(self, max_segments: int = MAX_SEGMENTS) -> None:
+        if max_segments < 1:
+            raise ValueError(f"RuleSegmenter: max_segments must be >= 1, got {max_segments}")
+        self.max_segments = max_segments
+
+    def segment(self, texts: list[str]) -> list[list[str]]:
+        return [self.segment_one(t) for t in texts]
+
+    def segment_one(self, caption: str) -> list[str]:
+        """Ordered segments of one caption; ``[caption minus final punctuation]`` if one action."""
+        if not isinstance(caption, str):
+            raise TypeError(f"RuleSegmenter.segment: captions must be str, got {type(caption).__name__}")
+        toks = _tokenize(caption)
+        if not toks:
+            return [_strip(caption)]
+        clauses = _split(toks)
+        first = clauses[0].verb
+        main_clause = clauses[1] if clauses[0].join.startswith("lead-") and len(clauses) > 1 else clauses[0]
+        main = _verb_kinds(toks, main_clause.verb)
+        units = _order(_merge(caption, toks, clauses, main))
+        if len(units) <= 1 or first is None:
+            return [_strip(caption)]
+        subject, aux = self._subject(toks, main_clause)
+        segments = [self._text(caption, toks, u, subject, aux, main, u is main_clause) for u in units]
+        segments = [s for s in segments if s]
+        if len(segments) > self.max_segments:
+            k = self.max_segments - 1
+            segments = segments[:k] + [", then ".join(segments[k:])]
+        return segments or [_strip(caption)]
+
+    @staticmethod
+    def _subject(toks: list[_Tok], clause: _Clause) -> tuple[str, str]:
+        """The caption's subject ("A person") and auxiliary ("is"), from its main clause."""
+        if clause.verb is None:
+            return "", ""
+        aux = next((t.text for t in toks[clause.start : clause.verb] if t.low in _AUX), "")
+        end = _match_subject(toks, clause.start)
+        if end is None or end > clause.verb:
+            # no recognised noun phrase: trust a short run of plain words ("some one walks")
+            words = toks[clause.start : clause.verb]
+            short = 0 < len(words) <= 3 and all(t.low.isalpha() and not _is_adverb(t.low) for t in words)
+            if not short or any(t.low in _AUX or _guess_verb(t.low) for t in words):
+                return "", aux
+            end = clause.verb
+        while end > clause.start and toks[end - 1].low in _RELATIVE:
+            end -= 1
+        return " ".join(t.text for t in toks[clause.start : end]), aux
+
+    @staticmethod
+    def _text(caption: str, toks: list[_Tok], u: _Clause, subject: str, aux: str, main, is_main: bool) -> str:
+        if u.start >= u.end:
+            return ""
+        body = caption[toks[u.start].start : toks[u.end - 1].end]
+        verb_tok = toks[u.verb] if u.verb is not None else None
+        if u.copied_verb:
+            body = f"{u.copied_verb} {body}"
+        elif verb_tok is not None and u.suffix:
+            body = body + u.suffix
+        gerund = verb_tok is not None and _kinds(verb_tok) == {"ing"}
+        if verb_tok is not None and gerund and not u.own_subject and "3sg" in main and verb_tok.low in _FORMS:
+            # "runs after walking" -> "walks": one tense across the segments of a caption
+            third = _THIRD[_FORMS[verb_tok.low][0]]
+            a, b = verb_tok.start - toks[u.start].start, verb_tok.end - toks[u.start].start
+            body = body[:a] + third + body[b:]
+            gerund = False
+        first_word = toks[u.start].low
+        if not u.own_subject and "3sg" in main and first_word in ("being", "having"):
+            # "after being pushed" -> "is pushed"
+            n0 = len(toks[u.start].text)
+            body = ("is" if first_word == "being" else "has") + body[n0:]
+        if u.own_subject or is_main or not subject:
+            return _strip(body)
+        prefix = f"{subject} {aux}" if aux and gerund else subject
+        return _strip(f"{prefix} {body[:1].lower()}{body[1:]}")
+
+
+def lemma(word: str) -> str:
+    """A crude lemma for comparing words across inflections ("ran" -> "run", "steps" -> "step").
+
+    Lexicon verbs map to their base form; other words lose a plural/verb ending. Used to
+    check that an LLM answer is made of the caption's words.
+    """
+    low = word.lower()
+    if low in _FORMS:
+        return _FORMS[low][0]
+    for suffix, repl in (("ies", "y"), ("ing", ""), ("ed", ""), ("es", ""), ("s", "")):
+        if low.endswith(suffix) and len(low) - len(suffix) >= 3:
+            low = low[: -len(suffix)] + repl
+            break
+    if len(low) > 3 and low[-1] == low[-2] and low[-1] not in "lsz":
+        low = low[:-1]  # "stepp(ing)" -> "step"
+    return low[:-1] if len(low) > 3 and low.endswith("e") else low
