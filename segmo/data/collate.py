@@ -1,0 +1,53 @@
+"""Batching of `MotionDataset` / `MotionWindowDataset` samples."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+# Per-sample values that are passed through as plain lists (strings, ragged structures).
+LIST_KEYS = ("caption", "segments", "id", "caption_index", "spans")
+
+
+def _pad(seqs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Right-pad (t_i, d) tensors with zeros to (b, t_max, d); mask (b, t_max) True = valid."""
+    t_max = max(s.shape[0] for s in seqs)
+    out = seqs[0].new_zeros(len(seqs), t_max, *seqs[0].shape[1:])
+    mask = torch.zeros(len(seqs), t_max, dtype=torch.bool)
+    for i, s in enumerate(seqs):
+        out[i, : s.shape[0]] = s
+        mask[i, : s.shape[0]] = True
+    return out, mask
+
+
+def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
+    """Pad a list of samples into a batch.
+
+    Returns ``motion`` (b, t, d) zero-padded to the longest motion, ``mask`` (b, t) bool
+    (True = valid frame), ``lengths`` (b,) long; lists for ``caption``, ``segments``, ``id``,
+    ``caption_index``, ``spans`` (whichever the samples have); and when text features are
+    present ``sentence`` (b, dim), ``segment_features`` (b, A, dim), ``segment_mask``
+    (b, A) bool, ``tokens`` (b, l, dim) zero-padded with ``token_mask`` (b, l) bool.
+    """
+    if not samples:
+        raise ValueError("collate: empty list of samples")
+    keys = samples[0].keys()
+    for s in samples[1:]:
+        if s.keys() != keys:
+            raise ValueError(f"collate: samples have different keys: {sorted(keys)} vs {sorted(s.keys())}")
+    motion, mask = _pad([s["motion"] for s in samples])
+    batch: dict[str, Any] = {
+        "motion": motion,
+        "mask": mask,
+        "lengths": torch.tensor([s["length"] for s in samples], dtype=torch.long),
+    }
+    for key in LIST_KEYS:
+        if key in keys:
+            batch[key] = [s[key] for s in samples]
+    for key in ("sentence", "segment_features", "segment_mask"):
+        if key in keys:
+            batch[key] = torch.stack([s[key] for s in samples])
+    if "tokens" in keys:
+        batch["tokens"], batch["token_mask"] = _pad([s["tokens"] for s in samples])
+    return batch

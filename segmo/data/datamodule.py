@@ -1,0 +1,153 @@
+"""`MotionDataModule`: splits, statistics and loaders of one dataset folder (docs/design.md)."""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import torch
+from lightning.pytorch import LightningDataModule
+from torch.utils.data import DataLoader, Dataset
+
+from segmo.data.collate import collate
+from segmo.data.humanml3d import MotionDataset, MotionWindowDataset, load_stats
+from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+
+
+class MotionDataModule(LightningDataModule):
+    """A HumanML3D-layout folder as train/val/test/predict loaders.
+
+    Splits come from ``ROOT/{train,val,test}.txt`` in file order (``max_motions`` keeps the
+    first N ids of each); predict uses the test split. Without ``window`` every split is a
+    `MotionDataset` (one sample per caption; random crop offsets for train only). With
+    ``window`` (tokenizer training) train is a `MotionWindowDataset` of random windows and
+    val/test are whole clips, one per motion. Train batches are shuffled by a generator
+    seeded with ``seed``; the last incomplete batch is dropped only when the train set holds
+    more than one batch.
+
+    Example::
+
+        dm = MotionDataModule("data/synth", batch_size=32)
+        dm.setup("fit")
+        batch = next(iter(dm.train_dataloader()))  # motion (b, t, d), mask (b, t), ...
+    """
+
+    def __init__(
+        self,
+        root: str,
+        skeleton: str = "t2m",
+        batch_size: int = 64,
+        num_workers: int = 0,
+        window: int | None = None,
+        text_segments: str | None = None,
+        text_features: str | None = None,
+        max_segments: int = 5,
+        unit_length: int = 4,
+        seed: int = 0,
+        max_motions: int | None = None,
+        preload: bool = True,
+        strict: bool = False,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        if batch_size <= 0:
+            raise ValueError(f"batch_size={batch_size} must be positive")
+        self.root = Path(root)
+        self.skeleton: SkeletonSpec = get_skeleton(skeleton)
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.window = window
+        self.text_segments = text_segments
+        self.text_features = text_features
+        self.max_segments = max_segments
+        self.unit_length = unit_length
+        self.seed = seed
+        self.max_motions = max_motions
+        self.preload = preload
+        self.strict = strict
+        self.datasets: dict[str, Dataset] = {}
+        # One generator for the life of the module, so that re-created train loaders
+        # (reload_dataloaders_every_n_epochs) continue the stream instead of repeating it.
+        self._shuffle = torch.Generator().manual_seed(seed)
+
+    @property
+    def feature_dim(self) -> int:
+        return self.skeleton.feature_dim
+
+    @cached_property
+    def _stats(self) -> tuple[Any, Any]:
+        return load_stats(self.root, self.skeleton)
+
+    @property
+    def mean(self) -> torch.Tensor:
+        """(d,) float32, a fresh copy of ``ROOT/Mean.npy``."""
+        return torch.tensor(self._stats[0])
+
+    @property
+    def std(self) -> torch.Tensor:
+        """(d,) float32, a fresh copy of ``ROOT/Std.npy``."""
+        return torch.tensor(self._stats[1])
+
+    @cached_property
+    def text_cache(self) -> Any:
+        """The text-feature cache shared by all splits, or None."""
+        if self.text_features is None:
+            return None
+        from segmo.text.cache import TextFeatureCache  # lazy: pulls in transformers
+
+        return TextFeatureCache.open(self.root, self.text_features)
+
+    def dataset(self, split: str) -> Dataset:
+        """The dataset of ``split`` ("train", "val" or "test"), built on first use."""
+        if split not in ("train", "val", "test"):
+            raise ValueError(f"unknown split {split!r}; expected 'train', 'val' or 'test'")
+        if split not in self.datasets:
+            self.datasets[split] = self._build(split)
+        return self.datasets[split]
+
+    def _build(self, split: str) -> Dataset:
+        train = split == "train"
+        mean, std = self._stats
+        common = dict(skeleton=self.skeleton, mean=mean, std=std, unit_length=self.unit_length,
+                      random_crop=train, seed=self.seed, max_motions=self.max_motions,
+                      preload=self.preload, strict=self.strict)
+        if self.window is not None:
+            return MotionWindowDataset(self.root, split, window=self.window if train else None,
+                                       **common)
+        return MotionDataset(self.root, split, text_segments=self.text_segments,
+                             text_cache=self.text_cache, max_segments=self.max_segments, **common)
+
+    def setup(self, stage: str | None = None) -> None:
+        splits = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",),
+                  "predict": ("test",), None: ("train", "val", "test")}[stage]
+        for split in splits:
+            self.dataset(split)
+
+    def _loader(self, split: str, train: bool = False) -> DataLoader:
+        ds = self.dataset(split)
+        if len(ds) == 0:
+            raise ValueError(f"{self.root / (split + '.txt')}: no usable samples "
+                             f"(summary: {getattr(ds, 'summary', {})})")
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            shuffle=train,
+            generator=self._shuffle if train else None,
+            drop_last=train and len(ds) > self.batch_size,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            collate_fn=collate,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", train=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test")
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader("test")

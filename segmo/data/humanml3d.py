@@ -1,0 +1,532 @@
+"""Reader and datasets for the HumanML3D / KIT-ML folder layout (spec §2, docs/design.md).
+
+The folder layout is the same for every dataset; what differs (feature width, fps, length
+limits) comes from a `SkeletonSpec`. Two datasets are built on one reader:
+
+* `MotionDataset`: one sample per caption line (time-tagged captions are their own
+  sub-clip samples), with text segments, ground-truth spans and cached text features.
+* `MotionWindowDataset`: one entry per motion, for tokenizer training (random windows)
+  and its validation (whole clips).
+
+What is skipped and what raises (``strict=True`` turns every skip into a ``ValueError``):
+
+* skipped with one ``warnings.warn`` per kind and counted in ``dataset.summary``: a motion
+  file that is missing, empty (0 bytes or 0 frames), unreadable, or holds NaN/inf; a text
+  file that is missing; a text line that is not ``caption#tokens#from#to``; a text-segment
+  file that is missing; a motion without any usable caption;
+* counted only (ordinary filtering, spec §2): samples outside ``min_frames <= t < max_frames``
+  and, in window mode, motions shorter than the window;
+* raised: a missing split / statistics file or text-segment folder (``FileNotFoundError``),
+  a motion of the wrong shape for the skeleton, statistics of the wrong shape or with a
+  non-positive std, a text-segment file whose line count differs from its text file, more
+  text segments than ``max_segments``, a ground-truth file that does not match its text
+  file (``ValueError``). Every message names the file (and line where there is one).
+
+Randomness (crop offsets, windows) comes from a ``torch.Generator`` seeded with ``seed``
+in the main process, or, inside a DataLoader worker, with ``seed`` mixed with the worker
+seed that the DataLoader draws from its own (seeded) generator; so a run is reproducible
+for a given seed, DataLoader generator and worker count.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import warnings
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, get_worker_info
+
+from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+
+log = logging.getLogger(__name__)
+
+# Kinds of skipped items that are reported with a warning (malformed data), as opposed to
+# the length filters, which are ordinary and only counted.
+WARNED_KINDS = ("missing", "empty", "unreadable", "nan", "missing_text", "bad_line",
+                "missing_segments", "no_captions")
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_split(root: str | Path, split: str) -> list[str]:
+    """Ids of ``ROOT/<split>.txt``, one per non-blank line, in file order."""
+    path = Path(root) / f"{split}.txt"
+    if not path.is_file():
+        raise FileNotFoundError(f"split file not found: {path}")
+    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    if not ids:
+        raise ValueError(f"split file lists no ids: {path}")
+    return ids
+
+
+def load_stats(root: str | Path, skeleton: str | SkeletonSpec = "t2m") -> tuple[np.ndarray, np.ndarray]:
+    """``ROOT/Mean.npy`` and ``ROOT/Std.npy`` as read-only float32 copies, each (d,)."""
+    paths = [Path(root) / "Mean.npy", Path(root) / "Std.npy"]
+    for path in paths:
+        if not path.is_file():
+            raise FileNotFoundError(f"normalisation statistics not found: {path}")
+    return check_stats(np.load(paths[0]), np.load(paths[1]), skeleton, *map(str, paths))
+
+
+def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_name: str = "mean",
+                std_name: str = "std") -> tuple[np.ndarray, np.ndarray]:
+    """Validated read-only float32 copies (d,) of mean and std (the inputs are never aliased)."""
+    spec = get_skeleton(skeleton)
+    out = []
+    for name, arr in ((mean_name, mean), (std_name, std)):
+        arr = np.array(arr, dtype=np.float32)  # always a copy
+        if arr.shape != (spec.feature_dim,):
+            raise ValueError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
+                             f"for skeleton {spec.name!r}")
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name}: contains NaN or inf")
+        arr.setflags(write=False)
+        out.append(arr)
+    if (out[1] <= 0).any():
+        raise ValueError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
+    return out[0], out[1]
+
+
+@dataclass(frozen=True)
+class Caption:
+    """One parsed line of ``texts/<id>.txt``; ``start``/``end`` in seconds, both 0 = whole clip."""
+
+    text: str
+    start: float
+    end: float
+    line: int  # 1-based line number in the file, for messages
+
+    @property
+    def whole_clip(self) -> bool:
+        return self.start == 0.0 and self.end == 0.0
+
+
+def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> Caption:
+    """Parse ``caption#word/POS ...#from#to``; NaN tags count as 0 (HumanML3D convention)."""
+    parts = line.strip().split("#")
+    where = f"{path}:{lineno}"
+    if len(parts) != 4:
+        raise ValueError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
+                         f"'#'-separated fields: {line.strip()[:80]!r}")
+    caption = parts[0].strip()
+    if not caption:
+        raise ValueError(f"{where}: empty caption")
+    try:
+        start, end = float(parts[2]), float(parts[3])
+    except ValueError:
+        raise ValueError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
+    start = 0.0 if math.isnan(start) else start
+    end = 0.0 if math.isnan(end) else end
+    if not (start == 0.0 and end == 0.0) and not (0.0 <= start < end):
+        raise ValueError(f"{where}: bad time tags from={start} to={end}")
+    return Caption(caption, start, end, lineno)
+
+
+def _lines(path: Path) -> list[tuple[int, str]]:
+    """Non-blank lines with their 1-based numbers; line i of a caption file ↔ index i here."""
+    return [(n, s) for n, s in enumerate(path.read_text().splitlines(), 1) if s.strip()]
+
+
+def read_npy_shape(path: Path) -> tuple[int, ...]:
+    """Shape from a ``.npy`` header without reading the data (lazy mode)."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, _, _ = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, _, _ = np.lib.format.read_array_header_2_0(f)
+    return shape
+
+
+class LoadReport:
+    """Counts what a dataset skipped and why; warns once per kind; raises when strict."""
+
+    def __init__(self, strict: bool = False) -> None:
+        self.strict = strict
+        self.counts: Counter[str] = Counter()
+        self.problems: list[tuple[str, str]] = []  # (kind, "path[:line]: detail")
+
+    def skip(self, kind: str, message: str) -> None:
+        if self.strict:
+            raise ValueError(f"{message} (strict=True)")
+        self.counts[kind] += 1
+        self.problems.append((kind, message))
+
+    def filtered(self, kind: str) -> None:
+        self.counts[kind] += 1
+
+    def finish(self, name: str, samples: int, motions: int) -> dict[str, int]:
+        for kind in WARNED_KINDS:
+            msgs = [m for k, m in self.problems if k == kind]
+            if msgs:
+                more = f" (+{len(msgs) - 3} more)" if len(msgs) > 3 else ""
+                warnings.warn(f"{name}: skipped {len(msgs)} x {kind}: " + "; ".join(msgs[:3]) + more,
+                              stacklevel=3)
+        skipped = ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())) or "none"
+        log.info("%s: loaded %d samples from %d motions; skipped: %s", name, samples, motions, skipped)
+        return {"samples": samples, "motions": motions, **dict(self.counts)}
+
+
+class MotionStore:
+    """Raw (un-normalised) motions of a split, preloaded as read-only arrays or read lazily.
+
+    Lazy mode reads only the ``.npy`` header at construction, so a NaN in a lazily read
+    file is found when the sample is first loaded and raises there.
+    """
+
+    def __init__(self, root: Path, ids: list[str], spec: SkeletonSpec, report: LoadReport,
+                 preload: bool = True) -> None:
+        self.folder = root / "new_joint_vecs"
+        self.preload = preload
+        self.spec = spec
+        self.arrays: dict[str, np.ndarray] = {}
+        self.lengths: dict[str, int] = {}
+        for mid in ids:
+            self._add(mid, report)
+
+    def _add(self, mid: str, report: LoadReport) -> None:
+        path = self.folder / f"{mid}.npy"
+        if not path.is_file():
+            report.skip("missing", f"{path}: motion file not found")
+            return
+        if path.stat().st_size == 0:
+            report.skip("empty", f"{path}: empty file")
+            return
+        try:
+            arr = np.load(path) if self.preload else None
+            shape = arr.shape if arr is not None else read_npy_shape(path)
+        except (OSError, ValueError, EOFError) as err:
+            report.skip("unreadable", f"{path}: {err}")
+            return
+        self._check_shape(path, shape)
+        if shape[0] == 0:
+            report.skip("empty", f"{path}: 0 frames")
+            return
+        if arr is not None:
+            if not np.isfinite(arr).all():
+                report.skip("nan", f"{path}: contains NaN or inf")
+                return
+            arr = np.array(arr, dtype=np.float32)
+            arr.setflags(write=False)
+            self.arrays[mid] = arr
+        self.lengths[mid] = int(shape[0])
+
+    def _check_shape(self, path: Path, shape: tuple[int, ...]) -> None:
+        if len(shape) != 2 or shape[1] != self.spec.feature_dim:
+            raise ValueError(f"{path}: shape {shape}, expected (t, {self.spec.feature_dim}) "
+                             f"for skeleton {self.spec.name!r}")
+
+    def __contains__(self, mid: str) -> bool:
+        return mid in self.lengths
+
+    def get(self, mid: str) -> np.ndarray:
+        """(t, d) float32 raw features."""
+        if self.preload:
+            return self.arrays[mid]
+        path = self.folder / f"{mid}.npy"
+        arr = np.load(path).astype(np.float32, copy=False)
+        self._check_shape(path, arr.shape)
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{path}: contains NaN or inf (found when loading lazily)")
+        return arr
+
+
+class _SeededGenerator:
+    """A torch.Generator seeded from ``seed`` in the main process, re-seeded per DataLoader worker."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+        self._gen: torch.Generator | None = None
+        self._owner: tuple[int, int] | None = None
+
+    def get(self) -> torch.Generator:
+        info = get_worker_info()
+        owner = None if info is None else (info.id, info.seed)
+        if self._gen is None or owner != self._owner:
+            # Each worker holds a copy of the dataset; without re-seeding all copies would
+            # draw the same offsets. The worker seed derives from the loader's generator.
+            seed = self.seed if info is None else (self.seed * 1_000_003 + info.seed) % 2**63
+            self._gen = torch.Generator().manual_seed(seed)
+            self._owner = owner
+        return self._gen
+
+    def __getstate__(self) -> dict[str, Any]:  # Generators need not survive pickling (spawn)
+        return {"seed": self.seed, "_gen": None, "_owner": None}
+
+
+def _crop_offset(t: int, size: int, random: bool, gen: _SeededGenerator) -> int:
+    if not random or t == size:
+        return 0
+    return int(torch.randint(0, t - size + 1, (1,), generator=gen.get()))
+
+
+# ----------------------------------------------------------------------------- datasets
+
+
+@dataclass(frozen=True)
+class _Entry:
+    id: str  # sample id: motion id, or "<motion id>#<caption index>" for a time-tagged sub-clip
+    motion_id: str
+    caption_index: int
+    caption: str
+    segments: tuple[str, ...]
+    start: int  # frame range of the motion file covered by the caption
+    end: int
+    spans: tuple[tuple[int, int], ...] | None
+
+
+class MotionDataset(Dataset):
+    """One sample per caption line of a split (see the module docstring for skips/errors).
+
+    A sample is a dict (docs/design.md "A sample"): ``motion`` (t, d) float32 z-scored with
+    t a multiple of ``unit_length``; ``length`` t; ``caption``; ``segments`` list[str]
+    (``text_segments/<name>/<id>.txt``, else ``[caption]``); ``id``; ``caption_index``;
+    ``spans`` list[(start, end)] frames of the returned motion, end exclusive, or None; and
+    with a text-feature cache ``sentence`` (dim,), ``segment_features`` (A, dim) zero-padded,
+    ``segment_mask`` (A,) bool, ``tokens`` (l, dim).
+
+    Cropping to a multiple of ``unit_length`` drops ``t % unit_length`` frames: at a random
+    offset when ``random_crop`` (training), else from the end (start 0, evaluation). Spans
+    are shifted by the offset and clipped to [0, t]. Time-tagged sub-clips carry no spans
+    (ground truth is only written for whole clips, by the built-in corpus).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "train",
+        skeleton: str | SkeletonSpec = "t2m",
+        *,
+        mean: np.ndarray | None = None,
+        std: np.ndarray | None = None,
+        unit_length: int = 4,
+        random_crop: bool = False,
+        seed: int = 0,
+        text_segments: str | None = None,
+        text_features: str | None = None,
+        text_cache: Any = None,
+        max_segments: int = 5,
+        max_motions: int | None = None,
+        preload: bool = True,
+        strict: bool = False,
+    ) -> None:
+        if max_segments < 1:
+            raise ValueError(f"max_segments={max_segments} must be at least 1")
+        self.root = Path(root)
+        self.split = split
+        self.skeleton = get_skeleton(skeleton)
+        self.unit_length = unit_length
+        self.random_crop = random_crop
+        self.max_segments = max_segments
+        self.mean, self.std = _stats(self.root, self.skeleton, mean, std)
+        self._gen = _SeededGenerator(seed)
+        seg_dir = None
+        if text_segments is not None:
+            seg_dir = self.root / "text_segments" / text_segments
+            if not seg_dir.is_dir():
+                raise FileNotFoundError(f"text-segment folder not found: {seg_dir}")
+
+        ids = read_split(self.root, split)[:max_motions]
+        report = LoadReport(strict)
+        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload)
+        self.entries: list[_Entry] = []
+        for mid in ids:
+            if mid in self.motions:
+                self.entries += self._read_motion(mid, seg_dir, report)
+        used = len({e.motion_id for e in self.entries})
+        self.summary = report.finish(f"{self.root.name}/{split}", len(self.entries), used)
+        self.problems = report.problems
+
+        if text_cache is None and text_features is not None:
+            from segmo.text.cache import TextFeatureCache  # lazy: the cache pulls in transformers
+
+            text_cache = TextFeatureCache.open(self.root, text_features)
+        self.text_cache = text_cache
+
+    def _read_motion(self, mid: str, seg_dir: Path | None, report: LoadReport) -> list[_Entry]:
+        spec = self.skeleton
+        text_path = self.root / "texts" / f"{mid}.txt"
+        if not text_path.is_file():
+            report.skip("missing_text", f"{text_path}: text file not found")
+            return []
+        lines = _lines(text_path)
+        segments = self._read_segments(seg_dir, mid, text_path, lines, report)
+        if segments is None:
+            return []
+        spans = self._read_spans(mid, text_path, len(lines))
+        t_full = self.motions.lengths[mid]
+        out, parsed = [], 0
+        for index, (lineno, line) in enumerate(lines):
+            try:
+                cap = parse_text_line(line, text_path, lineno)
+            except ValueError as err:
+                report.skip("bad_line", str(err))
+                continue
+            parsed += 1
+            if cap.whole_clip:
+                start, end, sid, sp = 0, t_full, mid, spans[index] if spans else None
+            else:
+                start = int(cap.start * spec.fps)
+                end = min(int(cap.end * spec.fps), t_full)
+                sid, sp = f"{mid}#{index}", None
+            t = end - start
+            if t < spec.min_frames:
+                report.filtered("too_short")
+                continue
+            if t >= spec.max_frames:
+                report.filtered("too_long")
+                continue
+            segs = segments[index] if segments else (cap.text,)
+            out.append(_Entry(sid, mid, index, cap.text, segs, start, end, sp))
+        if parsed == 0:  # (captions that were only too short/long are counted above)
+            report.skip("no_captions", f"{text_path}: no usable caption line")
+        return out
+
+    def _read_segments(self, seg_dir: Path | None, mid: str, text_path: Path,
+                       lines: list[tuple[int, str]], report: LoadReport
+                       ) -> list[tuple[str, ...]] | None:
+        """Per caption line, its text segments; [] when no segment folder was asked for."""
+        if seg_dir is None:
+            return []
+        path = seg_dir / f"{mid}.txt"
+        if not path.is_file():
+            report.skip("missing_segments", f"{path}: text-segment file not found")
+            return None
+        seg_lines = _lines(path)
+        if len(seg_lines) != len(lines):
+            raise ValueError(f"{path} has {len(seg_lines)} lines but {text_path} has "
+                             f"{len(lines)}; line i of one must match line i of the other")
+        out = []
+        for lineno, line in seg_lines:
+            segs = tuple(s.strip() for s in line.split("#") if s.strip())
+            if not segs:
+                raise ValueError(f"{path}:{lineno}: no text segment on the line")
+            if len(segs) > self.max_segments:
+                raise ValueError(f"{path}:{lineno}: {len(segs)} text segments, more than "
+                                 f"max_segments={self.max_segments}")
+            out.append(segs)
+        return out
+
+    def _read_spans(self, mid: str, text_path: Path, num_lines: int
+                    ) -> list[tuple[tuple[int, int], ...]] | None:
+        path = self.root / "segments" / f"{mid}.json"
+        if not path.is_file():
+            return None
+        captions = json.loads(path.read_text())["captions"]
+        if len(captions) != num_lines:
+            raise ValueError(f"{path} has {len(captions)} captions but {text_path} has "
+                             f"{num_lines} lines")
+        return [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        e = self.entries[i]
+        raw = self.motions.get(e.motion_id)[e.start:e.end]
+        t = raw.shape[0] - raw.shape[0] % self.unit_length
+        off = _crop_offset(raw.shape[0], t, self.random_crop, self._gen)
+        motion = torch.from_numpy((raw[off:off + t] - self.mean) / self.std)
+        spans = None
+        if e.spans is not None:
+            spans = [(min(max(s - off, 0), t), min(max(x - off, 0), t)) for s, x in e.spans]
+        sample: dict[str, Any] = {
+            "motion": motion, "length": t, "caption": e.caption, "segments": list(e.segments),
+            "id": e.id, "caption_index": e.caption_index, "spans": spans,
+        }
+        if self.text_cache is not None:
+            sample.update(self._text_features(e))
+        return sample
+
+    def _text_features(self, e: _Entry) -> dict[str, torch.Tensor]:
+        cache = self.text_cache
+        seg = cache.sentence(list(e.segments)).float()
+        features = torch.zeros(self.max_segments, cache.dim)
+        features[: seg.shape[0]] = seg
+        mask = torch.zeros(self.max_segments, dtype=torch.bool)
+        mask[: seg.shape[0]] = True
+        return {"sentence": cache.sentence([e.caption])[0].float(), "segment_features": features,
+                "segment_mask": mask, "tokens": cache.tokens(e.caption).float()}
+
+
+class MotionWindowDataset(Dataset):
+    """One entry per motion of a split, for tokenizer training (texts are not read).
+
+    ``window`` frames: a window at a random offset (``random_crop``, training) or at 0;
+    motions shorter than the window are skipped and counted, and the length limits of the
+    skeleton do not apply. ``window=None``: the whole clip, kept if
+    ``min_frames <= t < max_frames`` and cropped to a multiple of ``unit_length`` from the
+    end (validation). A sample is ``{"motion": (w, d) z-scored, "length": w, "id": str}``.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "train",
+        skeleton: str | SkeletonSpec = "t2m",
+        *,
+        window: int | None = 64,
+        mean: np.ndarray | None = None,
+        std: np.ndarray | None = None,
+        unit_length: int = 4,
+        random_crop: bool = True,
+        seed: int = 0,
+        max_motions: int | None = None,
+        preload: bool = True,
+        strict: bool = False,
+    ) -> None:
+        if window is not None and (window <= 0 or window % unit_length):
+            raise ValueError(f"window={window} must be a positive multiple of unit_length={unit_length}")
+        self.root = Path(root)
+        self.skeleton = get_skeleton(skeleton)
+        self.window = window
+        self.unit_length = unit_length
+        self.random_crop = random_crop
+        self.mean, self.std = _stats(self.root, self.skeleton, mean, std)
+        self._gen = _SeededGenerator(seed)
+        report = LoadReport(strict)
+        ids = read_split(self.root, split)[:max_motions]
+        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload)
+        self.ids: list[str] = []
+        for mid in ids:
+            if mid not in self.motions:
+                continue
+            t = self.motions.lengths[mid]
+            if window is not None and t < window:
+                report.filtered("shorter_than_window")
+            elif window is None and t < self.skeleton.min_frames:
+                report.filtered("too_short")
+            elif window is None and t >= self.skeleton.max_frames:
+                report.filtered("too_long")
+            else:
+                self.ids.append(mid)
+        self.summary = report.finish(f"{self.root.name}/{split}", len(self.ids), len(self.ids))
+        self.problems = report.problems
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        mid = self.ids[i]
+        raw = self.motions.get(mid)
+        size = self.window if self.window is not None else raw.shape[0] - raw.shape[0] % self.unit_length
+        off = _crop_offset(raw.shape[0], size, self.random_crop, self._gen)
+        motion = torch.from_numpy((raw[off:off + size] - self.mean) / self.std)
+        return {"motion": motion, "length": size, "id": mid}
+
+
+def _stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The given statistics (validated copies), or those of ``root`` when both are None."""
+    if mean is None and std is None:
+        return load_stats(root, spec)
+    if mean is None or std is None:
+        raise ValueError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
+    return check_stats(mean, std, spec)

@@ -1,0 +1,420 @@
+"""Tests of segmo.data: reader, datasets, collate and the DataModule, on tiny random folders."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from segmo.data import (
+    MotionDataset,
+    MotionWindowDataset,
+    collate,
+    load_stats,
+    parse_text_line,
+    read_split,
+)
+from segmo.motion.skeleton import get_skeleton
+
+D = 263  # t2m feature width
+
+
+def write_dataset(root: Path, lengths: dict[str, int], *, d: int = D, splits=None,
+                  captions: dict[str, list[str]] | None = None, seed: int = 0) -> dict[str, np.ndarray]:
+    """A HumanML3D-layout folder with random motions; returns the raw arrays by id."""
+    rng = np.random.default_rng(seed)
+    (root / "new_joint_vecs").mkdir(parents=True, exist_ok=True)
+    (root / "texts").mkdir(exist_ok=True)
+    arrays = {}
+    for mid, t in lengths.items():
+        arrays[mid] = rng.normal(size=(t, d)).astype(np.float32)
+        np.save(root / "new_joint_vecs" / f"{mid}.npy", arrays[mid])
+        lines = (captions or {}).get(mid, [f"a person does {mid}#a/DET person/NOUN#0.0#0.0",
+                                           f"someone does {mid}#someone/PRON#nan#nan"])
+        (root / "texts" / f"{mid}.txt").write_text("\n".join(lines) + "\n")
+    splits = splits or {"train": list(lengths), "val": list(lengths), "test": list(lengths)}
+    for name, ids in splits.items():
+        (root / f"{name}.txt").write_text("\n".join(ids) + "\n")
+    np.save(root / "Mean.npy", rng.normal(size=d).astype(np.float32))
+    np.save(root / "Std.npy", rng.uniform(0.5, 2.0, size=d).astype(np.float32))
+    return arrays
+
+
+class FakeCache:
+    """The interface of segmo.text.cache.TextFeatureCache, with deterministic features."""
+
+    dim = 8
+
+    def _vec(self, text: str) -> torch.Tensor:
+        g = torch.Generator().manual_seed(sum(map(ord, text)))
+        return torch.randn(self.dim, generator=g)
+
+    def sentence(self, texts: list[str]) -> torch.Tensor:
+        return torch.stack([self._vec(t) for t in texts])
+
+    def tokens(self, text: str) -> torch.Tensor:
+        return torch.stack([self._vec(w) for w in text.split()])
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def test_parse_text_line():
+    cap = parse_text_line("a man walks#a/DET man/NOUN walk/VERB#1.5#4.0", "x.txt", 3)
+    assert (cap.text, cap.start, cap.end, cap.whole_clip) == ("a man walks", 1.5, 4.0, False)
+    assert parse_text_line("a man walks#a/DET#nan#nan").whole_clip
+    assert parse_text_line("a man walks#a/DET#0.0#0.0").whole_clip
+    with pytest.raises(ValueError, match=r"x\.txt:7"):
+        parse_text_line("a man walks without tags", "x.txt", 7)
+    with pytest.raises(ValueError, match=r"x\.txt:2: bad time tags"):
+        parse_text_line("a man walks#a/DET#3.0#1.0", "x.txt", 2)
+
+
+def test_missing_split_file_names_path(tmp_path):
+    write_dataset(tmp_path, {"a": 60}, splits={"train": ["a"]})
+    with pytest.raises(FileNotFoundError, match=r"val\.txt"):
+        read_split(tmp_path, "val")
+    with pytest.raises(FileNotFoundError, match=r"test\.txt"):
+        MotionDataset(tmp_path, "test")
+
+
+def test_samples_are_zscored_cropped_and_stats_untouched(tmp_path):
+    raw = write_dataset(tmp_path, {"a": 61, "b": 80})
+    mean_file, std_file = np.load(tmp_path / "Mean.npy"), np.load(tmp_path / "Std.npy")
+    mean, std = mean_file.copy(), std_file.copy()
+    ds = MotionDataset(tmp_path, "train", mean=mean, std=std)
+    # the caller's arrays are unchanged and still writable; the dataset holds read-only copies
+    assert np.array_equal(mean, mean_file) and np.array_equal(std, std_file)
+    assert mean.flags.writeable and not ds.mean.flags.writeable and not ds.std.flags.writeable
+    assert len(ds) == 4 and ds.summary["samples"] == 4 and ds.summary["motions"] == 2
+    s = ds[0]
+    assert s["id"] == "a" and s["caption_index"] == 0 and s["segments"] == [s["caption"]]
+    assert s["motion"].dtype == torch.float32 and s["motion"].shape == (60, D) and s["length"] == 60
+    expected = (raw["a"][:60] - mean_file) / std_file  # evaluation crop starts at frame 0
+    assert torch.allclose(s["motion"], torch.from_numpy(expected))
+    assert ds[1]["caption"] == "someone does a" and ds[1]["spans"] is None
+    # stats files and the preloaded raw motions are not modified by reading samples
+    _ = [ds[i] for i in range(len(ds))]
+    assert np.array_equal(np.load(tmp_path / "Mean.npy"), mean_file)
+    assert np.array_equal(ds.motions.get("a"), raw["a"]) and not ds.motions.get("a").flags.writeable
+    m, sd = load_stats(tmp_path)
+    assert not m.flags.writeable and m.dtype == np.float32 and sd.shape == (D,)
+
+
+def test_time_tagged_captions_become_subclips(tmp_path):
+    lines = ["whole#w/X#0.0#0.0", "middle part#m/X#1.0#4.0", "too short#s/X#1.0#2.0"]
+    raw = write_dataset(tmp_path, {"a": 120}, captions={"a": lines})
+    ds = MotionDataset(tmp_path)
+    assert [s["id"] for s in ds] == ["a", "a#1"]
+    sub = ds[1]
+    assert sub["caption_index"] == 1 and sub["length"] == 60  # frames 20..80 at 20 fps
+    expected = (raw["a"][20:80] - ds.mean) / ds.std
+    assert torch.allclose(sub["motion"], torch.from_numpy(expected))
+    assert ds.summary["too_short"] == 1
+
+
+def test_length_filter_per_skeleton(tmp_path):
+    write_dataset(tmp_path, {"short": 39, "min": 40, "max": 199, "long": 200})
+    ds = MotionDataset(tmp_path)
+    assert sorted({s["id"] for s in ds}) == ["max", "min"]
+    assert {s["id"]: s["length"] for s in ds} == {"min": 40, "max": 196}
+    assert ds.summary["too_short"] == 2 and ds.summary["too_long"] == 2
+    # KIT: another width, fps and minimum length, from the spec alone
+    kit = get_skeleton("kit")
+    root = tmp_path / "kit"
+    write_dataset(root, {"k": 30, "s": 20}, d=kit.feature_dim)
+    ds = MotionDataset(root, skeleton="kit")
+    assert [s["motion"].shape for s in ds] == [(28, 251), (28, 251)]
+    with pytest.raises(ValueError, match=r"Mean\.npy: shape \(251,\), expected \(263,\)"):
+        MotionDataset(root, skeleton="t2m")
+
+
+def test_random_crop_is_seeded(tmp_path):
+    raw = write_dataset(tmp_path, {"a": 43}, captions={"a": ["x#x/X#0#0"]})
+
+    def offsets(seed):
+        ds = MotionDataset(tmp_path, random_crop=True, seed=seed)
+        out = []
+        for _ in range(12):
+            m = ds[0]["motion"].numpy() * ds.std + ds.mean
+            out.append(int(np.argmin([np.abs(raw["a"][o:o + 40] - m).max() for o in range(4)])))
+        return out
+
+    a, b = offsets(1), offsets(1)
+    assert a == b and len(set(a)) > 1 and offsets(2) != a
+    assert all(MotionDataset(tmp_path)[0]["motion"].shape == (40, D) for _ in range(2))
+
+
+# --------------------------------------------------------------------------- malformed
+
+
+def test_bad_motion_files_are_skipped_and_counted(tmp_path):
+    write_dataset(tmp_path, {"ok": 60, "nan": 60, "zero": 60, "frames0": 60, "notext": 60,
+                             "badline": 60})
+    for mid in ("ok2", "gone"):  # "gone" is listed but has no motion file
+        (tmp_path / "texts" / f"{mid}.txt").write_text("x#x/X#0#0\n")
+    arr = np.zeros((60, D), np.float32)
+    arr[5, 7] = np.nan
+    np.save(tmp_path / "new_joint_vecs" / "nan.npy", arr)
+    (tmp_path / "new_joint_vecs" / "zero.npy").write_bytes(b"")
+    np.save(tmp_path / "new_joint_vecs" / "frames0.npy", np.zeros((0, D), np.float32))
+    (tmp_path / "texts" / "notext.txt").unlink()
+    (tmp_path / "texts" / "badline.txt").write_text("fine#f/X#0#0\nno fields here\n")
+    ids = ["ok", "gone", "nan", "zero", "frames0", "notext", "badline"]
+    (tmp_path / "train.txt").write_text("\n".join(ids))
+    with pytest.warns(UserWarning) as record:
+        ds = MotionDataset(tmp_path)
+    text = " | ".join(str(w.message) for w in record)
+    assert "gone.npy" in text and "nan.npy" in text and "zero.npy" in text
+    assert "notext.txt" in text and "badline.txt:2" in text
+    assert [s["id"] for s in ds] == ["ok", "ok", "badline"]
+    summary = ds.summary
+    assert (summary["missing"], summary["nan"], summary["empty"], summary["missing_text"],
+            summary["bad_line"]) == (1, 1, 2, 1, 1)
+    with pytest.raises(ValueError, match="gone.npy"):
+        MotionDataset(tmp_path, strict=True)
+
+
+def test_wrong_width_raises_naming_file(tmp_path):
+    write_dataset(tmp_path, {"a": 60, "b": 60})
+    np.save(tmp_path / "new_joint_vecs" / "b.npy", np.zeros((60, 251), np.float32))
+    for preload in (True, False):
+        with pytest.raises(ValueError, match=r"b\.npy.*\(60, 251\)"):
+            MotionDataset(tmp_path, preload=preload)
+    np.save(tmp_path / "Std.npy", np.ones(10, np.float32))
+    with pytest.raises(ValueError, match=r"Std\.npy"):
+        load_stats(tmp_path)
+
+
+def test_lazy_loading_matches_preload(tmp_path):
+    write_dataset(tmp_path, {"a": 60, "b": 97, "c": 44})
+    eager, lazy = MotionDataset(tmp_path), MotionDataset(tmp_path, preload=False)
+    assert len(eager) == len(lazy) == 6 and not lazy.motions.arrays
+    for i in range(len(eager)):
+        assert torch.equal(eager[i]["motion"], lazy[i]["motion"])
+    arr = np.zeros((60, D), np.float32)
+    arr[0, 0] = np.nan
+    np.save(tmp_path / "new_joint_vecs" / "a.npy", arr)
+    lazy = MotionDataset(tmp_path, preload=False)  # NaN is not visible from the header
+    with pytest.raises(ValueError, match=r"a\.npy.*NaN"):
+        lazy[0]
+
+
+# --------------------------------------------------------------------------- text side
+
+
+def test_text_segments_and_errors(tmp_path):
+    write_dataset(tmp_path, {"a": 60, "b": 60, "c": 60})
+    seg = tmp_path / "text_segments" / "rule"
+    seg.mkdir(parents=True)
+    (seg / "a.txt").write_text("walks#waves\nonly one\n")
+    (seg / "b.txt").write_text("x\ny\n")
+    with pytest.warns(UserWarning, match=r"c\.txt: text-segment file not found"):
+        ds = MotionDataset(tmp_path, text_segments="rule")
+    assert [s["segments"] for s in ds] == [["walks", "waves"], ["only one"], ["x"], ["y"]]
+    assert ds.summary["missing_segments"] == 1
+    with pytest.raises(FileNotFoundError, match="text_segments/other"):
+        MotionDataset(tmp_path, text_segments="other")
+    (seg / "b.txt").write_text("x\n")
+    with pytest.raises(ValueError, match=r"rule/b\.txt has 1 lines but .*texts/b\.txt has 2"):
+        MotionDataset(tmp_path, text_segments="rule")
+    (seg / "b.txt").write_text("x\n1#2#3#4#5#6\n")
+    with pytest.raises(ValueError, match=r"rule/b\.txt:2: 6 text segments"):
+        MotionDataset(tmp_path, text_segments="rule")
+    (seg / "b.txt").write_text(" # \nx\n")
+    with pytest.raises(ValueError, match=r"rule/b\.txt:1: no text segment"):
+        MotionDataset(tmp_path, text_segments="rule")
+
+
+def test_ground_truth_spans_follow_the_crop(tmp_path):
+    lines = ["walk then wave#w/X#0#0", "sub clip#s/X#0.5#3.0"]
+    write_dataset(tmp_path, {"a": 63}, captions={"a": lines})
+    gt = {"id": "a", "fps": 20.0, "num_frames": 63, "captions": [
+        {"text": "walk then wave", "segments": [{"text": "walk", "start": 0, "end": 30},
+                                                {"text": "wave", "start": 30, "end": 63}]},
+        {"text": "sub clip", "segments": [{"text": "sub clip", "start": 0, "end": 63}]}]}
+    (tmp_path / "segments").mkdir()
+    (tmp_path / "segments" / "a.json").write_text(json.dumps(gt))
+    ds = MotionDataset(tmp_path)
+    assert ds[0]["spans"] == [(0, 30), (30, 60)] and ds[1]["spans"] is None
+    ds = MotionDataset(tmp_path, random_crop=True, seed=0)
+    seen = set()
+    for _ in range(20):
+        (s0, e0), (s1, e1) = ds[0]["spans"]
+        assert s0 == 0 and e0 == s1 and e1 == 60 and 27 <= e0 <= 30
+        seen.add(e0)
+    assert len(seen) > 1
+    gt["captions"].pop()
+    (tmp_path / "segments" / "a.json").write_text(json.dumps(gt))
+    with pytest.raises(ValueError, match=r"a\.json has 1 captions"):
+        MotionDataset(tmp_path)
+
+
+def test_text_cache_features_and_collate(tmp_path):
+    write_dataset(tmp_path, {"a": 60, "b": 81})
+    seg = tmp_path / "text_segments" / "rule"
+    seg.mkdir(parents=True)
+    (seg / "a.txt").write_text("walks#waves#sits\nonly one\n")
+    (seg / "b.txt").write_text("x#y\ny\n")
+    cache = FakeCache()
+    # text_cache takes precedence: "missing-encoder" is never opened
+    ds = MotionDataset(tmp_path, text_segments="rule", text_features="missing-encoder",
+                       text_cache=cache, max_segments=4)
+    s = ds[0]
+    assert s["sentence"].shape == (8,) and torch.equal(s["sentence"], cache.sentence([s["caption"]])[0])
+    assert s["segment_features"].shape == (4, 8) and s["segment_mask"].tolist() == [1, 1, 1, 0]
+    assert torch.equal(s["segment_features"][1], cache.sentence(["waves"])[0])
+    assert s["segment_features"][3].abs().sum() == 0
+    assert s["tokens"].shape == (len(s["caption"].split()), 8)
+    batch = collate([ds[i] for i in range(len(ds))])
+    assert batch["motion"].shape == (4, 80, D) and batch["lengths"].tolist() == [60, 60, 80, 80]
+    assert batch["mask"].dtype == torch.bool and batch["mask"].sum(1).tolist() == [60, 60, 80, 80]
+    assert batch["motion"][0, 60:].abs().sum() == 0
+    assert batch["sentence"].shape == (4, 8) and batch["segment_features"].shape == (4, 4, 8)
+    assert batch["segment_mask"].sum(1).tolist() == [3, 1, 2, 1]
+    lengths = [len(c.split()) for c in batch["caption"]]
+    assert batch["tokens"].shape == (4, max(lengths), 8)
+    assert batch["token_mask"].sum(1).tolist() == lengths
+    assert batch["id"] == ["a", "a", "b", "b"] and batch["segments"][0] == ["walks", "waves", "sits"]
+    assert batch["spans"] == [None] * 4 and batch["caption_index"] == [0, 1, 0, 1]
+
+
+def test_collate_rejects_mixed_samples():
+    a = {"motion": torch.zeros(4, 3), "length": 4, "id": "a"}
+    b = {"motion": torch.zeros(8, 3), "length": 8, "id": "b", "caption": "x"}
+    with pytest.raises(ValueError, match="different keys"):
+        collate([a, b])
+    with pytest.raises(ValueError, match="empty"):
+        collate([])
+
+
+# --------------------------------------------------------------------------- windows
+
+
+def test_window_dataset(tmp_path):
+    raw = write_dataset(tmp_path, {"a": 70, "b": 50, "c": 130, "d": 230})
+    (tmp_path / "train.txt").write_text("a\nb\nc\nd\nmissing\n")
+    with pytest.warns(UserWarning, match="missing"):
+        ds = MotionWindowDataset(tmp_path, window=64, seed=3)
+    assert ds.ids == ["a", "c", "d"] and ds.summary["shorter_than_window"] == 1
+    assert all(ds[i]["motion"].shape == (64, D) for i in range(3))
+    with pytest.warns(UserWarning, match="missing"):
+        one = MotionWindowDataset(tmp_path, window=64, seed=3)
+        two = MotionWindowDataset(tmp_path, window=64, seed=3)
+    first = [one[2]["motion"] for _ in range(5)]
+    assert all(torch.equal(x, two[2]["motion"]) for x in first)  # same seed, same windows
+    assert len({float(x[0, 0]) for x in first}) > 1  # ... that differ between draws
+    (tmp_path / "train.txt").write_text("a\nb\nc\nd\n")
+    whole = MotionWindowDataset(tmp_path, window=None, random_crop=False)
+    assert whole.ids == ["a", "b", "c"] and whole[2]["length"] == 128  # d: 230 >= max_frames
+    assert torch.allclose(whole[0]["motion"], torch.from_numpy((raw["a"][:68] - whole.mean) / whole.std))
+    with pytest.raises(ValueError, match="multiple of unit_length"):
+        MotionWindowDataset(tmp_path, window=30)
+
+
+# --------------------------------------------------------------------------- DataModule
+
+
+def test_datamodule(tmp_path):
+    from segmo.data import MotionDataModule
+
+    lengths = {f"{i:03d}": 40 + 7 * i for i in range(12)}
+    write_dataset(tmp_path, lengths, splits={"train": list(lengths)[:8], "val": list(lengths)[8:10],
+                                              "test": list(lengths)[10:]})
+    dm = MotionDataModule(str(tmp_path), batch_size=5, seed=1)
+    assert dm.feature_dim == D and dm.skeleton.name == "t2m"
+    assert dm.mean.dtype == torch.float32 and dm.mean.shape == (D,)
+    assert torch.equal(dm.std, torch.from_numpy(np.load(tmp_path / "Std.npy")))
+    dm.setup("fit")
+    train = dm.train_dataloader()
+    assert train.drop_last and len(train) == 3  # 16 samples, batch 5
+    ids1 = [i for b in train for i in b["id"]]
+    ids2 = [i for b in MotionDataModule(str(tmp_path), batch_size=5, seed=1).train_dataloader()
+            for i in b["id"]]
+    assert ids1 == ids2 and len(ids1) == 15 and ids1 != sorted(ids1)
+    val = next(iter(dm.val_dataloader()))
+    assert val["id"] == ["008", "008", "009", "009"] and val["motion"].shape[0] == 4
+    small = MotionDataModule(str(tmp_path), batch_size=64, max_motions=3)
+    assert not small.train_dataloader().drop_last and len(small.dataset("train")) == 6
+    assert [b["id"] for b in small.predict_dataloader()] == [["010", "010", "011", "011"]]
+    win = MotionDataModule(str(tmp_path), batch_size=4, window=48)
+    batch = next(iter(win.train_dataloader()))
+    assert batch["motion"].shape == (4, 48, D) and "caption" not in batch
+    assert win.dataset("val").ids == ["008", "009"]  # whole clips, one per motion
+    with pytest.raises(ValueError, match="unknown split"):
+        dm.dataset("dev")
+
+
+def test_datamodule_workers_are_seeded(tmp_path):
+    from segmo.data import MotionDataModule
+
+    lengths = {f"{i:03d}": 150 for i in range(8)}
+    write_dataset(tmp_path, lengths)
+    same = np.zeros((150, D), np.float32)
+    same[:, 0] = np.arange(150)  # identical motions: feature 0 reveals the window offset
+    for mid in lengths:
+        np.save(tmp_path / "new_joint_vecs" / f"{mid}.npy", same)
+
+    def epoch():
+        dm = MotionDataModule(str(tmp_path), batch_size=4, window=32, num_workers=2, seed=5)
+        return [b["motion"][:, 0, 0].tolist() for b in dm.train_dataloader()]
+
+    a = epoch()
+    assert a == epoch()  # reproducible with workers
+    assert a[0] != a[1]  # the two workers (one batch each) do not repeat each other's offsets
+
+
+@pytest.mark.slow
+def test_builtin_corpus_through_datamodule(tmp_path):
+    synth = pytest.importorskip("segmo.synth", reason="segmo.synth (built-in corpus) not available yet")
+    if not hasattr(synth, "build_corpus"):
+        pytest.skip("segmo.synth.build_corpus not available yet")
+    from segmo.data import MotionDataModule
+
+    root = synth.build_corpus(tmp_path / "corpus", num_motions=20, seed=0, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the built-in corpus must load without any skip
+        dm = MotionDataModule(str(root), batch_size=4)
+        dm.setup("fit")
+    ds = dm.dataset("train")
+    assert len(ds) > 0 and ds.summary["motions"] > 0
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["motion"].shape[-1] == D and not math.isnan(float(batch["motion"].sum()))
+    assert all(s is not None for s in batch["spans"])
+
+
+def test_real_text_feature_cache(tmp_path):
+    """The dataset opens segmo.text.cache by encoder name (built here with a tiny fake encoder)."""
+    cache_mod = pytest.importorskip("segmo.text.cache", reason="segmo.text.cache not available")
+    from segmo.text.encoders import TextEncoder, TextEncoding
+
+    class TinyEncoder(TextEncoder):
+        def __init__(self):
+            super().__init__("tiny", torch.nn.Identity(), None, FakeCache.dim, 16, "none")
+
+        def encode(self, texts, batch_size=64):
+            fake = FakeCache()
+            toks = [fake.tokens(t) for t in texts]
+            tokens = torch.zeros(len(texts), max(len(x) for x in toks), fake.dim)
+            mask = torch.zeros(tokens.shape[:2], dtype=torch.bool)
+            for i, x in enumerate(toks):
+                tokens[i, : len(x)], mask[i, : len(x)] = x, True
+            return TextEncoding(fake.sentence(list(texts)), tokens, mask)
+
+    write_dataset(tmp_path, {"a": 60, "b": 64})
+    seg = tmp_path / "text_segments" / "rule"
+    seg.mkdir(parents=True)
+    (seg / "a.txt").write_text("walks#waves\nonly one\n")
+    (seg / "b.txt").write_text("x#y\ny\n")
+    cache_mod.update_cache(tmp_path, TinyEncoder(), progress=False)
+    ds = MotionDataset(tmp_path, text_segments="rule", text_features="tiny")
+    batch = collate([ds[i] for i in range(len(ds))])
+    expected = FakeCache().sentence(batch["caption"])
+    assert torch.allclose(batch["sentence"], expected, atol=1e-2)  # stored as float16
+    assert batch["segment_mask"].sum(1).tolist() == [2, 1, 2, 1]
+    assert batch["token_mask"].sum(1).tolist() == [len(c.split()) for c in batch["caption"]]
