@@ -1,0 +1,333 @@
+"""Segment alignment head and losses (SegMo §3.4–3.5, spec §5). Pure torch.
+
+Motion side: m_i = MLP(concat(mean(h[s_i:e_i]), max(h[s_i:e_i]))) over the mask
+transformer's output features h and token spans from `segmo.segmentation`. Text side: a
+projection of the segment features (the transformer's outputs at the segment prefix
+positions). Both land in a shared `out_dim` space compared by cosine similarity / τ.
+
+Losses (`AlignMethod`, Table 3 of the paper), each unweighted; the caller adds
+`config.weight * losses["align"]` to the mask loss:
+- `in_sample` (SegMo): symmetric InfoNCE within each sample, a caption's segments are
+  each other's negatives;
+- `batch`: every valid segment of the batch against every other;
+- `global`: sentence vs whole motion (aggregated over its valid tokens), CLIP-style;
+- `token`: each motion token vs the text segments of its sample, positive = the segment
+  whose span contains it (and each segment vs the tokens, positives = its span);
+- `none`: 0.
+Padded segments (mask False) are excluded from logits and targets, so whatever they
+hold changes neither the loss nor any gradient. Losses average over the contributing
+rows (segments, sentences or tokens), not over B·A padded slots as eq. 8 is written.
+With no contributing row a loss is a zero that stays attached to the graph.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, get_args
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from segmo.segmentation import SegmenterName
+
+AlignMethod = Literal["in_sample", "batch", "global", "token", "none"]
+
+
+@dataclass
+class AlignmentConfig:
+    """Alignment options; `weight` is λ (1.0 HumanML3D, 0.1 KIT), `max_segments` is A."""
+
+    method: AlignMethod = "in_sample"
+    temperature: float = 0.1
+    weight: float = 1.0
+    segmenter: SegmenterName = "uniform"
+    max_segments: int = 5
+    out_dim: int = 512
+
+    def __post_init__(self) -> None:
+        if self.method not in get_args(AlignMethod):
+            raise ValueError(
+                f"AlignmentConfig.method={self.method!r}: one of {get_args(AlignMethod)}"
+            )
+        if self.segmenter not in get_args(SegmenterName):
+            raise ValueError(
+                f"AlignmentConfig.segmenter={self.segmenter!r}: one of {get_args(SegmenterName)}"
+            )
+        if self.temperature <= 0:
+            raise ValueError(f"AlignmentConfig.temperature={self.temperature} must be > 0")
+        if self.max_segments < 1 or self.out_dim < 1:
+            raise ValueError(
+                f"AlignmentConfig: max_segments={self.max_segments} and out_dim={self.out_dim} must be ≥ 1"
+            )
+
+
+@dataclass
+class AlignmentOutput:
+    """What `AlignmentHead.forward` returns.
+
+    losses: named scalars; "align" is the loss of the configured method (unweighted),
+        plus its parts ("align_t2m", "align_m2t") where the method has two directions.
+    text: `(b, a, out_dim)` projected text segments (`(b, 1, out_dim)` for `global`);
+        None for `none`.
+    motion: `(b, a, out_dim)` aggregated motion segments (`(b, n, out_dim)` tokens for
+        `token`, `(b, 1, out_dim)` for `global`); None for `none`.
+    mask: `(b, a)` bool, the segment pairs that took part (text and span both present).
+    """
+
+    losses: dict[str, torch.Tensor]
+    text: torch.Tensor | None = None
+    motion: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+    extras: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+def span_mask(spans: torch.Tensor, n: int) -> torch.Tensor:
+    """`(b, a, 2)` token spans → `(b, a, n)` bool, True inside `[start, end)`."""
+    index = torch.arange(n, device=spans.device)
+    return (index >= spans[..., :1]) & (index < spans[..., 1:])
+
+
+def _mlp(dim_in: int, dim: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(dim_in, dim), nn.GELU(), nn.Linear(dim, out_dim))
+
+
+class SegmentAggregator(nn.Module):
+    """m_i = MLP(concat(mean, max)) of motion features over each span (paper eq. 6)."""
+
+    def __init__(self, dim: int, out_dim: int):
+        super().__init__()
+        self.mlp = _mlp(2 * dim, dim, out_dim)
+
+    def forward(self, h: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
+        """h `(b, n, dim)`, spans `(b, a, 2)` long → `(b, a, out_dim)`.
+
+        Empty spans (padding) pool to zeros; their outputs are meaningless and must be
+        masked by the caller.
+        """
+        inside = span_mask(spans, h.shape[1])  # (b, a, n)
+        weights = inside.to(h.dtype)
+        count = weights.sum(-1, keepdim=True).clamp(min=1.0)
+        mean = torch.einsum("ban,bnd->bad", weights, h) / count
+        # (b, a, n, dim) is small here (n ≤ 49, a ≤ 5); a loop over spans would be slower.
+        masked = h[:, None].masked_fill(~inside[..., None], float("-inf"))
+        peak = masked.amax(dim=2)
+        peak = torch.where(inside.any(-1, keepdim=True), peak, torch.zeros_like(peak))
+        return self.mlp(torch.cat([mean, peak], dim=-1))
+
+
+def _info_nce(logits: torch.Tensor, valid: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """Mean cross-entropy of diagonal targets over rows.
+
+    logits `(g, a, a)`; valid `(g, a, a)` bool pairs allowed as candidates; rows `(g, a)`
+    bool rows that contribute. Returns a scalar; a graph-attached 0 if no row contributes.
+    """
+    if not rows.any():
+        return torch.where(valid, logits, 0.0).sum() * 0.0  # padding may hold anything
+    logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
+    log_prob = logits.log_softmax(dim=-1).diagonal(dim1=-2, dim2=-1)  # (g, a)
+    return -log_prob[rows].mean()
+
+
+def in_sample_loss(
+    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1
+) -> dict[str, torch.Tensor]:
+    """Symmetric InfoNCE within each sample (paper eq. 8).
+
+    text, motion `(b, a, d)` paired slot by slot; mask `(b, a)` bool. Samples with fewer
+    than two valid segments contribute nothing. Returns {"align", "align_t2m", "align_m2t"}.
+    """
+    sim = torch.einsum("bid,bjd->bij", F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
+    logits = sim / temperature
+    valid = mask[:, :, None] & mask[:, None, :]
+    rows = mask & (mask.sum(-1, keepdim=True) >= 2)
+    t2m = _info_nce(logits, valid, rows)
+    m2t = _info_nce(logits.transpose(1, 2), valid, rows)
+    return {"align": 0.5 * (t2m + m2t), "align_t2m": t2m, "align_m2t": m2t}
+
+
+def batch_loss(
+    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1
+) -> dict[str, torch.Tensor]:
+    """Symmetric InfoNCE over all valid segments of the batch together (Table 3 ablation).
+
+    text, motion `(b, a, d)`, mask `(b, a)`; needs ≥ 2 valid segments in the batch.
+    """
+    return in_sample_loss(text[mask][None], motion[mask][None], mask[mask][None], temperature)
+
+
+def global_loss(
+    sentence: torch.Tensor,
+    motion: torch.Tensor,
+    keep: torch.Tensor | None = None,
+    temperature: float = 0.1,
+) -> dict[str, torch.Tensor]:
+    """CLIP-style symmetric InfoNCE between whole captions and whole motions.
+
+    sentence, motion `(b, d)`; keep `(b,)` bool samples that take part (default all).
+    """
+    keep = (
+        torch.ones(sentence.shape[0], dtype=torch.bool, device=sentence.device)
+        if keep is None
+        else keep
+    )
+    return in_sample_loss(sentence[None], motion[None], keep[None], temperature)
+
+
+def token_loss(
+    text: torch.Tensor,
+    tokens: torch.Tensor,
+    spans: torch.Tensor,
+    mask: torch.Tensor,
+    temperature: float = 0.1,
+) -> dict[str, torch.Tensor]:
+    """Token-level contrast within each sample (Table 3 ablation).
+
+    text `(b, a, d)` segments, tokens `(b, n, d)` per-token motion embeddings, spans
+    `(b, a, 2)`, mask `(b, a)` valid segments. m2t: each token inside a valid span
+    classifies its segment among the sample's valid segments; t2m: each segment against
+    the sample's covered tokens, its own span's tokens all positive. Samples with fewer
+    than two valid segments contribute nothing.
+    """
+    inside = span_mask(spans, tokens.shape[1]) & mask[..., None]  # (b, a, n)
+    sample_ok = mask.sum(-1) >= 2  # (b,)
+    covered = inside.any(1) & sample_ok[:, None]  # (b, n) tokens that take part
+    sim = torch.einsum("bad,bnd->ban", F.normalize(text, dim=-1), F.normalize(tokens, dim=-1))
+    logits = sim / temperature
+    low = torch.finfo(logits.dtype).min
+    if not covered.any():
+        zero = torch.where(inside, logits, 0.0).sum() * 0.0
+        return {"align": zero, "align_t2m": zero, "align_m2t": zero}
+    # m2t: softmax over segments for each token.
+    m2t_logits = logits.masked_fill(~mask[..., None], low).log_softmax(dim=1)
+    m2t = -torch.where(inside, m2t_logits, 0.0).sum(1)[covered].mean()
+    # t2m: multi-positive InfoNCE over the sample's covered tokens for each segment.
+    over_tokens = logits.masked_fill(~covered[:, None, :], low)
+    positives = over_tokens.masked_fill(~inside, low).logsumexp(-1)
+    rows = mask & sample_ok[:, None]
+    t2m = -(positives - over_tokens.logsumexp(-1))[rows].mean()
+    return {"align": 0.5 * (t2m + m2t), "align_t2m": t2m, "align_m2t": m2t}
+
+
+def whole_motion_spans(lengths: torch.Tensor) -> torch.Tensor:
+    """`(b,)` token lengths → `(b, 1, 2)` spans covering each whole motion."""
+    return torch.stack([torch.zeros_like(lengths), lengths], dim=-1)[:, None]
+
+
+def token_spans(n: int, batch: int, device: torch.device | None = None) -> torch.Tensor:
+    """`(batch, n, 2)` one-token spans, so the aggregator embeds each token on its own."""
+    start = torch.arange(n, device=device)
+    return torch.stack([start, start + 1], -1).expand(batch, n, 2)
+
+
+class AlignmentHead(nn.Module):
+    """Projects text segments and aggregates motion spans, then computes the loss.
+
+    `dim` is the width of both inputs (the mask transformer's width, 384 in MoMask).
+    With method "none" the caller should not build the head at all (its parameters
+    would receive no gradient, which DDP rejects by default).
+    """
+
+    def __init__(self, dim: int, config: AlignmentConfig | None = None):
+        super().__init__()
+        self.config = config or AlignmentConfig()
+        self.aggregator = SegmentAggregator(dim, self.config.out_dim)
+        self.text_proj = _mlp(dim, dim, self.config.out_dim)
+
+    def embed_text(self, segments: torch.Tensor) -> torch.Tensor:
+        """`(b, a, dim)` → `(b, a, out_dim)` (not normalised)."""
+        return self.text_proj(segments)
+
+    def embed_motion(self, h: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
+        """h `(b, n, dim)`, spans `(b, a, 2)` (segments or sliding windows) → `(b, a, out_dim)`."""
+        return self.aggregator(h, spans)
+
+    def similarity_map(
+        self, h: torch.Tensor, segments: torch.Tensor, windows: torch.Tensor
+    ) -> torch.Tensor:
+        """Grounding map (paper §4.4, Fig. 5): cosine of each text segment vs each window.
+
+        h `(b, n, dim)`, segments `(b, a, dim)`, windows `(w, 2)` or `(b, w, 2)` token
+        spans (e.g. `segmo.evaluation.grounding.sliding_windows`) → `(b, a, w)`.
+        """
+        windows = torch.as_tensor(windows, device=h.device).long()
+        if windows.ndim == 2:
+            windows = windows.expand(h.shape[0], -1, -1)
+        return segment_similarity(self.embed_text(segments), self.embed_motion(h, windows))
+
+    def forward(
+        self,
+        h: torch.Tensor,
+        lengths: torch.Tensor,
+        segments: torch.Tensor,
+        segment_mask: torch.Tensor,
+        spans: torch.Tensor,
+        sentence: torch.Tensor | None = None,
+    ) -> AlignmentOutput:
+        """Alignment loss of `config.method`.
+
+        Args:
+            h: `(b, n, dim)` motion features (mask transformer outputs on motion tokens).
+            lengths: `(b,)` valid token counts.
+            segments: `(b, a, dim)` text segment features; segment_mask `(b, a)` bool.
+                To leave a sample out (e.g. its condition was dropped for CFG), set
+                its row of segment_mask to False.
+            spans: `(b, a, 2)` motion token spans (`segmo.segmentation.segment_batch`),
+                slot i paired with text segment i; `(0, 0)` = absent.
+            sentence: `(b, dim)` whole-caption features, needed by `global`.
+        """
+        cfg = self.config
+        if spans.shape[:2] != segments.shape[:2] or segment_mask.shape != segments.shape[:2]:
+            raise ValueError(
+                f"AlignmentHead: spans {tuple(spans.shape)}, segments {tuple(segments.shape)} "
+                f"and segment_mask {tuple(segment_mask.shape)} must agree on (b, a)"
+            )
+        if cfg.method == "none":
+            return AlignmentOutput(losses={"align": h.new_zeros(())})
+        mask = segment_mask & (spans[..., 1] > spans[..., 0])
+        if cfg.method == "global":
+            if sentence is None:
+                raise ValueError("AlignmentHead: method 'global' needs sentence (b, dim)")
+            text = self.embed_text(sentence[:, None])
+            motion = self.embed_motion(h, whole_motion_spans(lengths))
+            keep = segment_mask.any(-1) & (lengths > 0)
+            losses = global_loss(text[:, 0], motion[:, 0], keep, cfg.temperature)
+            return AlignmentOutput(losses, text, motion, keep[:, None])
+        text = self.embed_text(segments)
+        if cfg.method == "token":
+            tokens = self.embed_motion(h, token_spans(h.shape[1], h.shape[0], h.device))
+            losses = token_loss(text, tokens, spans, mask, cfg.temperature)
+            return AlignmentOutput(losses, text, tokens, mask)
+        motion = self.embed_motion(h, spans)
+        loss_fn = in_sample_loss if cfg.method == "in_sample" else batch_loss
+        return AlignmentOutput(loss_fn(text, motion, mask, cfg.temperature), text, motion, mask)
+
+
+def segment_similarity(text: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+    """Cosine matrix `(b, a, a')` between text `(b, a, d)` and motion `(b, a', d)` segments."""
+    return torch.einsum("bid,bjd->bij", F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
+
+
+def paired_cosine(text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Cosines of the valid pairs: text, motion `(b, a, d)`, mask `(b, a)` → `(k,)`."""
+    return F.cosine_similarity(text, motion, dim=-1)[mask]
+
+
+def intra_segment_consistency(
+    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor
+) -> tuple[float, float]:
+    """ISC (paper Fig. 4): mean cosine of paired segments, and its coefficient of variation.
+
+    CV = std / mean with the population std over all valid pairs. To pool many batches,
+    concatenate their `paired_cosine` outputs and use `isc_from_cosines`.
+    """
+    return isc_from_cosines(paired_cosine(text, motion, mask))
+
+
+def isc_from_cosines(cosines: torch.Tensor) -> tuple[float, float]:
+    """`(k,)` paired cosines → (mean, std/mean); raises on an empty set."""
+    if cosines.numel() == 0:
+        raise ValueError("intra_segment_consistency: no valid segment pair (mask all False)")
+    mean = float(cosines.mean())
+    std = float(cosines.std(unbiased=False))
+    return mean, (std / mean if mean != 0 else float("inf"))

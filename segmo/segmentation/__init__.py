@@ -1,0 +1,27 @@
+"""Motion segmenters (uniform, cpd, kmeans) over the token axis; see `segmenters`."""
+
+from segmo.segmentation.segmenters import (
+    CPDSegmenter,
+    KMeansSegmenter,
+    SegmenterName,
+    Span,
+    boundaries,
+    get_segmenter,
+    repair_boundaries,
+    segment_batch,
+    uniform,
+    uniform_spans,
+)
+
+__all__ = [
+    "CPDSegmenter",
+    "KMeansSegmenter",
+    "SegmenterName",
+    "Span",
+    "boundaries",
+    "get_segmenter",
+    "repair_boundaries",
+    "segment_batch",
+    "uniform",
+    "uniform_spans",
+]

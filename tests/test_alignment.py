@@ -1,0 +1,222 @@
+"""Segment alignment head and losses: masking, scaling, symmetry, gradients, ISC."""
+
+from __future__ import annotations
+
+import math
+import typing
+
+import pytest
+import torch
+
+from segmo.models.alignment import (
+    AlignmentConfig,
+    AlignmentHead,
+    AlignMethod,
+    SegmentAggregator,
+    batch_loss,
+    global_loss,
+    in_sample_loss,
+    intra_segment_consistency,
+    segment_similarity,
+    span_mask,
+    token_loss,
+)
+from segmo.segmentation import segment_batch
+
+DIM = 16
+
+
+def gen(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def batch(seed: int = 0):
+    """b=4 samples: 3, 1, 5 and 2 segments; token lengths 20, 9, 25, 6 of n = 25."""
+    g = gen(seed)
+    num, lengths = torch.tensor([3, 1, 5, 2]), torch.tensor([20, 9, 25, 6])
+    h = torch.randn(4, 25, DIM, generator=g)
+    segments = torch.randn(4, 5, DIM, generator=g)
+    mask = torch.arange(5) < num[:, None]
+    spans = segment_batch(None, num, lengths, max_segments=5)
+    return h, lengths, segments, mask, spans, torch.randn(4, DIM, generator=g)
+
+
+def test_span_mask_and_aggregator_pooling():
+    spans = torch.tensor([[[0, 2], [2, 5], [0, 0]]])
+    assert span_mask(spans, 6).int().tolist() == [
+        [[1, 1, 0, 0, 0, 0], [0, 0, 1, 1, 1, 0], [0, 0, 0, 0, 0, 0]]
+    ]
+    agg = SegmentAggregator(2, 3)
+    agg.mlp = torch.nn.Identity()  # look at the pooled concat(mean, max) itself
+    h = torch.tensor([[[1.0, 0.0], [3.0, 4.0], [2.0, -1.0], [0.0, -3.0], [7.0, 2.0], [9, 9]]])
+    pooled = agg(h, spans)
+    assert torch.allclose(pooled[0, 0], torch.tensor([2.0, 2.0, 3.0, 4.0]))
+    assert torch.allclose(pooled[0, 1], torch.tensor([3.0, -2 / 3, 7.0, 2.0]))
+    assert (pooled[0, 2] == 0).all()  # empty (padding) span pools to zeros, never -inf
+
+
+def test_aggregator_matches_per_span_loop():
+    h, _, _, mask, spans, _ = batch()
+    agg = SegmentAggregator(DIM, 8)
+    out = agg(h, spans)
+    for i in range(4):
+        for j in range(int(mask[i].sum())):
+            s, e = spans[i, j].tolist()
+            part = h[i, s:e]
+            expected = agg.mlp(torch.cat([part.mean(0), part.amax(0)]))
+            assert torch.allclose(out[i, j], expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["in_sample", "batch", "global", "token"])
+def test_padded_slots_change_nothing(method):
+    h, lengths, segments, mask, spans, sentence = batch()
+    torch.manual_seed(0)  # the parameters; inputs below come from explicit generators
+    head = AlignmentHead(DIM, AlignmentConfig(method=method, out_dim=8))
+    pad = ~mask
+    results = []
+    for fill in (torch.zeros_like(segments), 100 * torch.randn(segments.shape, generator=gen(5))):
+        seg = torch.where(pad[..., None], fill, segments).requires_grad_()
+        hh = h.clone()
+        hh[torch.arange(25) >= lengths[:, None]] = fill[:, :1].expand(-1, 25, -1)[
+            torch.arange(25) >= lengths[:, None]
+        ]  # padded tokens too
+        hh.requires_grad_()
+        head.zero_grad()
+        loss = head(hh, lengths, seg, mask, spans, sentence).losses["align"]
+        loss.backward()
+        grads = [p.grad.clone() for p in head.parameters() if p.grad is not None]
+        results.append((loss.detach(), seg.grad, hh.grad, grads))
+    (l0, s0, h0, p0), (l1, s1, h1, p1) = results
+    assert torch.isfinite(l0) and l0 > 0
+    assert torch.allclose(l0, l1)
+    if method == "global":
+        assert s0 is None and s1 is None  # segments are not used by the global ablation
+    else:
+        assert torch.allclose(s0, s1) and (s0[pad] == 0).all()
+    assert torch.allclose(h0, h1, atol=1e-6)
+    assert (h0[torch.arange(25) >= lengths[:, None]] == 0).all()
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(p0, p1))
+
+
+def test_one_segment_samples_contribute_nothing():
+    g = gen(1)
+    text, motion = torch.randn(3, 4, 8, generator=g), torch.randn(3, 4, 8, generator=g)
+    mask = torch.tensor([[1, 1, 1, 0], [1, 0, 0, 0], [1, 1, 0, 0]], dtype=torch.bool)
+    full = in_sample_loss(text, motion, mask)["align"]
+    # Changing the one-segment sample entirely, or removing it, leaves the loss unchanged.
+    other = text.clone()
+    other[1] = torch.randn(4, 8, generator=g)
+    assert torch.allclose(full, in_sample_loss(other, motion, mask)["align"])
+    keep = torch.tensor([0, 2])
+    assert torch.allclose(full, in_sample_loss(text[keep], motion[keep], mask[keep])["align"])
+    # No sample with ≥ 2 segments: an exact zero that still backpropagates.
+    text.requires_grad_()
+    zero = in_sample_loss(text, motion, mask & torch.tensor([1, 0, 0, 0], dtype=torch.bool))
+    assert zero["align"].item() == 0.0
+    zero["align"].backward()
+    assert text.grad is not None and (text.grad == 0).all()
+
+
+def test_perfect_alignment_beats_shuffled_and_loss_is_symmetric():
+    g = gen(2)
+    text = torch.randn(6, 5, 32, generator=g)
+    mask = torch.ones(6, 5, dtype=torch.bool)
+    mask[0, 3:] = False
+    noisy = text + 0.1 * torch.randn(text.shape, generator=g)
+    aligned = in_sample_loss(text, noisy, mask)["align"]
+    shuffled = in_sample_loss(text, noisy[:, [1, 2, 0, 4, 3]], mask)["align"]
+    assert aligned < 0.05 < 1.0 < shuffled
+    swapped = in_sample_loss(noisy, text, mask)
+    forward = in_sample_loss(text, noisy, mask)
+    assert torch.allclose(forward["align"], swapped["align"])
+    assert torch.allclose(forward["align_t2m"], swapped["align_m2t"])
+
+
+def test_each_method_scales_as_log_of_its_negatives():
+    """With all embeddings equal every logit ties: loss = log(number of candidates)."""
+    b, a, d = 4, 5, 8
+    same = torch.ones(b, a, d)
+    mask = torch.arange(a) < torch.tensor([3, 1, 5, 2])[:, None]
+    # in_sample: rows of samples with 3, 5, 2 segments -> mean of log(k) over those 10 rows
+    expected = (3 * math.log(3) + 5 * math.log(5) + 2 * math.log(2)) / 10
+    assert math.isclose(in_sample_loss(same, same, mask)["align"].item(), expected, rel_tol=1e-5)
+    # batch: all 11 valid segments against each other
+    assert math.isclose(batch_loss(same, same, mask)["align"].item(), math.log(11), rel_tol=1e-5)
+    # global: b sentences against b motions
+    assert math.isclose(
+        global_loss(same[:, 0], same[:, 0])["align"].item(), math.log(b), rel_tol=1e-5
+    )
+    # token: m2t over the sample's segments, t2m over its covered tokens (positives = span)
+    lengths = torch.tensor([9, 4, 10, 4])
+    spans = segment_batch(None, mask.sum(1), lengths, max_segments=a)
+    tokens = torch.ones(b, 10, d)
+    out = token_loss(same, tokens, spans, mask)
+    m2t = (9 * math.log(3) + 10 * math.log(5) + 4 * math.log(2)) / 23
+    t2m = (3 * math.log(9 / 3) + 5 * math.log(10 / 2) + 2 * math.log(4 / 2)) / 10
+    assert math.isclose(out["align_m2t"].item(), m2t, rel_tol=1e-5)
+    assert math.isclose(out["align_t2m"].item(), t2m, rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("method", typing.get_args(AlignMethod))
+def test_every_method_runs_and_trains(method):
+    h, lengths, segments, mask, spans, sentence = batch(3)
+    torch.manual_seed(0)
+    head = AlignmentHead(DIM, AlignmentConfig(method=method, out_dim=8))
+    h.requires_grad_()
+    out = head(h, lengths, segments, mask, spans, sentence)
+    loss = out.losses["align"]
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    if method == "none":
+        assert loss.item() == 0.0 and out.text is None
+        return
+    loss.backward()
+    assert h.grad is not None and h.grad.abs().sum() > 0
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
+    params = [h, *head.parameters()]
+    for _ in range(10):  # plain gradient descent: torch.optim's first step costs seconds
+        grads = torch.autograd.grad(
+            head(h, lengths, segments, mask, spans, sentence).losses["align"], params
+        )
+        with torch.no_grad():
+            for p, g in zip(params, grads):
+                p -= 0.1 * g
+    assert head(h, lengths, segments, mask, spans, sentence).losses["align"] < loss
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="method='clip'"):
+        AlignmentConfig(method="clip")
+    with pytest.raises(ValueError, match="temperature"):
+        AlignmentConfig(temperature=0.0)
+    with pytest.raises(ValueError, match="segmenter"):
+        AlignmentConfig(segmenter="dtw")
+
+
+def test_isc_and_similarity():
+    g = gen(4)
+    text = torch.randn(2, 3, 8, generator=g)
+    mask = torch.tensor([[True, True, False], [True, False, False]])
+    mean, cv = intra_segment_consistency(text, 2 * text, mask)
+    assert math.isclose(mean, 1.0, rel_tol=1e-5) and cv < 1e-3
+    motion = torch.randn(2, 3, 8, generator=g)
+    cos = torch.nn.functional.cosine_similarity(text, motion, dim=-1)[mask]
+    mean, cv = intra_segment_consistency(text, motion, mask)
+    assert math.isclose(mean, cos.mean().item(), rel_tol=1e-5)
+    assert math.isclose(cv, (cos.std(unbiased=False) / cos.mean()).item(), rel_tol=1e-4)
+    sim = segment_similarity(text, motion)
+    assert sim.shape == (2, 3, 3)
+    assert torch.allclose(sim.diagonal(dim1=1, dim2=2)[mask], cos)
+    with pytest.raises(ValueError, match="no valid segment pair"):
+        intra_segment_consistency(text, motion, torch.zeros(2, 3, dtype=torch.bool))
+
+
+def test_similarity_map_matches_embeddings():
+    h, _, segments, _, spans, _ = batch(6)
+    head = AlignmentHead(DIM, AlignmentConfig(out_dim=8))
+    windows = torch.tensor([[0, 5], [3, 8], [10, 15]])
+    sim = head.similarity_map(h, segments, windows)
+    assert sim.shape == (4, 5, 3) and sim.abs().max() <= 1.0 + 1e-6
+    text = head.embed_text(segments)[2, 1]
+    motion = head.embed_motion(h[2:3], windows[None])[0, 2]
+    expected = torch.nn.functional.cosine_similarity(text, motion, dim=0)
+    assert torch.allclose(sim[2, 1, 2], expected, atol=1e-6)
