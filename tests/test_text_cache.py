@@ -1,0 +1,169 @@
+"""Text-feature cache and `segmo encode-texts`, with the packaged MiniLM encoder."""
+
+from __future__ import annotations
+
+import copy
+import pickle
+from pathlib import Path
+
+import pytest
+import torch
+
+from segmo.text.cache import TextFeatureCache, main, normalise_text, update_cache
+from segmo.text.encoders import get_text_encoder
+
+CAPTIONS = {
+    "000": ["a person walks forward#a/DET person/NOUN walk/VERB#0.0#0.0",
+            "someone  waves with the left hand #someone/PRON#0.0#0.0"],
+    "001": ["a man jumps twice then sits down#a/DET#0.0#0.0",
+            "a person walks forward#a/DET#1.0#2.5"],  # duplicate caption, time-tagged
+}
+SEGMENTS = {
+    "000": ["a person walks forward", "someone waves with the left hand"],
+    "001": ["a man jumps twice#sits down", "a person walks forward"],
+}
+DISTINCT = ["a person walks forward", "someone waves with the left hand",
+            "a man jumps twice then sits down", "a man jumps twice", "sits down"]
+
+
+def make_dataset(root: Path) -> Path:
+    (root / "texts").mkdir(parents=True)
+    (root / "text_segments" / "rule").mkdir(parents=True)
+    for mid, lines in CAPTIONS.items():
+        (root / "texts" / f"{mid}.txt").write_text("\n".join(lines) + "\n")
+        (root / "text_segments" / "rule" / f"{mid}.txt").write_text("\n".join(SEGMENTS[mid]))
+    return root
+
+
+class Counter:
+    """Wraps an encoder's `encode`, counting the texts it is asked to encode."""
+
+    def __init__(self, encoder, fail_on_call: int | None = None):
+        self.encoder, self.texts, self.calls, self.fail_on_call = encoder, 0, 0, fail_on_call
+
+    def __call__(self, texts, batch_size=64):
+        self.calls += 1
+        if self.calls == self.fail_on_call:
+            raise RuntimeError("simulated crash")
+        self.texts += len(texts)
+        return self.encoder.encode(texts, batch_size=batch_size)
+
+
+def counted(encoder, **kwargs):
+    wrapped = copy.copy(encoder)  # same model, own `encode` attribute
+    wrapped.encode = Counter(encoder, **kwargs)
+    return wrapped, wrapped.encode
+
+
+@pytest.fixture(scope="module")
+def minilm():
+    return get_text_encoder("minilm")
+
+
+@pytest.fixture
+def built(tmp_path, minilm):
+    root = make_dataset(tmp_path / "data")
+    summary = update_cache(root, minilm, progress=False)
+    return root, summary
+
+
+def test_build_and_lookups_match_direct_encoding(built, minilm):
+    root, summary = built
+    assert (summary.total, summary.new, summary.reused) == (5, 5, 0)
+    assert summary.bytes_on_disk > 5 * 384 * 2
+    cache = TextFeatureCache.open(root, "minilm")
+    assert len(cache) == 5 and cache.dim == 384
+    assert all(t in cache for t in DISTINCT) and "a person walks backward" not in cache
+    assert " someone waves  with the left hand" in cache  # whitespace-normalised keys
+    direct = minilm.encode(DISTINCT)
+    got = cache.sentence(DISTINCT)
+    assert got.dtype == torch.float32 and got.shape == (5, 384)
+    torch.testing.assert_close(got, direct.sentence, atol=2e-3, rtol=0)  # float16 storage
+    assert torch.nn.functional.cosine_similarity(got, direct.sentence).min() > 0.9999
+    for i in (0, 1, 2):  # captions keep their token features
+        tokens = cache.tokens(DISTINCT[i])
+        ref = direct.tokens[i][direct.token_mask[i]]
+        assert tokens.shape == ref.shape
+        torch.testing.assert_close(tokens, ref, atol=1e-2, rtol=1e-2)
+
+
+def test_missing_text_raises_key_error_naming_it(built):
+    cache = TextFeatureCache.open(built[0], "minilm")
+    with pytest.raises(KeyError, match="a person walks backward"):
+        cache.sentence(["a person walks forward", "a person walks backward"])
+    with pytest.raises(KeyError, match="segment only"):
+        cache.tokens("sits down")
+
+
+def test_rerun_encodes_nothing(built, minilm):
+    root, _ = built
+    wrapped, counter = counted(minilm)
+    summary = update_cache(root, wrapped, progress=False)
+    assert (summary.total, summary.new, summary.reused) == (5, 0, 5)
+    assert counter.calls == 0
+
+
+def test_new_caption_encodes_exactly_it(built, minilm):
+    root, _ = built
+    (root / "texts" / "002.txt").write_text("a person crawls on the floor#x#0#0\n"
+                                            "a man jumps twice then sits down#x#0#0\n")
+    wrapped, counter = counted(minilm)
+    summary = update_cache(root, wrapped, progress=False)
+    assert (summary.new, counter.texts) == (1, 1)
+    cache = TextFeatureCache.open(root, "minilm")
+    assert len(cache) == 6 and cache.tokens("a person crawls on the floor").shape[1] == 384
+    torch.testing.assert_close(cache.sentence(["a person crawls on the floor"]),
+                               minilm.encode(["a person crawls on the floor"]).sentence,
+                               atol=2e-3, rtol=0)
+
+
+def test_segment_becoming_a_caption_gains_tokens(built, minilm):
+    root, _ = built
+    (root / "texts" / "003.txt").write_text("sits down#x#0#0\n")
+    summary = update_cache(root, minilm, progress=False)
+    cache = TextFeatureCache.open(root, "minilm")
+    assert summary.new == 1 and len(cache) == 5 and cache.has_tokens("sits down")
+    assert cache.tokens("sits down").shape == (4, 384)  # [CLS] sits down [SEP]
+
+
+def test_crash_mid_run_leaves_a_valid_cache(tmp_path, minilm):
+    root = make_dataset(tmp_path / "data")
+    wrapped, _ = counted(minilm, fail_on_call=2)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        update_cache(root, wrapped, shard_size=2, progress=False)
+    cache = TextFeatureCache.open(root, "minilm")
+    assert len(cache) == 2  # the first shard was committed, the second never was
+    (cache.folder / "shard-00001.sentence.npy").write_bytes(b"half-written garbage")
+    wrapped, counter = counted(minilm)
+    summary = update_cache(root, wrapped, shard_size=2, progress=False)
+    assert (summary.new, counter.texts) == (3, 3)
+    cache = TextFeatureCache.open(root, "minilm")
+    assert len(cache) == 5 and cache.sentence(DISTINCT).shape == (5, 384)
+
+
+def test_open_missing_cache_names_folder_and_command(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"text_features/minilm.*segmo encode-texts"):
+        TextFeatureCache.open(tmp_path, "minilm")
+
+
+def test_cache_pickles_for_dataloader_workers(built):
+    cache = TextFeatureCache.open(built[0], "minilm")
+    clone = pickle.loads(pickle.dumps(cache))
+    assert torch.equal(clone.sentence(DISTINCT), cache.sentence(DISTINCT))
+
+
+def test_normalise_text():
+    assert normalise_text("  a  person\twalks\n") == "a person walks"
+
+
+def test_command_summary_and_errors(tmp_path, capsys):
+    root = make_dataset(tmp_path / "data")
+    main(["--data", str(root), "--encoder", "minilm", "--segments", "rule"])
+    out = capsys.readouterr().out
+    assert "5 distinct texts, 5 new, 0 reused" in out and "MiB on disk" in out
+    main(["--data", str(root)])
+    assert "0 new, 5 reused" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match=r"no texts/ folder.*nowhere"):
+        main(["--data", str(tmp_path / "nowhere")])
+    with pytest.raises(SystemExit, match=r"text_segments/llm.*present: rule"):
+        main(["--data", str(root), "--segments", "llm"])
