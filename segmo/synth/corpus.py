@@ -1,0 +1,208 @@
+"""Build the synthetic corpus in the HumanML3D layout (`segmo synth`).
+
+    segmo synth --out data/synth --num-motions 2000 --seed 0
+
+Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
+not depend on how many workers build them; the normalisation statistics are merged in
+index order for the same reason. The corpus is built in `OUT.tmp-<pid>` and renamed into
+place when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from segmo.synth.actions import ACTIONS
+from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions, pos_tag
+from segmo.synth.sequence import sample_motion
+
+VERSION = 1
+SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
+# Std floor: a feature that never varies in the train split (e.g. a joint that never moves
+# relative to the root) would otherwise divide by zero when z-scoring.
+STD_FLOOR = 1e-4
+_SPLIT_STREAM = 7_411  # extra seed word so the split shuffle differs from motion 0's stream
+
+
+def split_assignment(num_motions: int, seed: int) -> list[str]:
+    """Split name of each motion index (80/5/15, deterministic in seed and size)."""
+    order = np.random.default_rng([seed, _SPLIT_STREAM]).permutation(num_motions)
+    n_train = int(round(num_motions * SPLITS["train"]))
+    n_val = int(round(num_motions * SPLITS["val"]))
+    names = ["test"] * num_motions
+    for rank, index in enumerate(order):
+        names[index] = "train" if rank < n_train else "val" if rank < n_train + n_val else "test"
+    return names
+
+
+def motion_id(index: int) -> str:
+    return f"{index:06d}"
+
+
+def _build_one(job: tuple[str, int, int, str]) -> dict:
+    """Generate and write motion `index`; returns its statistics for the parent."""
+    from segmo.motion.features import features_to_joints, joints_to_features
+
+    root, seed, index, split = job
+    root = Path(root)
+    rng = np.random.default_rng([seed, index])
+    motion = sample_motion(rng)
+    features = joints_to_features(motion.joints.astype(np.float32), "t2m").astype(np.float32)
+    joints = features_to_joints(features, "t2m").astype(np.float32)
+    mid = motion_id(index)
+    np.save(root / "new_joint_vecs" / f"{mid}.npy", features)
+    np.save(root / "new_joints" / f"{mid}.npy", joints)
+    captions = make_captions(motion.segments, rng, held_out=split != "train")
+    lines = [f"{c.text}#{pos_tag(c.text)}#0.0#0.0" for c in captions]
+    (root / "texts" / f"{mid}.txt").write_text("\n".join(lines) + "\n")
+    actions = [{"action": s.action, "params": s.params, "start": s.start, "end": s.end}
+               | ({"with": {"action": s.overlay[0], "params": s.overlay[1]}} if s.overlay else {})
+               for s in motion.segments]
+    truth = {
+        "id": mid, "fps": 20.0, "num_frames": int(len(features)), "actions": actions,
+        "captions": [{"text": c.text, "template": c.template, "segments": [
+            {"text": text, "action": s.action, "start": s.start, "end": s.end}
+            for text, s in zip(c.segments, motion.segments)]} for c in captions],
+    }
+    (root / "segments" / f"{mid}.json").write_text(json.dumps(truth, indent=1) + "\n")
+    stats = {"split": split, "frames": len(features), "segments": len(motion.segments),
+             "actions": [s.action for s in motion.segments]}
+    if split == "train":
+        x = features.astype(np.float64)
+        stats["mean"], stats["m2"] = x.mean(0), ((x - x.mean(0)) ** 2).sum(0)
+    return stats
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _is_corpus(path: Path) -> bool:
+    return (path / "corpus.json").is_file()
+
+
+def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int = 1,
+                 overwrite: bool = False, progress: bool = True) -> Path:
+    """Write a corpus of `num_motions` motions to `out`; returns the path.
+
+    Refuses a non-empty `out` that is not a previous corpus unless `overwrite`.
+    """
+    from tqdm import tqdm
+
+    out = Path(out)
+    if num_motions < 1:
+        raise ValueError(f"build_corpus: num_motions must be >= 1, got {num_motions}")
+    if out.exists() and any(out.iterdir()) and not _is_corpus(out) and not overwrite:
+        raise FileExistsError(
+            f"build_corpus: {out} is not empty and holds no corpus.json; pass overwrite=True "
+            "(--overwrite) to replace it")
+    tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    for sub in ("new_joint_vecs", "new_joints", "texts", "segments"):
+        (tmp / sub).mkdir(parents=True)
+    splits = split_assignment(num_motions, seed)
+    jobs = [(str(tmp), seed, i, splits[i]) for i in range(num_motions)]
+    try:
+        if workers > 1:
+            context = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
+            with context.Pool(workers, initializer=_init_worker) as pool:
+                results = list(tqdm(pool.imap(_build_one, jobs, chunksize=4), total=num_motions,
+                                    desc="synth", disable=not progress))
+        else:
+            import torch
+
+            # One motion is too small for intra-op threads; they only spin (and restore
+            # the caller's setting afterwards).
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                results = [_build_one(j) for j in tqdm(jobs, desc="synth", disable=not progress)]
+            finally:
+                torch.set_num_threads(threads)
+        _write_summary(tmp, results, splits, seed, num_motions)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        old = out.parent / f"{out.name}.old-{os.getpid()}"
+        out.rename(old)
+        tmp.rename(out)
+        shutil.rmtree(old)
+    else:
+        tmp.rename(out)
+    return out
+
+
+def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int, n: int) -> None:
+    for name in SPLITS:
+        ids = [motion_id(i) for i in range(n) if splits[i] == name]
+        (root / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
+    # Chan et al.'s pairwise merge of (count, mean, M2), in index order.
+    count, mean, m2 = 0, None, None
+    for r in results:
+        if "mean" not in r:
+            continue
+        c = r["frames"]
+        if mean is None:
+            count, mean, m2 = c, r["mean"].copy(), r["m2"].copy()
+            continue
+        delta = r["mean"] - mean
+        total = count + c
+        mean = mean + delta * c / total
+        m2 = m2 + r["m2"] + delta**2 * count * c / total
+        count = total
+    if mean is None:  # a corpus too small to have a train motion: use everything
+        raise ValueError("build_corpus: the train split is empty; use more motions")
+    std = np.maximum(np.sqrt(m2 / count), STD_FLOOR)
+    np.save(root / "Mean.npy", mean.astype(np.float32))
+    np.save(root / "Std.npy", std.astype(np.float32))
+    frames = np.array([r["frames"] for r in results])
+    hist = np.bincount([r["segments"] for r in results], minlength=6)[1:]
+    action_counts: dict[str, int] = {}
+    for r in results:
+        for a in r["actions"]:
+            action_counts[a] = action_counts.get(a, 0) + 1
+    summary = {
+        "name": "segmo-synth", "version": VERSION, "seed": seed, "num_motions": n, "fps": 20.0,
+        "skeleton": "t2m", "actions": sorted(ACTIONS), "held_out_templates": list(HELD_OUT_TEMPLATES),
+        "held_out_note": "these caption templates appear only in val/test captions",
+        "std_floor": STD_FLOOR,
+        "statistics": {
+            "splits": {s: splits.count(s) for s in SPLITS},
+            "frames": {"mean": round(float(frames.mean()), 2), "min": int(frames.min()),
+                       "max": int(frames.max()), "total": int(frames.sum())},
+            "segments_per_motion": {str(k + 1): int(v) for k, v in enumerate(hist)},
+            "action_counts": dict(sorted(action_counts.items())),
+        },
+    }
+    (root / "corpus.json").write_text(json.dumps(summary, indent=1) + "\n")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="segmo synth", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--num-motions", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a non-empty folder that is not a previous corpus")
+    args = parser.parse_args(argv)
+    try:
+        path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite)
+    except (FileExistsError, ValueError) as err:
+        parser.exit(2, f"segmo synth: {err}\n")
+    print(f"wrote {args.num_motions} motions to {path}")
+
+
+if __name__ == "__main__":
+    main()

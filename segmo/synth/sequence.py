@@ -1,0 +1,193 @@
+"""Sequencing: sample 1-5 actions, build them, blend them into one motion.
+
+Consecutive actions overlap by a 5-15 frame transition in which local rotations are
+slerped and the root is interpolated; each action is placed where the previous one is at
+the start of the transition, so the root is continuous and locomotion carries on along
+the current heading. The ground-truth boundary is the middle of the transition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from segmo.motion.kinematics import forward_kinematics
+from segmo.motion.skeleton import T2M
+from segmo.synth.actions import ACTIONS, OVERLAYS, build_action
+from segmo.synth.gait import gaussian, sliding
+from segmo.synth.rig import REST_OFFSETS, axis_angle, qmul, qrot, slerp, solve_pose
+
+MIN_FRAMES, MAX_FRAMES = 40, 196  # feature frames (joint frames - 1)
+SEGMENT_COUNTS = (1, 2, 3, 4, 5)
+SEGMENT_WEIGHTS = (0.3, 0.33, 0.22, 0.1, 0.05)
+OVERLAY_PROBABILITY = 0.25
+RESERVE_FRAMES = 32  # the shortest actions take about this many frames
+# Drawn when the frames left per remaining segment are few, so that 4-5 segments fit.
+SHORT_ACTIONS = ("kick", "punch", "wave", "clap", "turn", "bow", "jump_in_place", "raise_arm",
+                 "stand_up", "sit_down", "stand_still", "walk_backward")
+# How often each action is drawn (relative); locomotion is the most common in real data.
+ACTION_WEIGHTS = {"walk_forward": 3.0, "run": 1.5, "jog": 1.2, "walk_backward": 1.2, "turn": 1.5,
+                  "sit_down": 1.0, "stand_up": 4.0, "stand_still": 0.8}
+
+
+@dataclass
+class Segment:
+    """One executed action; start/end are feature rows (end exclusive)."""
+
+    action: str
+    params: dict
+    overlay: tuple[str, dict] | None = None
+    start: int = 0
+    end: int = 0
+
+
+@dataclass
+class SynthMotion:
+    """joints: (t + 1, 22, 3) generated positions (metres, y up); segments cover the t
+    feature frames that `joints_to_features(joints)` gives."""
+
+    joints: np.ndarray
+    segments: list[Segment] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.joints) - 1
+
+
+def _choose(rng: np.random.Generator, sitting: bool, previous: str | None, short: bool) -> str:
+    names = [n for n, a in ACTIONS.items()
+             if n != previous and (a.needs == "any" or a.needs == ("sitting" if sitting else "standing"))
+             and (not short or n in SHORT_ACTIONS)]
+    weights = np.array([ACTION_WEIGHTS.get(n, 1.0) for n in names])
+    return names[int(rng.choice(len(names), p=weights / weights.sum()))]
+
+
+def _clip(rng, name, params, overlay, sitting):
+    """-> (local quats (t, 22, 4) with the heading in q[:, 0], root (t, 3), yaw (t,))."""
+    track = build_action(name, params, rng, sitting, overlay)
+    return solve_pose(track), track.root.copy(), track.yaw.copy()
+
+
+def _hold(clip, before: int, after: int):
+    q, root, yaw = clip
+    pad = lambda x: np.concatenate([np.repeat(x[:1], before, 0), x, np.repeat(x[-1:], after, 0)])  # noqa: E731
+    return pad(q), pad(root), pad(yaw)
+
+
+def sample_motion(rng: np.random.Generator) -> SynthMotion:
+    """Sample and build one motion (its joints and ground-truth segments)."""
+    count = int(rng.choice(SEGMENT_COUNTS, p=SEGMENT_WEIGHTS))
+    sitting, previous = False, None
+    clips, segments, overlaps = [], [], []
+    total = 0
+    for index in range(count):
+        # Leave room for the segments still to come; later attempts only need to fit.
+        reserve = RESERVE_FRAMES * (count - index - 1)
+        short = (MAX_FRAMES - total) / (count - index) < 70
+        for attempt in range(10):
+            name = _choose(rng, sitting, previous, short)
+            spec = ACTIONS[name]
+            params = spec.sample(rng)
+            overlay = None
+            if spec.locomotion and rng.random() < OVERLAY_PROBABILITY:
+                upper = list(OVERLAYS)[int(rng.integers(len(OVERLAYS)))]
+                overlay = (upper, OVERLAYS[upper](rng))
+            track = build_action(name, params, rng, sitting, overlay)
+            overlap = int(rng.integers(5, 16)) if clips else 0
+            pad = (overlap + 1) // 2
+            length = track.num_frames + overlap // 3 + pad - overlap
+            if total + length + (reserve if attempt < 7 else 0) <= MAX_FRAMES + 1:
+                break
+        else:
+            break
+        clip = (solve_pose(track), track.root.copy(), track.yaw.copy())
+        if overlap:
+            clip = _hold(clip, overlap // 3, 0)
+        if clips:
+            clips[-1] = _hold(clips[-1], 0, pad)
+            total += pad
+        clips.append(clip)
+        overlaps.append(overlap)
+        segments.append(Segment(name, params, overlay))
+        total += len(clip[0]) - overlap
+        previous = name
+        sitting = {"sitting": True, "standing": False}.get(spec.ends, sitting)
+    if not clips:  # every draw was too long: fall back to standing still
+        params = ACTIONS["stand_still"].sample(rng)
+        clips, overlaps = [_clip(rng, "stand_still", params, None, False)], [0]
+        segments = [Segment("stand_still", params)]
+    return _finish(rng, clips, overlaps, segments)
+
+
+def motion_from_actions(rng: np.random.Generator, actions: list[tuple[str, dict]],
+                        overlap: int = 10, overlay: tuple[str, dict] | None = None) -> SynthMotion:
+    """Build a given sequence of (action, params) (for previews and tests); `overlay` runs
+    an upper-body action during the first one. Raises on an impossible body-state order."""
+    sitting, clips, overlaps, segments = False, [], [], []
+    for i, (name, params) in enumerate(actions):
+        spec = ACTIONS[name]
+        if spec.needs not in ("any", "sitting" if sitting else "standing"):
+            raise ValueError(f"motion_from_actions: {name!r} needs a {spec.needs} body (action {i})")
+        over = overlay if i == 0 else None
+        clip = _clip(rng, name, params, over, sitting)
+        if clips:
+            clips[-1] = _hold(clips[-1], 0, (overlap + 1) // 2)
+            clip = _hold(clip, overlap // 3, 0)
+        clips.append(clip)
+        overlaps.append(overlap if i else 0)
+        segments.append(Segment(name, params, over))
+        sitting = {"sitting": True, "standing": False}.get(spec.ends, sitting)
+    return _finish(rng, clips, overlaps, segments)
+
+
+def _finish(rng, clips, overlaps, segments) -> SynthMotion:
+    # Too short: stand a little longer before the first and after the last action.
+    short = MIN_FRAMES + 1 - sum(len(c[0]) for c in clips) + sum(overlaps)
+    if short > 0:
+        before = int(rng.integers(0, short + 1))
+        clips[0] = _hold(clips[0], before, 0)
+        clips[-1] = _hold(clips[-1], 0, short - before)
+    q, root, bounds = _blend(clips, overlaps)
+    joints = forward_kinematics(torch.from_numpy(q), torch.from_numpy(root),
+                                torch.from_numpy(REST_OFFSETS), T2M.parents).numpy()
+    # A transition slerps leg rotations but interpolates the root linearly, which can push
+    # a foot into the floor when one side is crouched: lift the body there, smoothly.
+    sink = np.maximum(-joints[:, [7, 8, 10, 11], 1].min(1), 0.0)
+    if sink.max() > 0.002:
+        sink = sliding(sink, 4)  # cover the neighbourhood
+        joints[..., 1] += np.maximum(gaussian(sink, 2.0), sink)[:, None]
+    bounds = [0, *bounds, len(joints) - 1]
+    for seg, start, end in zip(segments, bounds[:-1], bounds[1:]):
+        seg.start, seg.end = int(start), int(end)
+    return SynthMotion(joints, segments)
+
+
+def _blend(clips, overlaps):
+    """Join clips; -> world quats (t, 22, 4), root (t, 3), boundaries (frame indices)."""
+    out_q, out_root, bounds = [], [], []
+    yaw0, origin = 0.0, np.zeros(3)
+    prev_q = prev_root = None
+    for (q, root, yaw), overlap in zip(clips, overlaps):
+        heading = axis_angle((0, 1, 0), yaw0)
+        wq = q.copy()
+        wq[:, 0] = qmul(heading, q[:, 0])
+        local = root - np.array([root[0, 0], 0.0, root[0, 2]])
+        wroot = qrot(heading, local) + origin
+        if prev_q is not None and overlap > 0:
+            w = ((np.arange(overlap) + 0.5) / overlap)
+            w = w * w * (3 - 2 * w)
+            tail_q, tail_root = prev_q[-overlap:], prev_root[-overlap:]
+            wq[:overlap] = slerp(tail_q, wq[:overlap], np.broadcast_to(w[:, None], (overlap, 22)))
+            wroot[:overlap] = (1 - w[:, None]) * tail_root + w[:, None] * wroot[:overlap]
+            out_q[-1], out_root[-1] = prev_q[:-overlap], prev_root[:-overlap]
+            bounds.append(sum(len(x) for x in out_q) + overlap // 2)
+        out_q.append(wq)
+        out_root.append(wroot)
+        prev_q, prev_root = wq, wroot
+        # The next clip starts where this one is when their transition begins; since
+        # clips end in a hold that is where it ends, up to the hold's sway.
+        yaw0 = yaw0 + yaw[-1]
+        origin = np.array([wroot[-1, 0], 0.0, wroot[-1, 2]])
+    return np.concatenate(out_q), np.concatenate(out_root), bounds

@@ -1,0 +1,208 @@
+"""The built-in synthetic corpus: layout, ground truth, physical plausibility, determinism."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from segmo.motion.skeleton import T2M
+from segmo.synth import ACTIONS, build_corpus, sample_motion
+from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions
+from segmo.synth.corpus import main, split_assignment
+from segmo.synth.sequence import motion_from_actions
+
+NUM = 30
+FEET = [7, 8, 10, 11]
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> Path:
+    return build_corpus(tmp_path_factory.mktemp("synth") / "corpus", NUM, seed=3, progress=False)
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_same_seed_gives_identical_bytes_with_any_worker_count(corpus, tmp_path):
+    again = build_corpus(tmp_path / "again", NUM, seed=3, workers=2, progress=False)
+    first, second = _files(corpus), _files(again)
+    assert first.keys() == second.keys()
+    assert [k for k in first if first[k] != second[k]] == []
+    other = build_corpus(tmp_path / "other", 4, seed=4, progress=False)
+    assert (other / "new_joint_vecs" / "000000.npy").read_bytes() != first["new_joint_vecs/000000.npy"]
+
+
+def test_layout_splits_and_statistics(corpus):
+    ids = [f"{i:06d}" for i in range(NUM)]
+    splits = {s: (corpus / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}
+    assert sorted(sum(splits.values(), [])) == ids
+    assert len(splits["train"]) == round(0.8 * NUM) and len(splits["val"]) == round(0.05 * NUM)
+    mean, std = np.load(corpus / "Mean.npy"), np.load(corpus / "Std.npy")
+    assert mean.shape == std.shape == (263,) and mean.dtype == np.float32 and std.min() >= 1e-4
+    train = np.concatenate([np.load(corpus / "new_joint_vecs" / f"{i}.npy") for i in splits["train"]])
+    np.testing.assert_allclose(mean, train.mean(0), atol=1e-4)
+    np.testing.assert_allclose(std, np.maximum(train.std(0), 1e-4), rtol=1e-3, atol=1e-5)
+    for i in ids:
+        features = np.load(corpus / "new_joint_vecs" / f"{i}.npy")
+        joints = np.load(corpus / "new_joints" / f"{i}.npy")
+        assert features.dtype == np.float32 and features.shape[1] == 263
+        assert 40 <= len(features) <= 196 and joints.shape == (len(features), 22, 3)
+    info = json.loads((corpus / "corpus.json").read_text())
+    assert info["seed"] == 3 and info["num_motions"] == NUM and len(info["actions"]) >= 20
+
+
+def test_ground_truth_schema(corpus):
+    for i in range(NUM):
+        truth = json.loads((corpus / "segments" / f"{i:06d}.json").read_text())
+        lines = (corpus / "texts" / f"{i:06d}.txt").read_text().splitlines()
+        n = len(np.load(corpus / "new_joint_vecs" / f"{i:06d}.npy"))
+        assert truth["num_frames"] == n and truth["fps"] == 20.0
+        actions = truth["actions"]
+        assert 1 <= len(actions) <= 5
+        assert actions[0]["start"] == 0 and actions[-1]["end"] == n
+        for a, b in zip(actions, actions[1:]):
+            assert a["end"] == b["start"]
+        assert all(a["start"] < a["end"] and a["action"] in ACTIONS for a in actions)
+        assert len(truth["captions"]) == len(lines) == 3
+        assert len({c["text"] for c in truth["captions"]}) == 3
+        for caption, line in zip(truth["captions"], lines):
+            text, tokens, start, end = line.split("#")
+            assert text == caption["text"] and (start, end) == ("0.0", "0.0")
+            assert all("/" in tok for tok in tokens.split())
+            spans = [(s["action"], s["start"], s["end"]) for s in caption["segments"]]
+            assert spans == [(a["action"], a["start"], a["end"]) for a in actions]
+            assert all(s["text"].split(" ")[0] in ("a", "someone", "the") for s in caption["segments"])
+
+
+def test_bone_lengths_are_constant_and_the_reference(corpus):
+    parents = np.array([max(p, 0) for p in T2M.parents])
+    reference = np.array(T2M.reference_bone_lengths)
+    for i in range(NUM):
+        joints = np.load(corpus / "new_joints" / f"{i:06d}.npy").astype(np.float64)
+        lengths = np.linalg.norm(joints - joints[:, parents], axis=-1)
+        assert np.abs(lengths - reference).max() < 1e-4
+
+
+def test_feet_stay_above_the_floor():
+    for seed in range(12):
+        motion = sample_motion(np.random.default_rng([99, seed]))
+        assert motion.joints[:, FEET, 1].min() > -0.02
+        # ... and the body is not floating: some foot is near the floor most of the time.
+        lowest = motion.joints[:, FEET, 1].min(1)
+        assert np.median(lowest) < 0.03
+
+
+def _central_speed(joints: np.ndarray, start: int, end: int) -> float:
+    root = joints[start:end, 0, [0, 2]]
+    n = len(root)
+    mid = root[n // 4: 3 * n // 4]
+    return float(np.linalg.norm(np.diff(mid, axis=0), axis=-1).mean() * 20.0)
+
+
+@pytest.mark.parametrize("action, low, high", [("walk_forward", 0.9, 1.9), ("run", 2.3, 4.2),
+                                               ("jog", 1.6, 2.6)])
+def test_locomotion_speeds_are_plausible(action, low, high):
+    from segmo.motion.features import features_to_joints, joints_to_features
+
+    rng = np.random.default_rng(5)
+    for _ in range(4):
+        params = ACTIONS[action].sample(rng)
+        motion = motion_from_actions(rng, [(action, params)])
+        joints = features_to_joints(joints_to_features(motion.joints.astype(np.float32)))
+        seg = motion.segments[0]
+        speed = _central_speed(joints, seg.start, seg.end)
+        assert low <= speed <= high, (action, params, speed)
+        assert abs(speed - params["speed"]) < 0.25 * params["speed"]
+
+
+def test_library_has_twenty_actions_that_return_to_neutral():
+    assert len(ACTIONS) >= 20
+    rng = np.random.default_rng(0)
+    for name, spec in ACTIONS.items():
+        plan = [("sit_down", {"duration": 2.0})] if spec.needs == "sitting" else []
+        motion = motion_from_actions(rng, [*plan, (name, spec.sample(rng))])
+        j = motion.joints
+        assert j[:, FEET, 1].min() > -0.02, name
+        # Ends at rest: the last frames of every action are (nearly) still.
+        assert np.abs(j[-1] - j[-2]).max() < 0.02, name
+
+
+def test_body_state_is_consistent():
+    for seed in range(40):
+        motion = sample_motion(np.random.default_rng([7, seed]))
+        sitting = False
+        for seg in motion.segments:
+            needs = ACTIONS[seg.action].needs
+            assert needs in ("any", "sitting" if sitting else "standing"), [s.action for s in motion.segments]
+            sitting = {"sitting": True, "standing": False}.get(ACTIONS[seg.action].ends, sitting)
+    with pytest.raises(ValueError, match="needs a sitting body"):
+        motion_from_actions(np.random.default_rng(0), [("stand_up", {"duration": 2.0})])
+
+
+def test_held_out_templates_only_outside_train(corpus):
+    info = json.loads((corpus / "corpus.json").read_text())
+    assert info["held_out_templates"] == list(HELD_OUT_TEMPLATES)
+    train = set((corpus / "train.txt").read_text().split())
+    seen = set()
+    for i in range(NUM):
+        truth = json.loads((corpus / "segments" / f"{i:06d}.json").read_text())
+        templates = {c["template"] for c in truth["captions"]}
+        if truth["id"] in train:
+            assert not templates & set(HELD_OUT_TEMPLATES)
+            assert not any("followed by" in c["text"] or c["text"].startswith("before ")
+                           for c in truth["captions"])
+        seen |= templates
+    # Held-out templates do reach val/test captions (forced often for multi-segment motions).
+    motion = motion_from_actions(np.random.default_rng(1), [("walk_forward", {"speed": 1.2, "steps": 4}),
+                                                            ("wave", {"hand": "left", "count": 2})])
+    texts = [c.template for s in range(10) for c in make_captions(motion.segments, np.random.default_rng(s), True)]
+    assert set(HELD_OUT_TEMPLATES) <= set(texts)
+    assert split_assignment(NUM, 3).count("train") == len(train)
+
+
+def test_out_of_order_captions_keep_execution_order():
+    motion = motion_from_actions(np.random.default_rng(2), [("sit_down", {"duration": 2.0}),
+                                                            ("stand_up", {"duration": 2.0})])
+    for seed in range(30):
+        for caption in make_captions(motion.segments, np.random.default_rng(seed), True):
+            first, second = caption.segments
+            assert any(w in first for w in ("sits", "seat")) and any(w in second for w in ("up", "feet"))
+            if caption.template == "before":
+                assert caption.text.startswith("before standing") or caption.text.startswith("before getting") \
+                    or caption.text.startswith("before rising")
+
+
+def test_cli_refuses_a_foreign_folder(tmp_path, capsys):
+    out = tmp_path / "data"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
+    assert exit_info.value.code != 0 and "not empty" in capsys.readouterr().err
+    assert (out / "notes.txt").exists()
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1", "--overwrite"])
+    assert not (out / "notes.txt").exists() and (out / "corpus.json").exists()
+    main(["--out", str(out), "--num-motions", "4", "--workers", "1"])  # a previous corpus: replaced
+    assert json.loads((out / "corpus.json").read_text())["num_motions"] == 4
+    assert not list(tmp_path.glob("data.tmp-*")) and not list(tmp_path.glob("data.old-*"))
+
+
+def test_neutral_pose_stands_on_the_floor_in_the_rest_pose():
+    import torch
+
+    from segmo.motion.kinematics import forward_kinematics
+    from segmo.synth.gait import neutral_track
+    from segmo.synth.rig import REST_OFFSETS, STAND_HEIGHT, rest_positions, solve_pose
+
+    track = neutral_track(2)
+    q = solve_pose(track)
+    joints = forward_kinematics(torch.from_numpy(q), torch.from_numpy(track.root),
+                                torch.from_numpy(REST_OFFSETS), T2M.parents).numpy()[0]
+    expected = rest_positions() + np.array([0.0, STAND_HEIGHT, 0.0])
+    assert np.abs(joints - expected).max() < 0.06  # only the knees unlock slightly
+    assert abs(joints[FEET, 1].min()) < 0.005
+    assert joints[15, 1] > 1.5 and joints[[20, 21], 1].max() < 0.9  # upright, arms down
