@@ -8,6 +8,7 @@ for _module in (
     "segmo.models.residual_transformer",
     "segmo.models.length_estimator",
     "segmo.evaluation.evaluator",
+    "segmo.evaluation.action_order",
 ):
     try:
         importlib.import_module(_module)

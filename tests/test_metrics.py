@@ -1,0 +1,222 @@
+"""Known-answer tests of segmo.evaluation metrics, retrieval, grounding and action order."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from segmo.evaluation.action_order import (
+    collapse,
+    edit_distance,
+    normalised_edit_distance,
+    sequence_accuracy,
+)
+from segmo.evaluation.grounding import best_span, grounding_metrics, sliding_windows, temporal_iou
+from segmo.evaluation.metrics import (
+    diversity,
+    euclidean_distance_matrix,
+    evaluate_generation,
+    fid,
+    frechet_distance,
+    matching_score,
+    mean_and_interval,
+    multimodality,
+    r_precision,
+)
+from segmo.evaluation.retrieval import (
+    batched_retrieval_metrics,
+    motion_to_text_ranks,
+    retrieval_metrics,
+    text_to_motion_ranks,
+)
+
+
+def _paired(n: int = 320, d: int = 16, noise: float = 0.1, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    motion = rng.normal(size=(n, d))
+    return motion + noise * rng.normal(size=(n, d)), motion
+
+
+def test_distance_matrix() -> None:
+    d = euclidean_distance_matrix([[0, 0], [3, 4]], [[0, 0], [0, 4]])
+    np.testing.assert_allclose(d, [[0, 4], [5, 3]], atol=1e-6)
+
+
+def test_r_precision_identical_and_informative_pairs() -> None:
+    text, motion = _paired()
+    p = r_precision(text, motion, 3)
+    assert p[0] > 0.9 and p[0] <= p[1] <= p[2] <= 1.0
+    # identical sets: real vs "generated" copy give the same R-precision
+    np.testing.assert_allclose(r_precision(text, motion.copy(), 3), p)
+
+
+def test_r_precision_shuffled_pairing_is_chance() -> None:
+    text, motion = _paired(n=32 * 200)
+    shuffled = np.random.default_rng(1).permutation(len(motion))
+    p = r_precision(text, motion[shuffled], 3)
+    assert abs(p[0] - 1 / 32) < 0.01
+    assert abs(p[2] - 3 / 32) < 0.015
+
+
+def test_matching_score() -> None:
+    assert matching_score([[0, 0], [1, 1]], [[3, 4], [1, 1]]) == pytest.approx(2.5)
+
+
+def test_fid_identical_sets_is_zero() -> None:
+    _, motion = _paired()
+    assert abs(fid(motion, motion.copy())) < 1e-6
+    assert fid(motion, motion + 1.0) == pytest.approx(16.0, rel=1e-6)  # |shift|² = d
+
+
+def test_frechet_distance_closed_form() -> None:
+    # Diagonal covariances: |mu1-mu2|² + Σ (sqrt(a) - sqrt(b))²
+    mu1, mu2 = np.array([0.0, 1.0, 2.0]), np.array([1.0, 1.0, 0.0])
+    a, b = np.array([1.0, 4.0, 9.0]), np.array([4.0, 1.0, 1.0])
+    expected = 1 + 0 + 4 + (1 - 2) ** 2 + (2 - 1) ** 2 + (3 - 1) ** 2
+    assert frechet_distance(mu1, np.diag(a), mu2, np.diag(b)) == pytest.approx(expected, rel=1e-9)
+    # Non-commuting full covariances vs a direct formula with the matrix square root.
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(4, 4)), rng.normal(size=(4, 4))
+    s1, s2 = x @ x.T + np.eye(4), y @ y.T + np.eye(4)
+    w, v = np.linalg.eig(s1 @ s2)
+    tr = np.sqrt(w.astype(complex)).sum().real
+    assert frechet_distance(np.zeros(4), s1, np.zeros(4), s2) == pytest.approx(np.trace(s1 + s2) - 2 * tr, rel=1e-8)
+
+
+def test_diversity_and_multimodality_hand_made() -> None:
+    # Two clusters 10 apart: every pair is 0 or 10 apart.
+    points = np.concatenate([np.zeros((200, 2)), np.full((200, 2), [6.0, 8.0])])
+    div = diversity(points, 300, seed=0)
+    assert 3.0 < div < 7.0 and (div * 300 / 10) == pytest.approx(round(div * 30), abs=1e-6)
+    # Generations of a prompt at the corners of a unit square → distances in {0, 1, sqrt 2}.
+    square = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
+    emb = np.stack([np.repeat(square, 8, axis=0)] * 3)  # (3 prompts, 32 repeats, 2)
+    mm = multimodality(emb, 10, seed=0)
+    assert 0.0 < mm < math.sqrt(2)
+    assert multimodality(np.zeros((3, 32, 2)), 10, seed=0) == 0.0
+    with pytest.raises(ValueError):
+        diversity(points[:100], 300)
+
+
+def test_mean_and_interval() -> None:
+    mean, interval = mean_and_interval([1.0, 2.0, 3.0, 4.0])
+    assert mean == 2.5
+    assert interval == pytest.approx(1.96 * math.sqrt(1.25) / 2)
+
+
+def test_evaluate_generation_protocol() -> None:
+    """Real row ≈ a perfect generator; a generator ignoring the text is at chance."""
+    n, d, t = 96, 8, 8
+    rng = np.random.default_rng(0)
+    codes = torch.tensor(rng.normal(size=(n, d)), dtype=torch.float32)
+    batches = []
+    for s in range(0, n, 16):  # 3 captions per motion, like the datasets
+        rows = list(range(s, s + 16))
+        batches.append({
+            "motion": codes[rows][:, None, :].expand(-1, t, -1).clone(),
+            "lengths": torch.full((16,), t), "id": [f"{r:03d}" for r in rows] * 1,
+            "caption": [f"c{r}" for r in rows],
+        })
+    batches = batches + [dict(b) for b in batches]
+
+    def embed_text(captions, rows):
+        return np.stack([codes[int(c[1:])].numpy() for c in captions])
+
+    def embed_motion(motion, lengths):
+        return motion[:, 0].numpy()
+
+    def perfect(captions, lengths, seed):
+        return torch.stack([codes[int(c[1:])] for c in captions])[:, None].expand(-1, t, -1)
+
+    def random_gen(captions, lengths, seed):
+        g = torch.Generator().manual_seed(seed)
+        return (2 * torch.randn(len(captions), 1, d, generator=g) + 1).expand(-1, t, -1)
+
+    res = evaluate_generation(embed_text, embed_motion, perfect, batches, repeats=3, diversity_pairs=50,
+                              mm_prompts=4, mm_repeats=12, mm_pairs=5)
+    assert res["real"]["top1"]["mean"] == 1.0 and res["generated"]["top1"]["mean"] == 1.0
+    assert res["generated"]["fid"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    assert res["generated"]["multimodality"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    assert res["real"]["matching"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    res = evaluate_generation(embed_text, embed_motion, random_gen, batches, repeats=3, diversity_pairs=50,
+                              mm_prompts=4, mm_repeats=12, mm_pairs=5)
+    assert res["generated"]["top1"]["mean"] < 0.25
+    assert res["generated"]["fid"]["mean"] > 5.0
+    assert res["generated"]["multimodality"]["mean"] > 1.0
+    real_only = evaluate_generation(embed_text, embed_motion, None, batches, repeats=2, diversity_pairs=50)
+    assert set(real_only) == {"real"} and real_only["real"]["top1"]["mean"] == 1.0
+
+
+# ---------------------------------------------------------------------------- retrieval
+
+def test_retrieval_ranks_hand_made() -> None:
+    sim = np.array([[0.9, 0.6, 0.0], [0.8, 0.5, 0.0], [0.0, 0.2, 0.1]])
+    np.testing.assert_array_equal(text_to_motion_ranks(sim), [0, 1, 1])
+    np.testing.assert_array_equal(motion_to_text_ranks(sim), [0, 1, 0])
+    m = retrieval_metrics(sim)
+    assert m["t2m/R@1"] == pytest.approx(1 / 3) and m["t2m/R@2"] == 1.0
+    assert m["t2m/MedR"] == 2.0 and m["m2t/MedR"] == 1.0
+    # distances: same ranking as negated similarities
+    assert retrieval_metrics(-sim, distance=True) == m
+
+
+def test_retrieval_several_texts_per_motion() -> None:
+    # texts 0, 1 → motion 0; text 2 → motion 1
+    sim = np.array([[0.1, 0.9], [0.8, 0.2], [0.3, 0.5]])
+    index = [0, 0, 1]
+    np.testing.assert_array_equal(text_to_motion_ranks(sim, index), [1, 0, 0])
+    # motion 0: best own text (0.8) beaten by none; motion 1: own 0.5 beaten by text 0's 0.9
+    np.testing.assert_array_equal(motion_to_text_ranks(sim, index), [0, 1])
+    with pytest.raises(ValueError, match="have no text"):
+        retrieval_metrics(sim[:, :2], [0, 0, 0])
+
+
+def test_batched_retrieval_perfect_and_chance() -> None:
+    text, motion = _paired(n=320)
+    dist = euclidean_distance_matrix(text, motion)
+    assert batched_retrieval_metrics(dist, distance=True)["t2m/R@1"] > 0.9
+    rng = np.random.default_rng(0)
+    chance = batched_retrieval_metrics(rng.normal(size=(320, 320)), batch_size=32)
+    assert chance["t2m/R@1"] < 0.15 and chance["m2t/MedR"] > 8
+
+
+# ---------------------------------------------------------------------------- grounding
+
+def test_temporal_iou_hand_made() -> None:
+    assert float(temporal_iou([0, 10], [5, 15])) == pytest.approx(5 / 15)
+    assert float(temporal_iou([0, 10], [10, 20])) == 0.0
+    assert float(temporal_iou([2, 4], [2, 4])) == 1.0
+    np.testing.assert_allclose(temporal_iou([[0, 10], [0, 4]], [[0, 5], [2, 6]]), [0.5, 2 / 6])
+
+
+def test_grounding_metrics() -> None:
+    pred = [[0, 10], [0, 10], [0, 10]]
+    gt = [[0, 10], [0, 16], [6, 20]]  # IoU 1, 0.625, 0.2
+    m = grounding_metrics(pred, gt)
+    assert m["R@1,IoU=0.3"] == pytest.approx(2 / 3) and m["R@1,IoU=0.5"] == pytest.approx(2 / 3)
+    assert m["R@1,IoU=0.7"] == pytest.approx(1 / 3)
+    assert m["mIoU"] == pytest.approx((1 + 0.625 + 0.2) / 3)
+
+
+def test_sliding_windows_and_best_span() -> None:
+    w = sliding_windows(10, 4, 3)
+    np.testing.assert_array_equal(w, [[0, 4], [3, 7], [6, 10]])
+    assert len(sliding_windows(5, [2, 8])) == 5  # 4 of size 2 + the whole sequence
+    scores = np.array([[0.1, 0.9, 0.2], [0.5, 0.1, 0.1]])
+    np.testing.assert_array_equal(best_span(scores, w), [[3, 7], [0, 4]])
+
+
+# ---------------------------------------------------------------------------- action order
+
+def test_edit_distance_hand_made() -> None:
+    true = ["walk", "wave", "sit"]
+    assert edit_distance(["walk", "sit"], true) == 1  # missing
+    assert edit_distance(["walk", "wave", "sit", "jump"], true) == 1  # extra
+    assert edit_distance(["walk", "sit", "wave"], true) == 2  # swapped
+    assert normalised_edit_distance([["walk", "sit"], true, ["sit", "wave", "walk"]], [true] * 3) == \
+        pytest.approx((1 / 3 + 0 + 2 / 3) / 3)
+    assert sequence_accuracy([["walk", "sit"], true], [true, true]) == 0.5
+    assert collapse(["a", "a", "b", "a"]) == ["a", "b", "a"]
