@@ -75,7 +75,7 @@ class Pretrained:
         model.meta = payload.get("meta", {})
         state = load_file(str(Path(directory) / WEIGHTS_FILE), device=map_location)
         model.load_state_dict(state)
-        return model.eval()
+        return model.to(map_location).eval()
 
 
 def read_config(directory: str | os.PathLike) -> dict:

@@ -1,0 +1,84 @@
+"""`segmo export CHECKPOINT --out DIR`: a Lightning checkpoint -> a model directory.
+
+Works for every stage: the task class is read from the checkpoint (LightningCLI records it
+as `_class_path` in the hyper-parameters) or given with `--task`; the task is rebuilt with
+`load_from_checkpoint`, and its `export_model()` (a `Pretrained` module carrying its own
+`meta`) is written with `save_pretrained`. Later stages and the pipeline load the
+directory with `segmo.models.pretrained.load_pretrained`, without Lightning.
+
+Example: `segmo export runs/rvq/synthetic/version_0/checkpoints/last.ckpt --out models/rvq`
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+
+import torch
+
+
+def task_class_path(checkpoint: dict, path: str | Path) -> str:
+    hparams = checkpoint.get("hyper_parameters") or {}
+    class_path = hparams.get("_class_path")
+    if not class_path:
+        raise ValueError(
+            f"{path}: the checkpoint does not name its task class (it was not written by "
+            "`segmo fit`); pass --task, e.g. --task segmo.tasks.rvq.RVQTask"
+        )
+    return class_path
+
+
+def load_task(path: str | Path, task: str | None = None, map_location: str = "cpu"):
+    """Rebuild the LightningModule saved in checkpoint `path` (class path `task` or recorded)."""
+    from lightning.pytorch import LightningModule
+
+    # Our own checkpoints hold hyper-parameters and generator states, not just tensors.
+    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    class_path = task or task_class_path(checkpoint, path)
+    module_name, _, class_name = class_path.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError, ValueError) as error:
+        raise ValueError(f"--task / checkpoint class {class_path!r} cannot be imported: {error}") from None
+    if not (isinstance(cls, type) and issubclass(cls, LightningModule)):
+        raise ValueError(f"{class_path!r} is not a LightningModule")
+    if not hasattr(cls, "export_model"):
+        raise ValueError(f"{class_path!r} has no export_model(); it cannot be exported")
+    return cls.load_from_checkpoint(path, map_location=map_location), class_path, checkpoint
+
+
+def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None) -> Path:
+    """Write the model directory of `checkpoint_path` to `out`; returns `out`."""
+    module, class_path, checkpoint = load_task(checkpoint_path, task)
+    model = module.export_model().eval()
+    meta = {
+        "task": class_path,
+        "checkpoint": str(Path(checkpoint_path).resolve()),
+        "global_step": int(checkpoint.get("global_step", 0)),
+    }
+    return model.save_pretrained(out, meta=meta)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="segmo export", description="export a training checkpoint to a model directory"
+    )
+    parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) written by `segmo fit`")
+    parser.add_argument("--out", required=True, help="model directory to write")
+    parser.add_argument(
+        "--task", default=None,
+        help="task class path, e.g. segmo.tasks.rvq.RVQTask (default: recorded in the checkpoint)",
+    )
+    args = parser.parse_args(argv)
+    if not Path(args.checkpoint).is_file():
+        parser.error(f"{args.checkpoint}: no such checkpoint file")
+    try:
+        out = export(args.checkpoint, args.out, args.task)
+    except ValueError as error:
+        parser.error(str(error))
+    print(out)
+
+
+if __name__ == "__main__":
+    main()

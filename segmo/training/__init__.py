@@ -1,0 +1,1 @@
+"""Training infrastructure: the LightningCLI wrapper behind `segmo fit/validate/test`."""
