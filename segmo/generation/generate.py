@@ -1,0 +1,283 @@
+"""Masked decoding of base tokens, residual decoding, temporal editing (spec §8).
+
+Every transformer pass runs the conditional and the unconditional branch of
+classifier-free guidance as ONE batch of 2b rows (rows b..2b−1 have their text prefix
+masked out), and the text prefix is projected once per call, not once per step.
+
+    indices = generate_tokens(mask_model, residual_model, sentence, segments, segment_mask,
+                              lengths=torch.tensor([196, 120]), generator=torch.Generator().manual_seed(0))
+    features = decode_tokens(tokenizer, indices, lengths)     # (b, t, d) z-scored
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import nn
+
+from segmo.generation.sampling import Sampler, cosine_schedule, sample_tokens
+from segmo.models.mask_transformer import MaskTransformer
+from segmo.models.residual_transformer import ResidualTransformer
+from segmo.models.transformer import Condition
+
+Precision = Literal["fp32", "bf16"]
+UNIT_LENGTH = 4  # frames per token
+
+
+@dataclass
+class SamplingOptions:
+    """How tokens are drawn: CFG scale, top-k ratio, temperature, sampler, generator."""
+
+    guidance_scale: float
+    top_k_ratio: float = 0.1
+    temperature: float = 1.0
+    sampler: Sampler = "categorical"
+    generator: torch.Generator | None = None
+
+
+def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Tensor:
+    """lengths (b,) in frames → token_mask (b, n) bool with n = max(lengths) // 4.
+
+    Raises ValueError unless every length is a multiple of 4 in [4, 4·max_tokens].
+    """
+    lengths = torch.as_tensor(lengths)
+    limit = UNIT_LENGTH * max_tokens
+    if lengths.dim() != 1 or lengths.numel() == 0:
+        raise ValueError(f"lengths must be a non-empty (b,) tensor of frame counts, "
+                         f"got shape {tuple(lengths.shape)}")
+    bad = (lengths % UNIT_LENGTH != 0) | (lengths < UNIT_LENGTH) | (lengths > limit)
+    if bool(bad.any()):
+        raise ValueError(f"lengths must be multiples of {UNIT_LENGTH} frames in "
+                         f"[{UNIT_LENGTH}, {limit}] (max_tokens={max_tokens}); "
+                         f"got {lengths[bad].tolist()}")
+    tokens = lengths.long() // UNIT_LENGTH
+    return torch.arange(int(tokens.max()), device=lengths.device) < tokens[:, None]
+
+
+def guidance_condition(model: MaskTransformer | ResidualTransformer, sentence: torch.Tensor,
+                       segments: torch.Tensor, segment_mask: torch.Tensor) -> Condition:
+    """The prefix of a 2b-row guidance batch: rows 0..b−1 conditional, b..2b−1 not."""
+    b = sentence.shape[0]
+    drop = torch.arange(2 * b, device=sentence.device) >= b
+    return model.condition(torch.cat([sentence, sentence]), torch.cat([segments, segments]),
+                           torch.cat([segment_mask, segment_mask]), drop)
+
+
+def guided_logits(logits: torch.Tensor, scale: float) -> torch.Tensor:
+    """logits (2b, n, v) of a guidance batch → u + s·(c − u), (b, n, v) float32."""
+    conditional, unconditional = logits.float().chunk(2)
+    return unconditional + scale * (conditional - unconditional)
+
+
+@contextmanager
+def _inference(models: list[nn.Module], precision: Precision, device: torch.device
+               ) -> Iterator[None]:
+    """Eval mode (restored afterwards), inference mode and, for bf16, autocast."""
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    modes = [(model, model.training) for model in models]
+    for model, _ in modes:
+        model.eval()
+    try:
+        with torch.inference_mode(), torch.autocast(device.type, dtype=torch.bfloat16,
+                                                    enabled=precision == "bf16"):
+            yield
+    finally:
+        for model, mode in modes:
+            model.train(mode)
+
+
+def _draw(logits: torch.Tensor, select: torch.Tensor, options: SamplingOptions
+          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Guidance batch logits (2b, n, v), select (b, n) bool → tokens (m,), confidence (m,)
+    for the m selected positions (row-major order); only those are guided and sampled."""
+    conditional, unconditional = logits.chunk(2)
+    conditional, unconditional = conditional[select].float(), unconditional[select].float()
+    guided = unconditional + options.guidance_scale * (conditional - unconditional)
+    return sample_tokens(guided, options.top_k_ratio, options.temperature, options.sampler,
+                         options.generator)
+
+
+def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Tensor,
+                  token_mask: torch.Tensor, condition: Condition, steps: int,
+                  options: SamplingOptions) -> torch.Tensor:
+    """Iteratively fill the `editable` base tokens; the others stay fixed and visible.
+
+    ids (b, n) long, editable (b, n) bool ⊆ token_mask (b, n) bool, condition from
+    `guidance_condition` → ids (b, n). At step t ∈ linspace(0, 1, steps), the ⌈γ(t)·m⌉ (≥ 1)
+    lowest-confidence editable tokens are (re-)masked and predicted, m = editable count.
+    A token kept at one step is final (MoMask): its confidence becomes +inf.
+    """
+    if steps < 1:
+        raise ValueError(f"steps must be ≥ 1, got {steps}")
+    counts = editable.sum(dim=1)
+    scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
+    mask2 = torch.cat([token_mask, token_mask])
+    for t in torch.linspace(0, 1, steps).tolist():
+        num = torch.ceil(cosine_schedule(t) * counts).long().clamp(min=1)
+        num = torch.where(counts > 0, num, 0)
+        ranks = scores.argsort(dim=1).argsort(dim=1)
+        is_masked = ranks < num[:, None]
+        ids = ids.masked_fill(is_masked, model.mask_id)
+        logits = model.forward_condition(torch.cat([ids, ids]), mask2, condition).logits
+        tokens, confidence = _draw(logits, is_masked, options)
+        ids[is_masked] = tokens
+        scores = torch.full_like(scores, math.inf)
+        scores[is_masked] = confidence
+    return ids
+
+
+def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerate: torch.Tensor,
+                    token_mask: torch.Tensor, condition: Condition, options: SamplingOptions
+                    ) -> torch.Tensor:
+    """Fill layers 1..q−1 one pass each, only where `regenerate` (b, n) is True.
+
+    indices (b, n, q) long (layer 0 set; other layers kept where not regenerated) →
+    (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
+    """
+    indices = indices.clone()
+    regenerate = regenerate & token_mask
+    q = indices.shape[2]
+    mask2 = torch.cat([token_mask, token_mask])
+    x = model.embed_layer(indices[..., 0], 0)
+    for layer in range(1, q):
+        logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition).logits
+        tokens, _ = _draw(logits, regenerate, options)
+        codes = indices[..., layer].masked_fill(~token_mask, -1)
+        codes[regenerate] = tokens
+        indices[..., layer] = codes
+        if layer < q - 1:
+            x = x + model.embed_layer(indices[..., layer], layer)
+    return indices
+
+
+def _check_models(mask_model: MaskTransformer, residual_model: ResidualTransformer | None) -> None:
+    if residual_model is None:
+        return
+    for field in ("codebook_size", "text_dim", "max_segments"):
+        a, b = getattr(mask_model.config, field), getattr(residual_model.config, field)
+        if a != b:
+            raise ValueError(f"mask and residual transformers disagree on {field}: {a} vs {b}")
+
+
+def generate_tokens(
+    mask_model: MaskTransformer,
+    residual_model: ResidualTransformer | None,
+    sentence: torch.Tensor,
+    segments: torch.Tensor,
+    segment_mask: torch.Tensor,
+    lengths: torch.Tensor,
+    steps: int = 10,
+    guidance_scale: float = 4.0,
+    residual_guidance_scale: float = 5.0,
+    top_k_ratio: float = 0.1,
+    temperature: float = 1.0,
+    sampler: Sampler = "categorical",
+    generator: torch.Generator | None = None,
+    precision: Precision = "fp32",
+) -> torch.Tensor:
+    """Text → motion tokens.
+
+    sentence (b, text_dim), segments (b, a, text_dim), segment_mask (b, a) bool,
+    lengths (b,) frames (multiples of 4 in [4, 4·max_tokens]) → indices (b, n, q) long with
+    n = max(lengths) // 4, q = residual_model.config.num_quantizers (1 without a residual
+    model); positions beyond a sample's length hold −1. Models run in eval mode (their mode
+    is restored afterwards); precision "bf16" runs the passes under bf16 autocast.
+    """
+    _check_models(mask_model, residual_model)
+    lengths = torch.as_tensor(lengths, device=sentence.device)
+    token_mask = token_mask_from_lengths(lengths, mask_model.config.max_tokens)
+    models = [mask_model] + ([residual_model] if residual_model is not None else [])
+    with _inference(models, precision, sentence.device):
+        condition = guidance_condition(mask_model, sentence, segments, segment_mask)
+        ids = torch.full(token_mask.shape, mask_model.mask_id, device=sentence.device)
+        options = SamplingOptions(guidance_scale, top_k_ratio, temperature, sampler, generator)
+        base = masked_decode(mask_model, ids, token_mask, token_mask, condition, steps, options)
+        base = torch.where(token_mask, base, -1)
+        if residual_model is None:
+            return base[..., None]
+        q = residual_model.config.num_quantizers
+        indices = torch.cat([base[..., None], base.new_full((*base.shape, q - 1), -1)], dim=2)
+        condition = guidance_condition(residual_model, sentence, segments, segment_mask)
+        options.guidance_scale = residual_guidance_scale
+        return residual_decode(residual_model, indices, token_mask, token_mask, condition, options)
+
+
+def edit_tokens(
+    mask_model: MaskTransformer,
+    residual_model: ResidualTransformer | None,
+    indices: torch.Tensor,
+    span: tuple[int, int] | torch.Tensor,
+    sentence: torch.Tensor,
+    segments: torch.Tensor,
+    segment_mask: torch.Tensor,
+    steps: int = 10,
+    guidance_scale: float = 4.0,
+    residual_guidance_scale: float = 5.0,
+    top_k_ratio: float = 0.1,
+    temperature: float = 1.0,
+    sampler: Sampler = "categorical",
+    generator: torch.Generator | None = None,
+    precision: Precision = "fp32",
+) -> torch.Tensor:
+    """Regenerate the tokens of a span under new text conditioning (temporal inpainting).
+
+    indices (b, n, q) long from `generate_tokens` (−1 marks padding in layer 0);
+    span (start_token, end_token), end exclusive, or a (b, 2) long tensor of per-sample
+    spans; new text as in `generate_tokens`. Base tokens inside the span are re-masked and
+    refilled with everything outside visible as context; residual tokens are regenerated
+    inside the span only. Every token outside the span is returned unchanged.
+    """
+    _check_models(mask_model, residual_model)
+    b, n, q = indices.shape
+    if q > 1 and residual_model is None:
+        raise ValueError(f"edit_tokens: indices have {q} layers; a residual_model is needed to "
+                         "regenerate the residual tokens inside the span")
+    if residual_model is not None and q != residual_model.config.num_quantizers:
+        raise ValueError(f"edit_tokens: indices have {q} layers, the residual model has "
+                         f"num_quantizers={residual_model.config.num_quantizers}")
+    span = torch.as_tensor(span, device=indices.device).long().reshape(-1, 2).expand(b, 2)
+    start, end = span[:, :1], span[:, 1:]
+    if bool(((start < 0) | (end > n) | (start >= end)).any()):
+        raise ValueError(f"edit_tokens: span must satisfy 0 ≤ start < end ≤ n={n}, "
+                         f"got {span.tolist()}")
+    token_mask = indices[..., 0] >= 0
+    position = torch.arange(n, device=indices.device)
+    editable = (position >= start) & (position < end) & token_mask
+    models = [mask_model] + ([residual_model] if residual_model is not None else [])
+    with _inference(models, precision, sentence.device):
+        condition = guidance_condition(mask_model, sentence, segments, segment_mask)
+        options = SamplingOptions(guidance_scale, top_k_ratio, temperature, sampler, generator)
+        ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
+        base = masked_decode(mask_model, ids, editable, token_mask, condition, steps, options)
+        out = indices.clone()
+        out[..., 0] = torch.where(token_mask, base, -1)
+        if residual_model is None:
+            return out
+        condition = guidance_condition(residual_model, sentence, segments, segment_mask)
+        options.guidance_scale = residual_guidance_scale
+        return residual_decode(residual_model, out, editable, token_mask, condition, options)
+
+
+def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """Tokens → motion features with a tokenizer (design.md, `RVQVAE.decode`).
+
+    indices (b, n, q') with q' ≤ tokenizer.num_quantizers (missing layers decode as zero
+    codes, index −1); lengths (b,) frames → features (b, t, d), frames ≥ length set to 0.
+    """
+    b, n, q = indices.shape
+    missing = tokenizer.num_quantizers - q
+    if missing < 0:
+        raise ValueError(f"decode_tokens: indices have {q} layers, the tokenizer has "
+                         f"{tokenizer.num_quantizers}")
+    if missing:
+        indices = torch.cat([indices, indices.new_full((b, n, missing), -1)], dim=2)
+    with torch.inference_mode():
+        features = tokenizer.decode(indices)
+    frames = torch.arange(features.shape[1], device=features.device)
+    return features * (frames < lengths.to(features.device)[:, None])[..., None]

@@ -1,0 +1,65 @@
+"""Token sampling: top-k, temperature, categorical or Gumbel-max draws (spec §8).
+
+All randomness comes from an optional `torch.Generator`, so a seed fixes the result.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+
+from segmo.models.mask_transformer import cosine_schedule
+
+__all__ = ["Sampler", "cosine_schedule", "sample_tokens", "top_k_count"]
+
+Sampler = Literal["categorical", "gumbel"]
+
+
+def top_k_count(vocabulary: int, ratio: float) -> int:
+    """How many logits "keep ratio of the logits" keeps: ⌈ratio·v⌉ (MoMask: 52 of 512)."""
+    if not 0 < ratio <= 1:
+        raise ValueError(f"top_k_ratio must be in (0, 1], got {ratio}")
+    return max(1, math.ceil(ratio * vocabulary))
+
+
+def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: float = 1.0,
+                  sampler: Sampler = "categorical",
+                  generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Draw one token per row among its top-k logits and return it with its probability.
+
+    logits (..., v) → (tokens (...) long, confidence (...) float32), where confidence is the
+    probability of the drawn token under softmax(top-k logits / T); temperature 0 is greedy.
+    Only the k candidates are normalised and sampled, which is what filtering the others to
+    −inf would give, at a fraction of the cost. "categorical" inverts the CDF with one
+    uniform per row; "gumbel" adds Gumbel noise to the k scaled logits and takes the argmax.
+    """
+    if temperature < 0:
+        raise ValueError(f"sample_tokens: temperature must be ≥ 0, got {temperature}")
+    if sampler not in ("categorical", "gumbel"):
+        raise ValueError(f"sample_tokens: sampler must be 'categorical' or 'gumbel', got {sampler!r}")
+    logits = logits.float()
+    k = top_k_count(logits.shape[-1], top_k_ratio)
+    if k < logits.shape[-1]:
+        values, candidates = logits.topk(k, dim=-1, sorted=False)
+        # topk's unsorted order is an implementation detail (threads, precision); put the
+        # candidates in code order so that a seed maps to the same token everywhere.
+        candidates, order = candidates.sort(dim=-1)
+        values = values.gather(-1, order)
+    else:
+        values, candidates = logits, None
+    scaled = values / temperature if temperature > 0 else values
+    probs = torch.softmax(scaled, dim=-1)
+    if temperature == 0:
+        choice = values.argmax(dim=-1, keepdim=True)
+    elif sampler == "categorical":
+        cdf = probs.cumsum(dim=-1)
+        u = torch.rand((*cdf.shape[:-1], 1), generator=generator, device=cdf.device)
+        choice = torch.searchsorted(cdf, u * cdf[..., -1:], right=True).clamp(max=k - 1)
+    else:
+        u = torch.rand(scaled.shape, generator=generator, device=scaled.device)
+        gumbel = -torch.log((-torch.log(u.clamp(min=1e-20))).clamp(min=1e-20))
+        choice = (scaled + gumbel).argmax(dim=-1, keepdim=True)
+    tokens = choice if candidates is None else candidates.gather(-1, choice)
+    return tokens[..., 0], probs.gather(-1, choice)[..., 0]

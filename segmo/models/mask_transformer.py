@@ -1,0 +1,181 @@
+"""The mask transformer: text + segments + masked base tokens → base-token logits (spec §4).
+
+Besides the logits, the forward pass returns the trunk's output features at the motion
+positions and at the segment prefix positions: the segment-alignment loss (spec §5,
+`segmo.models.alignment`) aggregates the former over motion segments and contrasts them
+with the latter.
+
+Training helpers are plain functions so that the task owns the loop:
+
+    inputs, target_mask = mask_tokens(indices, token_mask, model.config.codebook_size, generator)
+    out = model(inputs, token_mask, sentence, segments, segment_mask, drop_condition)
+    loss = masked_token_loss(out.logits, indices, target_mask)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from segmo.models.alignment import AlignmentConfig, AlignmentHead
+from segmo.models.pretrained import Pretrained
+from segmo.models.transformer import (
+    Condition,
+    Linear,
+    TextPrefix,
+    TokenHead,
+    Trunk,
+    init_weights,
+)
+
+
+def cosine_schedule(t: torch.Tensor | float) -> torch.Tensor | float:
+    """Masking ratio γ(t) = cos(πt/2) for t ∈ [0, 1] (1 → everything masked)."""
+    if isinstance(t, torch.Tensor):
+        return torch.cos(t * (math.pi / 2))
+    return math.cos(t * math.pi / 2)
+
+
+@dataclass
+class MaskTransformerConfig:
+    codebook_size: int = 512
+    text_dim: int = 512
+    max_segments: int = 5
+    max_tokens: int = 49
+    dim: int = 384
+    depth: int = 8
+    heads: int = 6
+    ff_dim: int = 1024
+    dropout: float = 0.2
+    # MoMask uses PyTorch's default post-norm encoder layer; pre-norm trains more stably.
+    norm_first: bool = False
+    # SegMo's segment-alignment head (spec §5); None = plain MoMask (no alignment).
+    alignment: AlignmentConfig | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.alignment, dict):  # read back from config.json
+            self.alignment = AlignmentConfig(**self.alignment)
+
+
+@dataclass
+class MaskTransformerOutput:
+    """logits (b, n, codebook_size); motion_features (b, n, dim) trunk outputs at the motion
+    positions; segment_features (b, a, dim) and sentence_features (b, dim) trunk outputs at
+    the prefix positions (meaningless for rows whose condition was dropped)."""
+
+    logits: torch.Tensor
+    motion_features: torch.Tensor
+    segment_features: torch.Tensor
+    sentence_features: torch.Tensor
+
+
+class MaskTransformer(nn.Module, Pretrained):
+    """Bidirectional transformer over `[sentence, segments 1..A, base tokens]`.
+
+    Token ids: codes 0..codebook_size-1, then `mask_id` = codebook_size, `pad_id` =
+    codebook_size + 1. Positions where `token_mask` is False are replaced by `pad_id` and
+    excluded from attention, so their input ids do not matter.
+    """
+
+    kind = "mask"
+    config_class = MaskTransformerConfig
+
+    def __init__(self, config: MaskTransformerConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.meta: dict = {}
+        self.mask_id = config.codebook_size
+        self.pad_id = config.codebook_size + 1
+        self.token_embedding = nn.Embedding(config.codebook_size + 2, config.dim)
+        self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments)
+        self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
+                           config.norm_first, config.max_tokens)
+        self.head = TokenHead(config.dim)
+        self.classifier = Linear(config.dim, config.codebook_size)
+        self.apply(init_weights)
+        # Built after init_weights so the head keeps its own initialisation; absent without
+        # alignment so that no parameter goes without gradient (DDP rejects that).
+        self.alignment = (AlignmentHead(config.dim, config.alignment)
+                          if config.alignment is not None else None)
+
+    def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
+                  segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None
+                  ) -> Condition:
+        """Prefix tokens, (b, 1 + a, dim); computed once per generation, reused per step."""
+        return self.prefix(sentence, segments, segment_mask, drop_condition)
+
+    def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
+                          condition: Condition) -> MaskTransformerOutput:
+        """indices (b, n) long, token_mask (b, n) bool, condition from `condition()`."""
+        if indices.shape != token_mask.shape or indices.shape[0] != condition.tokens.shape[0]:
+            raise ValueError(f"MaskTransformer: indices {tuple(indices.shape)}, token_mask "
+                             f"{tuple(token_mask.shape)} and condition batch "
+                             f"{condition.tokens.shape[0]} disagree")
+        token_mask = token_mask.bool()
+        indices = torch.where(token_mask, indices, self.pad_id)
+        h = self.trunk(condition.tokens, condition.mask, self.token_embedding(indices), token_mask)
+        p = condition.tokens.shape[1]
+        motion = h[:, p:]
+        return MaskTransformerOutput(
+            logits=self.classifier(self.head(motion)),
+            motion_features=motion,
+            segment_features=h[:, 1:p],
+            sentence_features=h[:, 0],
+        )
+
+    def forward(self, indices: torch.Tensor, token_mask: torch.Tensor, sentence: torch.Tensor,
+                segments: torch.Tensor, segment_mask: torch.Tensor,
+                drop_condition: torch.Tensor | None = None) -> MaskTransformerOutput:
+        """indices (b, n) long with masked positions already replaced by `mask_id`;
+        token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim);
+        segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free guidance)."""
+        condition = self.condition(sentence, segments, segment_mask, drop_condition)
+        return self.forward_condition(indices, token_mask, condition)
+
+
+def mask_tokens(indices: torch.Tensor, token_mask: torch.Tensor, codebook_size: int,
+                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corrupt base tokens for one training step (spec §4).
+
+    Per sample, t ~ U(0, 1) and max(1, round(γ(t)·len)) valid tokens are chosen at random;
+    of those, 10 % get a random code, 80 % become [MASK] (id codebook_size) and 10 % stay.
+    Padded positions become [PAD] (id codebook_size + 1).
+
+    indices (b, n) long codes, token_mask (b, n) bool →
+    (inputs (b, n) long, target_mask (b, n) bool: the chosen positions, to be predicted).
+    """
+    token_mask = token_mask.bool()
+    lengths = token_mask.sum(dim=1)
+    if bool((lengths == 0).any()):
+        raise ValueError("mask_tokens: every sample needs at least one valid token")
+    b, n = indices.shape
+    device = indices.device
+    t = torch.rand(b, generator=generator, device=device)
+    count = torch.round(cosine_schedule(t) * lengths).long().clamp(min=1)
+    count = torch.minimum(count, lengths)
+    # Rank valid positions in a random order; padded ones sort last and are never chosen.
+    noise = torch.rand(b, n, generator=generator, device=device).masked_fill(~token_mask, 2.0)
+    ranks = noise.argsort(dim=1).argsort(dim=1)
+    target_mask = ranks < count[:, None]
+    choice = torch.rand(b, n, generator=generator, device=device)
+    random_codes = torch.randint(0, codebook_size, (b, n), generator=generator, device=device)
+    inputs = torch.where(target_mask & (choice < 0.8), codebook_size, indices)
+    inputs = torch.where(target_mask & (choice >= 0.8) & (choice < 0.9), random_codes, inputs)
+    inputs = torch.where(token_mask, inputs, codebook_size + 1)
+    return inputs, target_mask
+
+
+def masked_token_loss(logits: torch.Tensor, targets: torch.Tensor,
+                      target_mask: torch.Tensor) -> torch.Tensor:
+    """Mean cross-entropy over the positions of `target_mask`.
+
+    logits (b, n, v), targets (b, n) long, target_mask (b, n) bool → scalar. The residual
+    task uses it too, with target_mask = token_mask (every valid token of layer j).
+    """
+    if not bool(target_mask.any()):
+        raise ValueError("masked_token_loss: target_mask selects no position")
+    return F.cross_entropy(logits[target_mask].float(), targets[target_mask])

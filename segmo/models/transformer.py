@@ -1,0 +1,249 @@
+"""The transformer trunk shared by the mask and residual transformers (spec §4, §6).
+
+Bottom-up: attention → block → trunk, plus the text-conditioning prefix. The sequence the
+trunk sees is `[prefix tokens, motion tokens]`; only motion tokens get (sinusoidal)
+positions, the prefix slots get learned slot embeddings instead.
+
+Masks follow the package convention (`(b, n) bool`, True = valid) and are turned into an
+attention mask only inside `SelfAttention`. Invalid keys (padded motion tokens, empty
+segment slots, the whole text prefix of a sample whose condition is dropped) are excluded
+from attention, so their content cannot influence any valid position.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
+    """The fixed sin/cos table of "Attention is all you need": (length, dim) float32."""
+    if dim % 2:
+        raise ValueError(f"sinusoidal_positions: dim must be even, got {dim}")
+    position = torch.arange(length, dtype=torch.float32)[:, None]
+    frequency = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-math.log(10000.0) / dim))
+    table = torch.zeros(length, dim)
+    table[:, 0::2] = torch.sin(position * frequency)
+    table[:, 1::2] = torch.cos(position * frequency)
+    return table
+
+
+# Why linear layers bypass `F.linear` in CPU inference:
+# - fp32: PyTorch sends fp32 CPU matmuls to MKL, which runs AVX2 kernels on AMD CPUs, while
+#   oneDNN uses AVX-512 wherever the CPU has it: ~2× faster on this project's AMD machines.
+# - bf16 autocast: oneDNN with bias and GELU fused saves ~8 % of a pass over
+#   autocast's `addmm` + separate GELU (tools/bench_generate.py).
+# Same arithmetic (fp32 accumulation); fp32 results agree with `F.linear` to ~1e-6.
+_ONEDNN_LINEAR = getattr(getattr(torch.ops, "mkldnn", None), "_linear_pointwise", None)
+
+
+def _onednn_mode(x: torch.Tensor, weight: torch.Tensor) -> str | None:
+    """"fp32" or "bf16" when `linear` may call oneDNN directly, else None."""
+    if (_ONEDNN_LINEAR is None or x.device.type != "cpu" or weight.dtype != torch.float32
+            or not torch.backends.mkldnn.is_available()):
+        return None
+    if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
+        return None
+    if torch.is_autocast_enabled("cpu"):
+        return "bf16" if torch.get_autocast_dtype("cpu") == torch.bfloat16 else None
+    return "fp32" if x.dtype == torch.float32 else None
+
+
+def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
+           activation: str = "none") -> torch.Tensor:
+    """`F.linear` (then exact GELU if asked); fp32 CPU inference goes through oneDNN."""
+    if _onednn_mode(x, weight) == "fp32":
+        return _ONEDNN_LINEAR(x, weight, bias, activation, [], "none" if activation == "gelu" else "")
+    y = F.linear(x, weight, bias)
+    return F.gelu(y) if activation == "gelu" else y
+
+
+class Linear(nn.Linear):
+    """`nn.Linear` (same parameters) computed by `linear`; `activation="gelu"` fuses the
+    GELU that follows. Under CPU bf16 autocast without autograd it keeps bf16 copies of
+    its weights (refreshed when the parameters change) and calls oneDNN itself."""
+
+    def __init__(self, in_features: int, out_features: int, activation: str = "none") -> None:
+        super().__init__(in_features, out_features)
+        if activation not in ("none", "gelu"):
+            raise ValueError(f"Linear: activation must be 'none' or 'gelu', got {activation!r}")
+        self.activation = activation
+        self._bf16: tuple | None = None  # (key, weight, bias); not state, never saved
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if _onednn_mode(x, self.weight) != "bf16":
+            return linear(x, self.weight, self.bias, self.activation)
+        key = (self.weight.data_ptr(), self.weight._version, self.bias._version)
+        if self._bf16 is None or self._bf16[0] != key:
+            self._bf16 = (key, self.weight.to(torch.bfloat16), self.bias.to(torch.bfloat16))
+        _, weight, bias = self._bf16
+        algorithm = "none" if self.activation == "gelu" else ""
+        return _ONEDNN_LINEAR(x.to(torch.bfloat16), weight, bias, self.activation, [], algorithm)
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention on `scaled_dot_product_attention` with a key mask."""
+
+    def __init__(self, dim: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"SelfAttention: dim={dim} is not divisible by heads={heads}")
+        self.heads = heads
+        self.dropout = dropout
+        self.qkv = Linear(dim, 3 * dim)
+        self.out = Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """x (b, l, dim), valid (b, l) bool keys that may be attended to → (b, l, dim)."""
+        b, length, dim = x.shape
+        q, k, v = self.qkv(x).view(b, length, 3, self.heads, dim // self.heads).unbind(2)
+        q, k, v = (t.transpose(1, 2) for t in (q, k, v))  # (b, heads, l, head_dim)
+        # Boolean SDPA mask: True = take part; broadcast over heads and queries.
+        attn_mask = valid[:, None, None, :]
+        y = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0
+        )
+        return self.out(y.transpose(1, 2).reshape(b, length, dim))
+
+
+class Block(nn.Module):
+    """Encoder block: attention + GELU feed-forward, pre-norm or post-norm."""
+
+    def __init__(self, dim: int, heads: int, ff_dim: int, dropout: float, norm_first: bool):
+        super().__init__()
+        self.norm_first = norm_first
+        self.attention = SelfAttention(dim, heads, dropout)
+        self.norm1 = nn.LayerNorm(dim)
+        self.norm2 = nn.LayerNorm(dim)
+        self.ff = nn.Sequential(Linear(dim, ff_dim, activation="gelu"), nn.Dropout(dropout),
+                                Linear(ff_dim, dim))
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """x (b, l, dim), valid (b, l) bool → (b, l, dim)."""
+        if self.norm_first:
+            x = x + self.drop(self.attention(self.norm1(x), valid))
+            return x + self.drop(self.ff(self.norm2(x)))
+        x = self.norm1(x + self.drop(self.attention(x, valid)))
+        return self.norm2(x + self.drop(self.ff(x)))
+
+
+@dataclass
+class Condition:
+    """Text conditioning as prefix tokens, computed once per generation.
+
+    tokens: (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A).
+    mask:   (b, p) bool, True = the slot takes part in attention.
+    """
+
+    tokens: torch.Tensor
+    mask: torch.Tensor
+
+
+class TextPrefix(nn.Module):
+    """Projects pooled text vectors to prefix tokens: [sentence, segment 1..A].
+
+    One projection is shared by the sentence and its segments (they come from the same
+    frozen encoder); learned slot embeddings tell the trunk which slot is which. Dropping
+    the condition (classifier-free guidance) masks the whole prefix out of attention, so
+    the unconditional branch is a row of the same batch with no parameter of its own.
+    """
+
+    def __init__(self, text_dim: int, dim: int, max_segments: int) -> None:
+        super().__init__()
+        self.max_segments = max_segments
+        self.project = nn.Linear(text_dim, dim)
+        self.slots = nn.Parameter(torch.randn(1 + max_segments, dim) * 0.02)
+
+    def forward(
+        self,
+        sentence: torch.Tensor,
+        segments: torch.Tensor,
+        segment_mask: torch.Tensor,
+        drop_condition: torch.Tensor | None = None,
+    ) -> Condition:
+        """sentence (b, text_dim), segments (b, a, text_dim), segment_mask (b, a) bool,
+        drop_condition (b,) bool or None → Condition with p = 1 + a."""
+        b, a = segment_mask.shape
+        if sentence.dim() != 2 or segments.shape[:2] != (b, a) or sentence.shape[0] != b:
+            raise ValueError(
+                "TextPrefix: expected sentence (b, text_dim), segments (b, a, text_dim), "
+                f"segment_mask (b, a); got {tuple(sentence.shape)}, {tuple(segments.shape)}, "
+                f"{tuple(segment_mask.shape)}"
+            )
+        if a > self.max_segments:
+            raise ValueError(f"TextPrefix: {a} segment slots given, the model has {self.max_segments}")
+        segment_mask = segment_mask.bool()
+        text = torch.cat([sentence[:, None], segments], dim=1)  # (b, 1 + a, text_dim)
+        tokens = self.project(text) + self.slots[: 1 + a]
+        valid = torch.cat([segment_mask.new_ones(b, 1), segment_mask], dim=1)
+        if drop_condition is not None:
+            valid = valid & ~drop_condition.bool()[:, None]
+        # Masked keys get zero attention weight, but 0 · NaN is NaN: zero their values so
+        # that whatever an empty slot holds (NaN padding included) cannot leak.
+        tokens = tokens.masked_fill(~valid[..., None], 0.0)
+        return Condition(tokens=tokens, mask=valid)
+
+
+class Trunk(nn.Module):
+    """Stack of encoder blocks over `[prefix, motion tokens]`.
+
+    Positions: sinusoidal on motion tokens only (the prefix has slot embeddings).
+    """
+
+    def __init__(self, dim: int, depth: int, heads: int, ff_dim: int, dropout: float,
+                 norm_first: bool, max_tokens: int) -> None:
+        super().__init__()
+        self.register_buffer("positions", sinusoidal_positions(max_tokens, dim), persistent=False)
+        self.drop = nn.Dropout(dropout)
+        self.blocks = nn.ModuleList(
+            Block(dim, heads, ff_dim, dropout, norm_first) for _ in range(depth)
+        )
+        # Post-norm blocks already end in a LayerNorm; pre-norm needs a final one.
+        self.norm = nn.LayerNorm(dim) if norm_first else nn.Identity()
+
+    def forward(self, prefix: torch.Tensor, prefix_mask: torch.Tensor, tokens: torch.Tensor,
+                token_mask: torch.Tensor) -> torch.Tensor:
+        """prefix (b, p, dim), prefix_mask (b, p), tokens (b, n, dim) embedded motion tokens,
+        token_mask (b, n) → hidden states (b, p + n, dim)."""
+        n = tokens.shape[1]
+        if n > self.positions.shape[0]:
+            raise ValueError(f"Trunk: {n} motion tokens, the model has max_tokens="
+                             f"{self.positions.shape[0]}")
+        if not bool(token_mask.any(dim=1).all()):
+            raise ValueError("Trunk: every sample needs at least one valid motion token")
+        x = torch.cat([prefix, tokens + self.positions[:n].to(tokens.dtype)], dim=1)
+        valid = torch.cat([prefix_mask, token_mask.bool()], dim=1)
+        x = self.drop(x)
+        for block in self.blocks:
+            x = block(x, valid)
+        return self.norm(x)
+
+
+class TokenHead(nn.Module):
+    """MoMask's output process: dense → GELU → LayerNorm; the final projection is the
+    caller's (a Linear for the mask transformer, tied embeddings for the residual one)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.dense = Linear(dim, dim, activation="gelu")
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        """h (..., dim) → (..., dim)."""
+        return self.norm(self.dense(h))
+
+
+def init_weights(module: nn.Module) -> None:
+    # MoMask/BERT initialisation: small normal weights, zero biases, unit LayerNorms.
+    if isinstance(module, (nn.Linear, nn.Embedding)):
+        nn.init.normal_(module.weight, mean=0.0, std=0.02)
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            nn.init.zeros_(module.bias)
+    elif isinstance(module, nn.LayerNorm):
+        nn.init.ones_(module.weight)
+        nn.init.zeros_(module.bias)

@@ -1,0 +1,209 @@
+"""Sampling, masked/residual decoding with classifier-free guidance, editing (tiny models)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from segmo.generation import (
+    decode_tokens,
+    edit_tokens,
+    generate_tokens,
+    guidance_condition,
+    guided_logits,
+    sample_tokens,
+)
+from segmo.generation.sampling import top_k_count
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+
+TINY = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2,
+            heads=2, ff_dim=64, dropout=0.1)
+
+
+@pytest.fixture(scope="module")
+def models():
+    torch.manual_seed(0)
+    mask = MaskTransformer(MaskTransformerConfig(**TINY))
+    residual = ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3))
+    # Sharper logits than the 0.02-std initialisation, so that the text matters.
+    with torch.no_grad():
+        mask.classifier.weight.mul_(50)
+        residual.code_embeddings.mul_(50)
+    return mask, residual
+
+
+def text(b: int, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    segment_mask = torch.ones(b, 3, dtype=torch.bool)
+    segment_mask[0, 2] = False
+    return torch.randn(b, 8, generator=g), torch.randn(b, 3, 8, generator=g), segment_mask
+
+
+class StubTokenizer:
+    """decode(indices (b, n, q)) → (b, 4n, d): sum of per-layer codes, upsampled ×4."""
+
+    codebook_size, num_quantizers, code_dim = 16, 3, 5
+
+    def __init__(self) -> None:
+        self.codes = torch.randn(3, 16, 5, generator=torch.Generator().manual_seed(0))
+
+    def decode(self, indices: torch.Tensor) -> torch.Tensor:
+        assert indices.shape[2] == self.num_quantizers
+        picked = self.codes[torch.arange(3), indices.clamp(min=0)]  # (b, n, q, d)
+        summed = (picked * (indices >= 0)[..., None]).sum(2)
+        return summed.repeat_interleave(4, dim=1)
+
+
+def test_top_k_count():
+    assert top_k_count(512, 0.1) == 52 and top_k_count(16, 0.01) == 1 and top_k_count(8, 1.0) == 8
+    with pytest.raises(ValueError):
+        top_k_count(512, 0.0)
+
+
+@pytest.mark.parametrize("sampler", ["categorical", "gumbel"])
+def test_sample_tokens(sampler):
+    logits = torch.randn(300, 40)
+    tokens, conf = sample_tokens(logits, 0.1, 1.0, sampler, torch.Generator().manual_seed(0))
+    again, _ = sample_tokens(logits, 0.1, 1.0, sampler, torch.Generator().manual_seed(0))
+    assert torch.equal(tokens, again)
+    top4 = logits.topk(4, dim=-1).indices
+    assert bool((top4 == tokens[:, None]).any(dim=1).all()), "drew outside the top-k"
+    kept = logits.masked_fill(logits < logits.topk(4, dim=-1).values[:, -1:], float("-inf"))
+    torch.testing.assert_close(conf, kept.softmax(-1).gather(-1, tokens[:, None])[:, 0])
+    greedy, _ = sample_tokens(logits, 0.1, 0.0, sampler)
+    assert torch.equal(greedy, logits.argmax(-1))
+    # both samplers draw from softmax(top-k logits / T): empirical frequencies match
+    probs = torch.tensor([0.5, 0.25, 0.15, 0.1])
+    logits = torch.cat([probs.log(), torch.full((6,), -5.0)])  # 10 codes, top-4 kept
+    many, _ = sample_tokens(logits.expand(20000, 10), 0.4, 2.0, sampler,
+                            torch.Generator().manual_seed(1))
+    freq = torch.bincount(many, minlength=10).float() / 20000
+    expected = (probs.log() / 2.0).softmax(-1)
+    torch.testing.assert_close(freq[:4], expected, rtol=0, atol=0.015)
+    assert float(freq[4:].sum()) == 0.0
+
+
+def test_guidance_scale_one_equals_conditional(models):
+    mask, _ = models
+    mask.eval()
+    b, n = 3, 9
+    sentence, segments, segment_mask = text(b)
+    indices = torch.randint(0, 17, (b, n))
+    token_mask = torch.arange(n) < torch.tensor([9, 5, 2])[:, None]
+    condition = guidance_condition(mask, sentence, segments, segment_mask)
+    both = mask.forward_condition(torch.cat([indices, indices]),
+                                  torch.cat([token_mask, token_mask]), condition).logits
+    conditional = mask(indices, token_mask, sentence, segments, segment_mask).logits
+    unconditional = mask(indices, token_mask, sentence, segments, segment_mask,
+                         drop_condition=torch.ones(b, dtype=torch.bool)).logits
+    torch.testing.assert_close(guided_logits(both, 1.0), conditional, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(guided_logits(both, 0.0), unconditional, rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(conditional, unconditional)
+
+
+def test_generate_shapes_padding_and_seeds(models):
+    mask, residual = models
+    mask.train()  # generation must switch to eval and restore each model's mode
+    residual.eval()
+    lengths = torch.tensor([48, 20, 4])
+    cond = text(3)
+    rng_state = torch.random.get_rng_state()
+    out = generate_tokens(mask, residual, *cond, lengths, steps=4,
+                          generator=torch.Generator().manual_seed(0))
+    assert torch.equal(torch.random.get_rng_state(), rng_state), "global RNG was used"
+    assert mask.training and not residual.training
+    mask.eval()
+    assert out.shape == (3, 12, 3) and out.dtype == torch.long
+    valid = torch.arange(12) < (lengths // 4)[:, None]
+    assert bool((out[valid] >= 0).all()) and bool((out[valid] < 16).all())
+    assert bool((out[~valid] == -1).all())
+    same = generate_tokens(mask, residual, *cond, lengths, steps=4,
+                           generator=torch.Generator().manual_seed(0))
+    other = generate_tokens(mask, residual, *cond, lengths, steps=4,
+                            generator=torch.Generator().manual_seed(1))
+    assert torch.equal(out, same)
+    assert not torch.equal(out, other)
+    base_only = generate_tokens(mask, None, *cond, lengths, steps=4,
+                                generator=torch.Generator().manual_seed(0))
+    assert torch.equal(base_only[..., 0], out[..., 0])
+
+
+@pytest.mark.parametrize("precision,sampler", [("bf16", "gumbel"), ("fp32", "gumbel")])
+def test_generate_precision_and_sampler(models, precision, sampler):
+    mask, residual = models
+    out = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]), steps=3,
+                          sampler=sampler, precision=precision,
+                          generator=torch.Generator().manual_seed(0))
+    again = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]), steps=3,
+                            sampler=sampler, precision=precision,
+                            generator=torch.Generator().manual_seed(0))
+    assert out.shape == (2, 10, 3) and torch.equal(out, again)
+    assert bool((out[1, 3:] == -1).all()) and bool((out[0] >= 0).all())
+
+
+def test_one_batched_guidance_pass_per_step(models, monkeypatch):
+    mask, residual = models
+    batches: list[int] = []
+    original = MaskTransformer.forward_condition
+
+    def counting(self, indices, token_mask, condition):
+        batches.append(indices.shape[0])
+        return original(self, indices, token_mask, condition)
+
+    monkeypatch.setattr(MaskTransformer, "forward_condition", counting)
+    generate_tokens(mask, residual, *text(3), torch.tensor([16, 16, 8]), steps=5,
+                    generator=torch.Generator().manual_seed(0))
+    assert batches == [6] * 5
+
+
+@pytest.mark.parametrize("bad", [[46], [0], [52], [-4]])
+def test_bad_lengths_refused(models, bad):
+    mask, residual = models
+    with pytest.raises(ValueError, match="multiples of 4 frames in \\[4, 48\\]"):
+        generate_tokens(mask, residual, *text(1), torch.tensor(bad))
+
+
+def test_edit_keeps_tokens_outside_span(models):
+    mask, residual = models
+    lengths = torch.tensor([48, 32, 24, 48])
+    original = generate_tokens(mask, residual, *text(4), lengths, steps=4,
+                               generator=torch.Generator().manual_seed(0))
+    start, end = 3, 7
+    edited = edit_tokens(mask, residual, original, (start, end), *text(4, seed=9), steps=4,
+                         generator=torch.Generator().manual_seed(5))
+    outside = torch.ones(12, dtype=torch.bool)
+    outside[start:end] = False
+    assert torch.equal(edited[:, outside], original[:, outside])  # base and residual layers
+    inside = edited[:, start:end]
+    valid = (torch.arange(start, end) < (lengths // 4)[:, None])[..., None]
+    assert bool((inside >= 0)[valid.expand_as(inside)].all())
+    assert bool((inside == -1)[~valid.expand_as(inside)].all())
+    assert not torch.equal(inside, original[:, start:end])
+    # per-sample spans; a span over padding leaves that sample untouched
+    spans = torch.tensor([[0, 2], [5, 8], [10, 12], [11, 12]])
+    edited = edit_tokens(mask, residual, original, spans, *text(4, seed=9), steps=2,
+                         generator=torch.Generator().manual_seed(5))
+    for i, (s, e) in enumerate(spans.tolist()):
+        keep = torch.ones(12, dtype=torch.bool)
+        keep[s:e] = False
+        assert torch.equal(edited[i, keep], original[i, keep])
+    assert torch.equal(edited[2], original[2])
+    with pytest.raises(ValueError, match="span"):
+        edit_tokens(mask, residual, original, (5, 5), *text(4))
+    with pytest.raises(ValueError, match="residual_model is needed"):
+        edit_tokens(mask, None, original, (0, 2), *text(4))
+
+
+def test_decode_tokens_with_stub_tokenizer(models):
+    mask, residual = models
+    tokenizer = StubTokenizer()
+    lengths = torch.tensor([48, 20])
+    indices = generate_tokens(mask, residual, *text(2), lengths, steps=2,
+                              generator=torch.Generator().manual_seed(0))
+    features = decode_tokens(tokenizer, indices, lengths)
+    assert features.shape == (2, 48, 5)
+    assert bool((features[1, 20:] == 0).all()) and bool((features[1, :20] != 0).any())
+    base = decode_tokens(tokenizer, indices[..., :1], lengths)  # missing layers → −1
+    expected = tokenizer.codes[0][indices[0, :, 0]].repeat_interleave(4, dim=0)
+    torch.testing.assert_close(base[0], expected)

@@ -1,0 +1,256 @@
+"""Mask/residual transformers, length estimator and their training helpers (tiny sizes)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
+from segmo.models.mask_transformer import (
+    MaskTransformer,
+    MaskTransformerConfig,
+    mask_tokens,
+    masked_token_loss,
+)
+from segmo.models.pretrained import load_pretrained
+from segmo.models.residual_transformer import (
+    ResidualTransformer,
+    ResidualTransformerConfig,
+    layer_probabilities,
+    sample_layers,
+)
+
+TINY = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2,
+            heads=2, ff_dim=64, dropout=0.1)
+
+
+def tiny_mask(norm_first: bool = False, seed: int = 0) -> MaskTransformer:
+    torch.manual_seed(seed)
+    return MaskTransformer(MaskTransformerConfig(**TINY, norm_first=norm_first)).eval()
+
+
+def tiny_residual(seed: int = 0) -> ResidualTransformer:
+    torch.manual_seed(seed)
+    return ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3)).eval()
+
+
+def text(b: int, a: int = 3, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    sentence = torch.randn(b, 8, generator=g)
+    segments = torch.randn(b, a, 8, generator=g)
+    segment_mask = torch.ones(b, a, dtype=torch.bool)
+    return sentence, segments, segment_mask
+
+
+@pytest.mark.parametrize("norm_first", [False, True])
+def test_mask_transformer_shapes(norm_first):
+    model = tiny_mask(norm_first)
+    b, n = 3, 10
+    indices = torch.randint(0, 18, (b, n))
+    token_mask = torch.arange(n) < torch.tensor([10, 7, 1])[:, None]
+    out = model(indices, token_mask, *text(b))
+    assert out.logits.shape == (b, n, 16)
+    assert out.motion_features.shape == (b, n, 32)
+    assert out.segment_features.shape == (b, 3, 32)
+    assert out.sentence_features.shape == (b, 32)
+    assert torch.isfinite(out.logits).all()
+
+
+def test_empty_segment_slots_change_nothing():
+    model = tiny_mask()
+    b, n = 2, 8
+    indices = torch.randint(0, 17, (b, n))
+    token_mask = torch.ones(b, n, dtype=torch.bool)
+    sentence, segments, segment_mask = text(b)
+    segment_mask[0, 2] = False
+    segment_mask[1, 1:] = False
+    zeros = segments.masked_fill(~segment_mask[..., None], 0.0)
+    noise = torch.where(segment_mask[..., None], segments, torch.randn_like(segments) * 10)
+    noise[1, 2] = float("nan")  # a cache may pad empty slots with anything
+    a = model(indices, token_mask, sentence, zeros, segment_mask)
+    c = model(indices, token_mask, sentence, noise, segment_mask)
+    torch.testing.assert_close(a.logits, c.logits, rtol=0, atol=0)
+    torch.testing.assert_close(a.motion_features, c.motion_features, rtol=0, atol=0)
+    torch.testing.assert_close(a.segment_features[segment_mask], c.segment_features[segment_mask],
+                               rtol=0, atol=0)
+    # ...while a valid slot's content does matter.
+    segment_mask[0, 2] = True
+    d = model(indices, token_mask, sentence, noise, segment_mask)
+    assert not torch.allclose(d.logits[0], c.logits[0])
+
+
+def test_padded_tokens_do_not_affect_valid_outputs():
+    model = tiny_mask(norm_first=True)
+    n = 10
+    indices = torch.randint(0, 16, (1, n))
+    sentence, segments, segment_mask = text(1)
+    alone = model(indices[:, :6], torch.ones(1, 6, dtype=torch.bool), sentence, segments,
+                  segment_mask)
+    token_mask = torch.arange(n)[None] < 6
+    for fill in (0, 5, 17):
+        padded = indices.clone()
+        padded[:, 6:] = fill
+        out = model(padded, token_mask, sentence, segments, segment_mask)
+        torch.testing.assert_close(out.logits[:, :6], alone.logits, rtol=1e-5, atol=1e-5)
+
+
+def test_drop_condition_removes_text():
+    model = tiny_mask()
+    b, n = 2, 6
+    indices = torch.randint(0, 16, (b, n))
+    token_mask = torch.ones(b, n, dtype=torch.bool)
+    drop = torch.tensor([True, False])
+    a = model(indices, token_mask, *text(b, seed=1), drop_condition=drop)
+    c = model(indices, token_mask, *text(b, seed=2), drop_condition=drop)
+    torch.testing.assert_close(a.logits[0], c.logits[0], rtol=0, atol=0)
+    assert not torch.allclose(a.logits[1], c.logits[1])
+
+
+def test_too_many_segments_and_tokens_refused():
+    model = tiny_mask()
+    with pytest.raises(ValueError, match="segment slots"):
+        model(torch.zeros(1, 4, dtype=torch.long), torch.ones(1, 4, dtype=torch.bool),
+              *text(1, a=4))
+    with pytest.raises(ValueError, match="max_tokens"):
+        model(torch.zeros(1, 13, dtype=torch.long), torch.ones(1, 13, dtype=torch.bool), *text(1))
+
+
+def test_mask_tokens_follows_schedule_and_split():
+    g = torch.Generator().manual_seed(0)
+    b, n, v = 4000, 12, 16
+    lengths = torch.randint(1, n + 1, (b,), generator=g)
+    token_mask = torch.arange(n) < lengths[:, None]
+    indices = torch.randint(0, v, (b, n), generator=g)
+    inputs, target = mask_tokens(indices, token_mask, v, torch.Generator().manual_seed(1))
+    count = target.sum(dim=1)
+    assert bool((count >= 1).all()) and bool((count <= lengths).all())
+    assert not bool((target & ~token_mask).any())
+    assert bool((inputs[~token_mask] == v + 1).all())
+    assert bool((inputs[token_mask & ~target] == indices[token_mask & ~target]).all())
+    masked = (inputs[target] == v).float().mean().item()
+    assert 0.77 < masked < 0.83
+    # mean of cos(πt/2) over U(0,1) is 2/π
+    ratio = (count.float() / lengths).mean().item()
+    assert 0.6 < ratio < 0.72
+    again = mask_tokens(indices, token_mask, v, torch.Generator().manual_seed(1))
+    assert torch.equal(again[0], inputs) and torch.equal(again[1], target)
+
+
+def test_masked_token_loss_uses_masked_positions_only():
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(2, 5, 16, generator=g)
+    targets = torch.randint(0, 16, (2, 5), generator=g)
+    target_mask = torch.tensor([[1, 0, 1, 0, 0], [0, 0, 0, 1, 0]], dtype=torch.bool)
+    loss = masked_token_loss(logits, targets, target_mask)
+    changed = logits.clone()
+    changed[~target_mask] = 100.0
+    torch.testing.assert_close(masked_token_loss(changed, targets, target_mask), loss)
+    expected = torch.nn.functional.cross_entropy(logits[target_mask], targets[target_mask])
+    torch.testing.assert_close(loss, expected)
+    with pytest.raises(ValueError):
+        masked_token_loss(logits, targets, torch.zeros_like(target_mask))
+
+
+def test_round_trip_gives_identical_outputs(tmp_path):
+    mask, residual = tiny_mask(norm_first=True), tiny_residual()
+    length = LengthEstimator(LengthEstimatorConfig(text_dim=8, hidden=16, max_tokens=12)).eval()
+    indices = torch.randint(0, 16, (2, 7, 3))
+    token_mask = torch.ones(2, 7, dtype=torch.bool)
+    cond = text(2)
+    for model in (mask, residual, length):
+        model.save_pretrained(tmp_path / model.kind, meta={"text_encoder": "stub"})
+        loaded = load_pretrained(tmp_path / model.kind)
+        assert type(loaded) is type(model) and loaded.meta["text_encoder"] == "stub"
+        if model is mask:
+            a, c = (m(indices[..., 0], token_mask, *cond).logits for m in (model, loaded))
+        elif model is residual:
+            a, c = (m(indices, 2, token_mask, *cond).logits for m in (model, loaded))
+        else:
+            a, c = model(cond[0]), loaded(cond[0])
+        torch.testing.assert_close(a, c, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="not a 'mask' model"):
+        MaskTransformer.from_pretrained(tmp_path / "residual")
+
+
+def test_residual_output_tied_to_layer_embedding():
+    model = tiny_residual()
+    assert model.output_weight(2).data_ptr() == model.code_embeddings[2].data_ptr()
+    shapes = [p.shape for name, p in model.named_parameters() if name != "code_embeddings"]
+    assert (16, 32) not in shapes, "a separate output projection exists"
+    indices = torch.randint(0, 16, (2, 6, 3))
+    token_mask = torch.ones(2, 6, dtype=torch.bool)
+    cond = text(2)
+    before = model(indices, 2, token_mask, *cond).logits
+    with torch.no_grad():
+        model.code_embeddings[2, 5] += 1.0  # layer 2 is output-only when predicting layer 2
+    after = model(indices, 2, token_mask, *cond).logits
+    changed = (after - before).abs().amax(dim=(0, 1)) > 0
+    assert changed.tolist() == [c == 5 for c in range(16)]
+    # gradient flows from the layer-2 logits into the layer-2 embedding table
+    model.zero_grad()
+    model(indices, 2, token_mask, *cond).logits.sum().backward()
+    assert model.code_embeddings.grad[2].abs().sum() > 0
+
+
+def test_residual_input_uses_lower_layers_only():
+    model = tiny_residual()
+    indices = torch.randint(0, 16, (2, 6, 3))
+    token_mask = torch.ones(2, 6, dtype=torch.bool)
+    cond = text(2)
+    a = model(indices, 1, token_mask, *cond).logits
+    changed = indices.clone()
+    changed[..., 1:] = torch.randint(0, 16, (2, 6, 2))
+    torch.testing.assert_close(model(changed, 1, token_mask, *cond).logits, a, rtol=0, atol=0)
+    dropped = indices.clone()
+    dropped[..., 1] = -1  # −1 embeds as zero: layer 2 sees only layer 0
+    x = model.embed(dropped, 2)
+    torch.testing.assert_close(x, model.embed_layer(indices[..., 0], 0))
+    # per-sample layers agree with the int path
+    per_sample = model(indices, torch.tensor([1, 2]), token_mask, *cond).logits
+    torch.testing.assert_close(per_sample[0], a[0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(per_sample[1], model(indices, 2, token_mask, *cond).logits[1],
+                               rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="layer must be in 1..2"):
+        model(indices, 0, token_mask, *cond)
+
+
+def test_sample_layers_favours_low_layers():
+    layers = sample_layers(40000, 6, torch.Generator().manual_seed(0))
+    assert int(layers.min()) == 1 and int(layers.max()) == 5
+    freq = torch.bincount(layers, minlength=6)[1:].float() / layers.numel()
+    expected = torch.tensor(layer_probabilities(6))
+    torch.testing.assert_close(freq, expected, rtol=0, atol=0.01)
+    assert freq[0] > freq[1] > freq[4]
+
+
+def test_length_estimator_sample():
+    model = LengthEstimator(LengthEstimatorConfig(text_dim=8, hidden=16, max_tokens=12)).eval()
+    sentence = torch.randn(50, 8)
+    assert model(sentence).shape == (50, 12)
+    frames = model.sample(sentence, torch.Generator().manual_seed(0))
+    assert bool((frames % 4 == 0).all()) and int(frames.min()) >= 4 and int(frames.max()) <= 48
+    assert torch.equal(frames, model.sample(sentence, torch.Generator().manual_seed(0)))
+    assert model.frames_to_classes(torch.tensor([4, 48])).tolist() == [0, 11]
+    with pytest.raises(ValueError, match="multiples of 4"):
+        model.frames_to_classes(torch.tensor([6]))
+
+
+def test_linear_fast_paths_match_f_linear():
+    from segmo.models.transformer import Linear
+
+    torch.manual_seed(0)
+    layer = Linear(16, 24, activation="gelu")
+    x = torch.randn(3, 5, 16)
+    reference = torch.nn.functional.gelu(torch.nn.functional.linear(x, layer.weight, layer.bias))
+    with torch.inference_mode():
+        torch.testing.assert_close(layer(x), reference, rtol=1e-5, atol=1e-5)
+    assert layer(x).requires_grad  # training path keeps autograd
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+        fast = layer(x)
+        assert fast.dtype == torch.bfloat16
+        torch.testing.assert_close(fast.float(), reference, rtol=0.05, atol=0.05)
+        with torch.no_grad():
+            layer.weight.mul_(2)  # the bf16 copy must follow in-place updates
+        refreshed = layer(x).float()
+    doubled = torch.nn.functional.gelu(torch.nn.functional.linear(x, layer.weight, layer.bias))
+    torch.testing.assert_close(refreshed, doubled, rtol=0.05, atol=0.05)

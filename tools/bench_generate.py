@@ -1,0 +1,202 @@
+"""Benchmark text → tokens → features generation on this machine.
+
+    python tools/bench_generate.py --random-config humanml3d --batch-size 32 --precision bf16
+    python tools/bench_generate.py --model DIR --batch-size 1 --repeats 5
+    python tools/bench_generate.py --random-config humanml3d --compare-precision
+
+`--model DIR`: DIR holds model directories (any sub-folder with a config.json) of kinds
+"mask", "residual" and optionally "rvq". `--random-config humanml3d`: randomly initialised
+paper-sized models (8 layers, width 384, 6 heads, FFN 1024, 512 codes, 6 quantizers,
+49 tokens = 196 frames, text_dim 512, A = 5) and a random RVQ-VAE decoder when
+`segmo.models.rvq` is importable (otherwise decoding is excluded from the timing).
+
+Measured after one warm-up, over `--repeats` runs, median:
+- ms_per_motion: generation (+ decoding when a tokenizer is present) / batch size;
+- floor: the bare transformer passes generation needs (steps mask passes + q−1 residual
+  passes, each on the 2b guidance batch, same precision, no sampling), timed in the same
+  run, interleaved with the generation runs so that machine load affects both alike;
+- floor_ratio = token-generation time / floor time; peak RSS of the process;
+- *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
+  (OpenMP threads wait for descheduled peers); `--threads 1` CPU times stay stable.
+The last printed line is JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from segmo.generation.generate import (
+    _inference,
+    decode_tokens,
+    generate_tokens,
+    guidance_condition,
+)
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+from segmo.models.pretrained import load_pretrained, read_config
+from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+
+RANDOM_CONFIGS = {"humanml3d": dict(feature_dim=263, max_tokens=49)}
+
+
+def random_models(name: str, seed: int):
+    spec = RANDOM_CONFIGS[name]
+    torch.manual_seed(seed)
+    shared = dict(codebook_size=512, text_dim=512, max_segments=5, max_tokens=spec["max_tokens"],
+                  dim=384, depth=8, heads=6, ff_dim=1024)
+    mask = MaskTransformer(MaskTransformerConfig(**shared))
+    residual = ResidualTransformer(ResidualTransformerConfig(**shared, num_quantizers=6))
+    try:
+        from segmo.models.rvq import RVQVAE, RVQConfig
+    except ImportError:
+        tokenizer = None
+    else:
+        tokenizer = RVQVAE(RVQConfig(feature_dim=spec["feature_dim"]))
+    return mask, residual, tokenizer
+
+
+def directory_models(directory: Path):
+    found = {}
+    for sub in sorted(p for p in [directory, *directory.iterdir()] if p.is_dir()):
+        if (sub / "config.json").is_file():
+            found.setdefault(read_config(sub)["kind"], sub)
+    for kind in ("mask", "residual"):
+        if kind not in found:
+            sys.exit(f"bench_generate: no {kind!r} model directory under {directory}")
+    load = {kind: load_pretrained(path) for kind, path in found.items()}
+    return load["mask"], load["residual"], load.get("rvq")
+
+
+def text_inputs(mask: MaskTransformer, b: int, seed: int):
+    g = torch.Generator().manual_seed(seed)
+    c = mask.config
+    return (torch.randn(b, c.text_dim, generator=g), torch.randn(b, c.max_segments, c.text_dim, generator=g),
+            torch.ones(b, c.max_segments, dtype=torch.bool))
+
+
+def floor_passes(mask, residual, text, n: int, steps: int, precision: str) -> None:
+    """The transformer passes of one generation, without any sampling logic."""
+    b = text[0].shape[0]
+    token_mask = torch.ones(2 * b, n, dtype=torch.bool)
+    ids = torch.full((2 * b, n), mask.mask_id)
+    with _inference([mask, residual], precision, text[0].device):
+        condition = guidance_condition(mask, *text)
+        for _ in range(steps):
+            mask.forward_condition(ids, token_mask, condition)
+        condition = guidance_condition(residual, *text)
+        x = residual.embed_layer(ids.clamp(max=mask.config.codebook_size - 1), 0)
+        for layer in range(1, residual.config.num_quantizers):
+            residual.forward_embedded(x, layer, token_mask, condition)
+
+
+def timed(fn, clock=time.perf_counter) -> float:
+    start = clock()
+    fn()
+    return clock() - start
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--model", type=Path, help="folder holding mask/residual[/rvq] model dirs")
+    source.add_argument("--random-config", choices=sorted(RANDOM_CONFIGS))
+    parser.add_argument("--batch-size", type=int, default=1)
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--compare-precision", action="store_true",
+                        help="report bf16 vs fp32 token agreement on the same seeds")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    if args.model is not None:
+        mask, residual, tokenizer = directory_models(args.model)
+    else:
+        mask, residual, tokenizer = random_models(args.random_config, args.seed)
+    for model in (mask, residual, tokenizer):
+        if model is not None:
+            model.eval()
+    b = args.batch_size
+    text = text_inputs(mask, b, args.seed)
+    n = mask.config.max_tokens
+    lengths = torch.full((b,), 4 * n)
+
+    def generate(precision: str, seed: int) -> torch.Tensor:
+        return generate_tokens(mask, residual, *text, lengths, steps=args.steps,
+                               generator=torch.Generator().manual_seed(seed), precision=precision)
+
+    if args.compare_precision:
+        seeds = range(args.seed, args.seed + args.repeats)
+        pairs = [(generate("fp32", s), generate("bf16", s)) for s in seeds]
+        base = statistics.mean((a[..., 0] == c[..., 0]).float().mean().item() for a, c in pairs)
+        every = statistics.mean((a == c).float().mean().item() for a, c in pairs)
+        first = statistics.mean(
+            (a[..., 0] == c[..., 0]).all(dim=1).float().mean().item() for a, c in pairs)
+        print(f"bf16 vs fp32 over {len(pairs)} seeds × batch {b}: base-token agreement "
+              f"{base:.3f}, all layers {every:.3f}, identical base sequences {first:.3f}")
+        print(json.dumps({"base_agreement": round(base, 4), "all_agreement": round(every, 4),
+                          "identical_sequences": round(first, 4), "batch": b,
+                          "threads": args.threads}))
+        return
+
+    def run_generation() -> tuple[float, float, float]:
+        cpu_start = time.process_time()
+        tokens_s = timed(lambda: out.append(generate(args.precision, args.seed)))
+        cpu_s = time.process_time() - cpu_start
+        decode_s = 0.0
+        if tokenizer is not None:
+            decode_s = timed(lambda: decode_tokens(tokenizer, out[-1], lengths))
+        return tokens_s, decode_s, cpu_s
+
+    out: list[torch.Tensor] = []
+    run_generation()  # warm-up (allocator, oneDNN kernels, autocast caches)
+    floor_passes(mask, residual, text, n, args.steps, args.precision)
+    token_times, decode_times, floor_times, cpu_times, floor_cpu_times = [], [], [], [], []
+    for _ in range(args.repeats):
+        tokens_s, decode_s, cpu_s = run_generation()
+        token_times.append(tokens_s)
+        decode_times.append(decode_s)
+        cpu_times.append(cpu_s)
+        cpu_start = time.process_time()
+        floor_times.append(timed(lambda: floor_passes(mask, residual, text, n, args.steps,
+                                                      args.precision)))
+        floor_cpu_times.append(time.process_time() - cpu_start)
+    tokens_ms = statistics.median(token_times) * 1000 / b
+    decode_ms = statistics.median(decode_times) * 1000 / b
+    floor_ms = statistics.median(floor_times) * 1000 / b
+    # CPU time of all threads: on a loaded machine, wall time / threads underestimates speed.
+    cpu_ms = statistics.median(cpu_times) * 1000 / b
+    floor_cpu_ms = statistics.median(floor_cpu_times) * 1000 / b
+    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    load = os.getloadavg()[0]
+    print(f"tokens {tokens_ms:.1f} ms/motion, decode {decode_ms:.1f} ms/motion"
+          f"{'' if tokenizer is not None else ' (no tokenizer: decoding excluded)'}, "
+          f"floor {floor_ms:.1f} ms/motion, token CPU time {cpu_ms:.1f} ms/motion, "
+          f"load average {load:.2f}")
+    print(json.dumps({
+        "ms_per_motion": round(tokens_ms + decode_ms, 2),
+        "token_ms_per_motion": round(tokens_ms, 2),
+        "decode_ms_per_motion": round(decode_ms, 2) if tokenizer is not None else None,
+        "floor_ms_per_motion": round(floor_ms, 2),
+        "token_cpu_ms_per_motion": round(cpu_ms, 2),
+        "floor_cpu_ms_per_motion": round(floor_cpu_ms, 2),
+        "floor_ratio_cpu": round(cpu_ms / floor_cpu_ms, 3),
+        "floor_ratio": round(tokens_ms / floor_ms, 3),
+        "peak_rss_mb": round(peak_rss_mb, 1),
+        "batch": b, "precision": args.precision, "threads": args.threads,
+        "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
+    }))
+
+
+if __name__ == "__main__":
+    main()
