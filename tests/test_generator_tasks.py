@@ -14,7 +14,7 @@ import torch
 import yaml
 
 from segmo.models.pretrained import load_pretrained
-from segmo.tasks.mask import MaskTask, gt_token_spans, segment_top1
+from segmo.tasks.mask import MaskTask, gt_token_spans, reversed_order, segment_top1
 from segmo.training.cli import main as cli_main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -100,3 +100,10 @@ def test_gt_token_spans_and_segment_top1():
     motion = torch.stack([torch.eye(3), torch.eye(3)[[1, 0, 2]]])
     mask = torch.ones(2, 3, dtype=torch.bool)
     assert segment_top1(text, motion, mask) == (4, 6)
+
+
+def test_reversed_order_is_an_involution_on_valid_slots():
+    mask = torch.tensor([[True, True, True, False, False], [True, False, False, False, False]])
+    order = reversed_order(mask)
+    assert order.tolist() == [[2, 1, 0, 3, 4], [0, 1, 2, 3, 4]]
+    assert torch.equal(order.gather(1, order), torch.arange(5).expand(2, 5))

@@ -60,6 +60,18 @@ def gt_token_spans(spans: list, num_segments: Tensor, lengths: Tensor, slots: in
     return out, usable
 
 
+def reversed_order(segment_mask: Tensor) -> Tensor:
+    """(b, a) bool → (b, a) long permutation reversing each sample's valid segments.
+
+    Valid segments are a prefix of the slots; padded slots stay where they are. The
+    permutation is its own inverse.
+    """
+    a = segment_mask.shape[1]
+    count = segment_mask.sum(1, keepdim=True)
+    slots = torch.arange(a, device=segment_mask.device).expand_as(segment_mask)
+    return torch.where(slots < count, count - 1 - slots, slots)
+
+
 def segment_top1(text: Tensor, motion: Tensor, mask: Tensor) -> tuple[int, int]:
     """Text segments whose most similar motion segment (same sample) is their own.
 
@@ -222,6 +234,17 @@ class MaskTask(L.LightningModule):
                                       head.embed_motion(out.motion_features, gt), mask)
             self.log(f"{prefix}/segment_top1", correct / total, batch_size=total, sync_dist=True,
                      prog_bar=True)
+            # Ordered segments can be matched by slot position alone (slot i ↔ i-th span).
+            # Feeding them in reverse order tells content from position: a model that
+            # matches by content still finds each segment's own span.
+            order = reversed_order(segment_mask)
+            rev = self.model(base, valid, sentence, segments.gather(
+                1, order[..., None].expand_as(segments)), segment_mask)
+            text = head.embed_text(rev.segment_features).gather(
+                1, order[..., None].expand(-1, -1, head.config.out_dim))
+            correct, _ = segment_top1(text, head.embed_motion(rev.motion_features, gt), mask)
+            self.log(f"{prefix}/segment_top1_reversed", correct / total, batch_size=total,
+                     sync_dist=True)
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         self._evaluate("val", batch, batch_idx)
