@@ -1,17 +1,8 @@
 """Imports every model module so that `load_pretrained` knows every kind."""
 
-import importlib
-
-for _module in (
-    "segmo.models.rvq",
-    "segmo.models.mask_transformer",
-    "segmo.models.residual_transformer",
-    "segmo.models.length_estimator",
-    "segmo.evaluation.evaluator",
-    "segmo.evaluation.action_order",
-):
-    try:
-        importlib.import_module(_module)
-    except ModuleNotFoundError as error:  # a stage not built yet in this checkout
-        if error.name != _module:
-            raise
+import segmo.evaluation.action_order  # noqa: F401
+import segmo.evaluation.evaluator  # noqa: F401
+import segmo.models.length_estimator  # noqa: F401
+import segmo.models.mask_transformer  # noqa: F401
+import segmo.models.residual_transformer  # noqa: F401
+import segmo.models.rvq  # noqa: F401
