@@ -56,6 +56,22 @@ def test_mask_transformer_shapes(norm_first):
     assert torch.isfinite(out.logits).all()
 
 
+def test_segment_order_is_not_an_input():
+    """Segments enter as a set: permuting them permutes their outputs and leaves the motion
+    outputs unchanged, so the alignment loss cannot be met by slot position alone."""
+    model = tiny_mask()
+    b, n = 2, 8
+    indices = torch.randint(0, 16, (b, n))
+    token_mask = torch.ones(b, n, dtype=torch.bool)
+    sentence, segments, segment_mask = text(b)
+    order = torch.tensor([2, 0, 1])
+    with torch.no_grad():
+        out = model(indices, token_mask, sentence, segments, segment_mask)
+        permuted = model(indices, token_mask, sentence, segments[:, order], segment_mask)
+    assert torch.allclose(out.motion_features, permuted.motion_features, atol=1e-5)
+    assert torch.allclose(out.segment_features[:, order], permuted.segment_features, atol=1e-5)
+
+
 def test_empty_segment_slots_change_nothing():
     model = tiny_mask()
     b, n = 2, 8

@@ -148,7 +148,10 @@ class TextPrefix(nn.Module):
     """Projects pooled text vectors to prefix tokens: [sentence, segment 1..A].
 
     One projection is shared by the sentence and its segments (they come from the same
-    frozen encoder); learned slot embeddings tell the trunk which slot is which. Dropping
+    frozen encoder); a learned type embedding tells the sentence from the segments. The
+    segments carry no slot position (positions are on motion tokens only, spec §4): with
+    one, the alignment loss is met by slot order alone (slot i ↔ i-th span) and teaches
+    nothing about content; without, a segment must find its span by what it says. Dropping
     the condition (classifier-free guidance) masks the whole prefix out of attention, so
     the unconditional branch is a row of the same batch with no parameter of its own.
     """
@@ -157,7 +160,7 @@ class TextPrefix(nn.Module):
         super().__init__()
         self.max_segments = max_segments
         self.project = nn.Linear(text_dim, dim)
-        self.slots = nn.Parameter(torch.randn(1 + max_segments, dim) * 0.02)
+        self.types = nn.Parameter(torch.randn(2, dim) * 0.02)  # sentence, segment
 
     def forward(
         self,
@@ -179,7 +182,9 @@ class TextPrefix(nn.Module):
             raise ValueError(f"TextPrefix: {a} segment slots given, the model has {self.max_segments}")
         segment_mask = segment_mask.bool()
         text = torch.cat([sentence[:, None], segments], dim=1)  # (b, 1 + a, text_dim)
-        tokens = self.project(text) + self.slots[: 1 + a]
+        kinds = torch.ones(1 + a, dtype=torch.long, device=text.device)
+        kinds[0] = 0
+        tokens = self.project(text) + self.types[kinds]
         valid = torch.cat([segment_mask.new_ones(b, 1), segment_mask], dim=1)
         if drop_condition is not None:
             valid = valid & ~drop_condition.bool()[:, None]
