@@ -265,14 +265,14 @@ def evaluate_generation(
                               f"{pairs} pairs instead of {diversity_pairs}", stacklevel=2)
             values.setdefault("diversity", []).append(diversity(emb, pairs, generator=rng))
     if generate is not None and mm_prompts > 0:
-        rows_out["generated"]["multimodality"] = _multimodality_runs(
+        rows_out["generated"]["multimodality"] = multimodality_runs(
             embed_motion, generate, batches, repeats, mm_prompts, mm_repeats, mm_pairs, seed)
     return {name: {k: dict(zip(("mean", "interval"), mean_and_interval(v), strict=True))
                    for k, v in values.items()}
             for name, values in rows_out.items() if values}
 
 
-def _multimodality_runs(embed_motion: EmbedMotion, generate: Generate, batches: list[dict], repeats: int,
+def multimodality_runs(embed_motion: EmbedMotion, generate: Generate, batches: list[dict], repeats: int,
                         prompts: int, gens: int, pairs: int, seed: int) -> list[float]:
     out = []
     for rep in range(repeats):

@@ -1,0 +1,319 @@
+"""`segmo evaluate`: every metric of a SegMo bundle on one split → metrics.json, report.md, plots.
+
+    segmo evaluate --model models/segmo --data data/synth --evaluator models/evaluator \\
+        --action-classifier models/action_classifier --out eval/segmo
+    segmo evaluate --real-only --data data/synth --evaluator models/evaluator --out eval/real
+    segmo evaluate --compare eval/segmo eval/no_align --out eval/compare
+
+Sections (spec §9, paper §4):
+- generation: the T2M protocol (`metrics.evaluate_generation`), a "Real" row and the
+  model's row, mean ± 95 % interval over `--repeats`; the generator gets the ground-truth
+  lengths and a seeded `torch.Generator` per batch. MultiModality runs `--mm-runs` times
+  (not once per repeat: 20 × 100 prompts × 30 generations is out of reach on a CPU).
+- retrieval (TMR protocols, full split and batches of 32), in the evaluator's space and in
+  SegMo's learned segment space, where a (caption, motion) score is the mean cosine of the
+  caption's text segments with as many uniform spans of the motion (`SegMo.retrieve_motions`'s
+  score); SegMo's motion features depend on the text, so each pair costs a forward pass and
+  the full protocol is limited to `--retrieval-motions` motions (first caption each).
+- grounding (built-in corpus only, `DATA/segments/<id>.json`): each caption's ground-truth
+  segments are grounded in the real motion (`SegMo.ground`, explicit segments); the best
+  window vs the true span → R@1 at IoU 0.3/0.5/0.7 and mIoU; a few maps are plotted.
+- ISC and its CV (paper Fig. 4) per motion segmenter on the real test pairs.
+- action order (built-in corpus, `--action-classifier DIR`, or `train` to fit one): exact
+  sequence accuracy and normalised edit distance of motions generated from each motion's
+  first caption vs that caption's action sequence, and of the real motions (the ceiling).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from segmo.evaluation import report
+from segmo.evaluation.metrics import (
+    evaluate_generation,
+    mean_and_interval,
+    multimodality_runs,
+    t2m_embedders,
+)
+from segmo.evaluation.sections import (
+    SECTIONS,
+    EvaluateConfig,
+    action_order_section,
+    all_rows,
+    evaluator_retrieval,
+    ground_truth,
+    grounding_section,
+    isc_section,
+    known_segments,
+    load_batches,
+    load_classifier,
+    segmo_retrieval,
+)
+
+# ------------------------------------------------------------------------- generation
+
+class Generator:
+    """Wraps `SegMo.generate` for the metrics: captions + ground-truth lengths + a seed →
+    motions z-scored with the dataset's statistics (b, max(lengths), d)."""
+
+    def __init__(self, model: Any, cfg: EvaluateConfig, mean: np.ndarray, std: np.ndarray,
+                 segments_of: dict[str, list[str]] | None = None) -> None:
+        self.model, self.cfg, self.segments_of = model, cfg, segments_of
+        self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
+        self.motions = 0
+        self.seconds = 0.0
+        self.bar: Any = None
+
+    def raw(self, captions: list[str], lengths: Any, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw features (b, t, d) and lengths (b,) of one generated batch."""
+        start = time.perf_counter()
+        segments = ([self.segments_of.get(c, [c]) for c in captions] if self.segments_of else None)
+        device = getattr(self.model, "device", torch.device(self.cfg.device))
+        out = self.model.generate(list(captions), [int(x) for x in lengths], segments=segments,
+                                  steps=self.cfg.steps, precision=self.cfg.precision,
+                                  generator=torch.Generator(device=device).manual_seed(int(seed)))
+        self.motions += len(captions)
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(desc="generate", unit="motion", disable=not self.cfg.progress)
+        self.bar.update(len(captions))
+        self.seconds += time.perf_counter() - start
+        return out.features.float().cpu(), out.lengths.cpu()
+
+    def __call__(self, captions: list[str], lengths: torch.Tensor, seed: int) -> torch.Tensor:
+        features, got = self.raw(captions, lengths, seed)
+        t = int(lengths.max())
+        z = torch.zeros(len(captions), t, features.shape[-1])
+        n = min(t, features.shape[1])
+        z[:, :n] = (features[:, :n] - self.mean) / self.std
+        z[torch.arange(t)[None, :] >= got[:, None]] = 0.0
+        return z
+
+
+def generation_section(cfg: EvaluateConfig, evaluator: Any, ds: Any, batches: list[dict],
+                       generate: Any) -> dict[str, Any]:
+    embed_text, embed_motion = t2m_embedders(evaluator, cfg.data, ds.mean, ds.std)
+    result = evaluate_generation(embed_text, embed_motion, generate, batches, repeats=cfg.repeats,
+                                 batch_size=cfg.batch_size, mm_prompts=0, seed=cfg.seed)
+    if generate is not None and cfg.mm_prompts > 0 and cfg.mm_runs > 0:
+        runs = multimodality_runs(embed_motion, generate, batches, cfg.mm_runs, cfg.mm_prompts,
+                                   cfg.mm_repeats, 10, cfg.seed)
+        mean, interval = mean_and_interval(runs)
+        result["generated"]["multimodality"] = {"mean": mean, "interval": interval}
+    return result
+
+
+# -------------------------------------------------------------------------- retrieval
+
+def _timed(cfg: EvaluateConfig, key: str, fn: Any, *args: Any) -> Any:
+    start = time.perf_counter()
+    value = fn(*args)
+    cfg.timings[key] = round(time.perf_counter() - start, 2)
+    return value
+
+
+def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
+    """Run every section that applies, write OUT/metrics.json, report.md and plots; return
+    the metrics dict. `model`: an already built SegMo (else loaded from `cfg.model`)."""
+    from segmo.models.pretrained import load_pretrained
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if cfg.model is None and model is None and not cfg.real_only:
+        raise ValueError("segmo evaluate: --model is required unless --real-only")
+    start = time.perf_counter()
+    evaluator = load_pretrained(cfg.evaluator).to(cfg.device).eval()
+    if cfg.real_only:
+        model = None
+    elif model is None:
+        from segmo.pipeline import SegMo
+
+        model = SegMo.from_pretrained(cfg.model, device=cfg.device)
+    skeleton = model.skeleton.name if model is not None else (
+        "kit" if evaluator.config.feature_dim == 251 else "t2m")
+    cfg.name = cfg.name or ("Real" if model is None else Path(cfg.model or "model").name)
+    ds, batches = load_batches(cfg, skeleton)
+    segments_of = ({c: list(s) for b in batches for c, s in zip(b["caption"], b["segments"], strict=True)}
+                   if cfg.text_segments else None)
+    generate = Generator(model, cfg, ds.mean, ds.std, segments_of) if model is not None else None
+    # A model trained without alignment (the "no align" ablation) has no shared space.
+    aligned = model is not None and getattr(model.mask, "alignment", None) is not None
+    has_truth = (Path(cfg.data) / "segments").is_dir()
+    skip = set(cfg.skip)
+    metrics: dict[str, Any] = {"notes": {}}
+    if model is not None:
+        _timed(cfg, "text_encoding", _encode_texts, cfg, model, batches, segments_of, has_truth)
+    _log(cfg, f"generation metrics: {cfg.repeats} repeats of {sum(len(b['id']) for b in batches)} captions")
+    metrics["generation"] = _timed(cfg, "generation", generation_section, cfg, evaluator, ds, batches, generate)
+    notes = metrics["notes"]
+
+    def unavailable(section: str, need_truth: bool = False) -> str | None:
+        """Why a learned-space section cannot run (None = it can); noted in the report."""
+        if not aligned:
+            return "the model has no alignment head (trained with alignment none)"
+        if need_truth and not has_truth:
+            return "the dataset has no segments/ ground truth"
+        return None
+
+    if "retrieval" not in skip:
+        _log(cfg, "retrieval")
+        retrieval = {"evaluator": _timed(cfg, "retrieval_evaluator", evaluator_retrieval, cfg, evaluator, ds,
+                                         batches)}
+        if model is not None and unavailable("retrieval") is None:
+            retrieval["segmo"] = _timed(cfg, "retrieval_segmo", segmo_retrieval, cfg, model, ds, batches,
+                                        segments_of)
+            notes["retrieval"] = report.NOTES["retrieval"]
+        elif model is not None:
+            notes["retrieval"] = f"SegMo space skipped: {unavailable('retrieval')}."
+        metrics["retrieval"] = retrieval
+    if model is not None and "grounding" not in skip:
+        if unavailable("grounding", need_truth=True) is None:
+            _log(cfg, "grounding")
+            grounding = _timed(cfg, "grounding", grounding_section, cfg, model, ds, batches, out)
+            if grounding:
+                metrics["grounding"] = grounding
+            notes["grounding"] = report.NOTES["grounding"].format(window=cfg.grounding_window)
+        else:
+            notes["grounding"] = f"Skipped: {unavailable('grounding', need_truth=True)}."
+    if model is not None and "isc" not in skip:
+        if unavailable("isc") is None:
+            _log(cfg, "intra-segment consistency")
+            metrics["isc"] = _timed(cfg, "isc", isc_section, cfg, model, ds, batches, segments_of)
+            report.plot_isc(metrics["isc"], out / "isc.png")
+            notes["isc"] = report.NOTES["isc"]
+        else:
+            notes["isc"] = f"Skipped: {unavailable('isc')}."
+    if cfg.action_classifier and "action_order" not in skip:
+        if has_truth:
+            _log(cfg, "action order")
+            clf = load_classifier(cfg, out)
+            metrics["action_order"] = _timed(cfg, "action_order", action_order_section, cfg, clf, ds, batches,
+                                             generate)
+            notes["action_order"] = report.NOTES["action_order"]
+        else:
+            notes["action_order"] = "Skipped: the dataset has no segments/ ground truth."
+    cfg.timings["total"] = round(time.perf_counter() - start, 2)
+    if generate is not None and generate.motions:
+        cfg.timings["generation_ms_per_motion"] = round(1000 * generate.seconds / generate.motions, 2)
+        cfg.timings["generated_motions"] = float(generate.motions)
+    metrics["config"] = asdict(cfg) | {"motions": len({i for b in batches for i in b["id"]}),
+                                       "captions": sum(len(b["id"]) for b in batches)}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (out / "report.md").write_text(report.render_report(metrics))
+    return metrics
+
+
+def _encode_texts(cfg: EvaluateConfig, model: Any, batches: list[dict],
+                  segments_of: dict[str, list[str]] | None, has_truth: bool) -> None:
+    """Encode every caption and segment text once, in large batches: the pipeline caches
+    sentence vectors per text, and encoding them one call at a time is far slower."""
+    captions = list(dict.fromkeys(c for b in batches for c in b["caption"]))
+    texts = captions + [t for s in (known_segments(captions, segments_of) or model.segment_texts(captions)) for t in s]
+    if has_truth:
+        for b, r in all_rows(batches):
+            texts += [s["text"] for s in ground_truth(cfg, b["id"][r], b["caption_index"][r], 1) or []]
+    texts = list(dict.fromkeys(texts))
+    _log(cfg, f"encoding {len(texts)} texts with {model.text_encoder_name}")
+    for s in range(0, len(texts), 256):
+        model.encode_texts(texts[s:s + 256])
+
+
+def _log(cfg: EvaluateConfig, message: str) -> None:
+    if cfg.progress:
+        print(f"[segmo evaluate] {message}", file=sys.stderr, flush=True)
+
+
+def compare(paths: list[str], out: str | Path) -> str:
+    """Put several metrics.json (files or evaluation directories) side by side in OUT/compare.md."""
+    runs = []
+    for p in paths:
+        path = Path(p) / "metrics.json" if Path(p).is_dir() else Path(p)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no metrics.json (run `segmo evaluate` first)")
+        metrics = json.loads(path.read_text())
+        runs.append((metrics.get("config", {}).get("name") or path.parent.name, metrics))
+    table = report.compare_table(runs)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    (Path(out) / "compare.md").write_text(table + "\n")
+    return table
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="segmo evaluate", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", help="SegMo bundle directory (`segmo bundle`)")
+    p.add_argument("--data", help="dataset root (HumanML3D layout)")
+    p.add_argument("--evaluator", help="T2M evaluator model directory")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--name", help="row name in the tables (default: the model directory's name)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--mm-prompts", type=int, default=100, help="MultiModality prompts; 0 disables")
+    p.add_argument("--mm-repeats", type=int, default=30, help="generations per prompt (> 10)")
+    p.add_argument("--mm-runs", type=int, default=1, help="MultiModality repetitions")
+    p.add_argument("--action-classifier", help="action-classifier directory, or 'train' to fit one")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-motions", type=int, help="keep the first N motions of the split")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, help="torch CPU threads (1 avoids stalls on a busy machine)")
+    p.add_argument("--text-segments", help="use DATA/text_segments/NAME instead of the bundle's segmenter")
+    p.add_argument("--steps", type=int, default=10, help="mask decoding steps")
+    p.add_argument("--grounding-window", default="auto",
+                   help="sliding-window sizes in tokens, e.g. 5 or 4,8,16; auto = 0.5-2x the mean segment")
+    p.add_argument("--retrieval-motions", type=int, default=100,
+                   help="motions of SegMo's full retrieval protocol (N^2 passes); 0 = all")
+    p.add_argument("--skip", default="", help=f"comma-separated sections to leave out: {','.join(SECTIONS)}")
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--similarity-maps", type=int, default=4, help="grounding maps to plot")
+    p.add_argument("--real-only", action="store_true", help="evaluate the real motions only (no model)")
+    p.add_argument("--compare", nargs="+", metavar="DIR", help="tabulate existing evaluations instead")
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.compare:
+        try:
+            print(compare(args.compare, args.out))
+        except (FileNotFoundError, ValueError) as error:
+            parser.error(str(error))
+        return
+    for flag in ("data", "evaluator"):
+        if getattr(args, flag) is None:
+            parser.error(f"--{flag} is required (unless --compare)")
+    if args.model is None and not args.real_only:
+        parser.error("--model is required (or --real-only)")
+    if args.mm_prompts > 0 and args.mm_repeats <= 10:
+        parser.error(f"--mm-repeats={args.mm_repeats} must exceed 10 (the pairs MultiModality draws)")
+    for flag in ("model", "data", "evaluator"):
+        value = getattr(args, flag)
+        if value is not None and not Path(value).exists():
+            parser.error(f"--{flag} {value}: no such directory")
+    skip = tuple(x for x in args.skip.split(",") if x)
+    unknown = set(skip) - set(SECTIONS)
+    if unknown:
+        parser.error(f"--skip: unknown section(s) {sorted(unknown)}; choose from {SECTIONS}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = EvaluateConfig(**{k: v for k, v in vars(args).items() if k not in ("compare", "skip", "threads")},
+                         skip=skip)
+    metrics = evaluate(cfg)
+    print(report.generation_table(report._generation_rows(metrics)))
+    print(f"wrote {Path(cfg.out) / 'metrics.json'} and {Path(cfg.out) / 'report.md'}")
+
+
+if __name__ == "__main__":
+    main()

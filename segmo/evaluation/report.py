@@ -1,0 +1,196 @@
+"""Markdown tables and plots of `segmo evaluate` results (metrics.json → report.md, *.png).
+
+The generation table follows the paper's Tables 1–3: one row per model (plus "Real"),
+columns Top-1/2/3, FID, MM-Dist, Diversity, MModality, cells "mean±interval" (95 %
+interval over the evaluation repeats). The other sections (retrieval, grounding, ISC,
+action order) are single measurements. Everything here reads the plain `metrics.json`
+dict written by `segmo.evaluation.cli`, so reports can be rebuilt and compared later
+without the models.
+
+Example::
+
+    metrics = json.loads(Path("eval/segmo/metrics.json").read_text())
+    Path("report.md").write_text(render_report(metrics))
+    compare_table([("SegMo", metrics), ("No Align", json.loads(...))])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+# (metrics.json key, column title), in the paper's order.
+GENERATION_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("top1", "Top-1"), ("top2", "Top-2"), ("top3", "Top-3"), ("fid", "FID"),
+    ("matching", "MM-Dist"), ("diversity", "Diversity"), ("multimodality", "MModality"),
+)
+RETRIEVAL_KS: tuple[int, ...] = (1, 2, 3, 5, 10)
+# What each section measured, shown above its table.
+NOTES: dict[str, str] = {
+    "retrieval": (
+        "evaluator: Euclidean distances of T2M embeddings, all captions vs all motions for "
+        "'full'. segmo: mean cosine of a caption's text segments with as many uniform spans of "
+        "the motion in the learned space (one forward pass per pair), first caption of each "
+        "motion for 'full'."),
+    "grounding": (
+        "Each caption with ≥ 2 ground-truth segments, grounded in its real motion with those "
+        "segments' texts; windows {window} (tokens; auto = 0.5–2× the mean segment length), "
+        "stride 1. R@1 = the best window's temporal IoU with the true span ≥ threshold; "
+        "uniform split = the text-free uniform spans, a baseline."),
+    "isc": ("Mean cosine of the paired text/motion segments of every caption of the split "
+            "(CV = std/mean), motion spans from each segmenter."),
+    "action_order": (
+        "real: the classifier on the real motions (its ceiling); generated: one motion per "
+        "motion of the split, from its first caption at the true length, vs that caption's "
+        "action sequence."),
+}
+
+
+def cell(entry: dict[str, float] | float | None, digits: int = 3) -> str:
+    """"mean±interval" of a repeated metric, the plain number of a single one, "-" if absent."""
+    if entry is None:
+        return "-"
+    if isinstance(entry, dict):
+        return f"{entry['mean']:.{digits}f}±{entry['interval']:.{digits}f}"
+    return f"{float(entry):.{digits}f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def generation_table(rows: Sequence[tuple[str, dict[str, Any]]]) -> str:
+    """Paper-style table; rows are (name, {metric: {"mean", "interval"}})."""
+    header = ["Method"] + [title for _, title in GENERATION_COLUMNS]
+    return _table(header, [[name] + [cell(values.get(key)) for key, _ in GENERATION_COLUMNS]
+                           for name, values in rows])
+
+
+def _generation_rows(metrics: dict[str, Any], name: str | None = None, real: bool = True
+                     ) -> list[tuple[str, dict[str, Any]]]:
+    generation = metrics.get("generation") or {}
+    rows = [("Real", generation["real"])] if real and "real" in generation else []
+    if "generated" in generation:
+        rows.append((name or metrics.get("config", {}).get("name") or "model", generation["generated"]))
+    return rows
+
+
+def retrieval_table(retrieval: dict[str, Any]) -> str:
+    """Rows: space × protocol × direction; columns R@1/2/3/5/10 and MedR."""
+    header = ["Space", "Protocol", "Direction"] + [f"R@{k}" for k in RETRIEVAL_KS] + ["MedR"]
+    rows = []
+    for space, protocols in retrieval.items():
+        if not isinstance(protocols, dict):
+            continue
+        for protocol, values in protocols.items():
+            if not isinstance(values, dict):
+                continue
+            for direction, title in (("t2m", "text→motion"), ("m2t", "motion→text")):
+                if f"{direction}/MedR" not in values:
+                    continue
+                rows.append([space, protocol, title]
+                            + [cell(values.get(f"{direction}/R@{k}")) for k in RETRIEVAL_KS]
+                            + [cell(values[f"{direction}/MedR"], 1)])
+    return _table(header, rows)
+
+
+def grounding_table(grounding: dict[str, Any]) -> str:
+    """Rows: the model and, where present, the text-free uniform baseline (keys "uniform/...")."""
+    keys = [k for k in grounding if k.startswith("R@1") or k == "mIoU"]
+    rows = [["model"] + [cell(grounding[k]) for k in keys]]
+    if all(f"uniform/{k}" in grounding for k in keys):
+        rows.append(["uniform split"] + [cell(grounding[f"uniform/{k}"]) for k in keys])
+    return _table(["Spans"] + keys, rows) + f"\n\n{int(grounding.get('queries', 0))} segment queries."
+
+
+def isc_table(isc: dict[str, Any]) -> str:
+    return _table(["Eval segmenter", "ISC", "CV", "pairs"],
+                  [[name, cell(v["mean"]), cell(v["cv"]), str(int(v["pairs"]))] for name, v in isc.items()])
+
+
+def action_order_table(action_order: dict[str, Any]) -> str:
+    rows = [[name, cell(v.get("sequence_accuracy")), cell(v.get("normalised_edit_distance")),
+             cell(v.get("frame_accuracy")), str(int(v.get("motions", 0)))]
+            for name, v in action_order.items() if isinstance(v, dict)]
+    return _table(["Motions", "Sequence acc.", "Norm. edit dist.", "Frame acc.", "n"], rows)
+
+
+def render_report(metrics: dict[str, Any]) -> str:
+    """The whole report.md of one evaluation."""
+    config = metrics.get("config", {})
+    out = [f"# Evaluation of {config.get('name', 'model')}", ""]
+    out += [f"- model: `{config.get('model')}`", f"- data: `{config.get('data')}` (split {config.get('split')})",
+            f"- evaluator: `{config.get('evaluator')}`",
+            f"- repeats: {config.get('repeats')}, seed: {config.get('seed')}, "
+            f"batch size: {config.get('batch_size')}, precision: {config.get('precision')}", ""]
+    if metrics.get("generation"):
+        out += ["## Generation (T2M protocol)", "",
+                "R-precision and MM-Dist in batches of "
+                f"{config.get('batch_size')}; mean±95 % interval over {config.get('repeats')} repeats"
+                + (f"; MModality over {config.get('mm_runs')} run(s) of {config.get('mm_prompts')} prompts "
+                   f"× {config.get('mm_repeats')} generations"
+                   if config.get("mm_prompts") and "generated" in metrics["generation"] else "") + ".", "",
+                generation_table(_generation_rows(metrics)), ""]
+    notes = metrics.get("notes", {})
+    sections = (("retrieval", "Retrieval", retrieval_table), ("grounding", "Grounding", grounding_table),
+                ("isc", "Intra-segment consistency (paper Fig. 4)", isc_table),
+                ("action_order", "Action order (built-in corpus)", action_order_table))
+    for key, title, table in sections:
+        value = metrics.get(key)
+        if not value and not notes.get(key):
+            continue
+        out += [f"## {title}", ""]
+        if notes.get(key):
+            out += [notes[key], ""]
+        if value:
+            out += [table(value), ""]
+    if config.get("timings"):
+        out += ["## Timings (s)", "", _table(list(config["timings"]),
+                                             [[f"{v:.1f}" for v in config["timings"].values()]]), ""]
+    return "\n".join(out)
+
+
+def compare_table(runs: Sequence[tuple[str, dict[str, Any]]]) -> str:
+    """Several evaluations side by side (e.g. SegMo vs no alignment, paper Table 3): the Real
+    row of the first run that has one, then the generated row of each run."""
+    rows: list[tuple[str, dict[str, Any]]] = []
+    for name, metrics in runs:
+        if not rows:
+            rows += [r for r in _generation_rows(metrics, name) if r[0] == "Real"]
+        rows += [r for r in _generation_rows(metrics, name, real=False)]
+    if not rows:
+        raise ValueError("compare_table: no run has generation metrics")
+    return generation_table(rows)
+
+
+# ------------------------------------------------------------------------------- plots
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only; never needs a display
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_isc(isc: dict[str, Any], path: str | Path) -> Path:
+    """Bar chart of ISC per evaluation segmenter, CV written on each bar (paper Fig. 4)."""
+    plt = _pyplot()
+    names = list(isc)
+    means = [isc[n]["mean"] for n in names]
+    fig, ax = plt.subplots(figsize=(1.2 + 1.2 * len(names), 3))
+    bars = ax.bar(names, means, color="#4c72b0")
+    for bar, n in zip(bars, names, strict=True):
+        ax.annotate(f"CV {isc[n]['cv']:.2f}", (bar.get_x() + bar.get_width() / 2, bar.get_height()),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel("ISC (mean cosine)")
+    ax.set_xlabel("evaluation segmenter")
+    ax.set_ylim(min(0.0, min(means) * 1.1), max(1e-3, max(means) * 1.2))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,301 @@
+"""What `segmo evaluate` measures beyond the generation metrics — retrieval, grounding,
+segment consistency (ISC), action order — and the options and data plumbing shared with
+`segmo.evaluation.cli`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from segmo.evaluation import report
+from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
+from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
+
+SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
+SECTIONS: tuple[str, ...] = ("retrieval", "grounding", "isc", "action_order")
+
+
+@dataclass
+class EvaluateConfig:
+    """Options of one evaluation (the command-line flags)."""
+
+    data: str
+    evaluator: str
+    out: str
+    model: str | None = None
+    name: str | None = None
+    split: str = "test"
+    repeats: int = 20
+    batch_size: int = 32
+    mm_prompts: int = 100
+    mm_repeats: int = 30
+    mm_runs: int = 1
+    action_classifier: str | None = None
+    seed: int = 0
+    max_motions: int | None = None
+    precision: str = "fp32"
+    device: str = "cpu"
+    text_segments: str | None = None
+    steps: int = 10
+    grounding_window: str = "auto"
+    retrieval_motions: int = 100
+    progress: bool = True
+    skip: tuple[str, ...] = ()
+    similarity_maps: int = 4
+    real_only: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------- data
+
+def load_batches(cfg: EvaluateConfig, skeleton: str) -> tuple[Any, list[dict]]:
+    """The split as a MotionDataset (one sample per caption, whole clips cropped to
+    multiples of 4 from the end) and its collated batches, in file order."""
+    from torch.utils.data import DataLoader
+
+    from segmo.data.collate import collate
+    from segmo.data.humanml3d import MotionDataset
+
+    ds = MotionDataset(cfg.data, cfg.split, skeleton, text_segments=cfg.text_segments,
+                       max_motions=cfg.max_motions)
+    ds.mean, ds.std = np.array(ds.mean, dtype=np.float32), np.array(ds.std, dtype=np.float32)
+    if len(ds) == 0:
+        raise ValueError(f"{Path(cfg.data) / (cfg.split + '.txt')}: no usable samples ({ds.summary})")
+    return ds, list(DataLoader(ds, batch_size=64, collate_fn=collate))
+
+
+def all_rows(batches: list[dict]) -> list[tuple[dict, int]]:
+    return [(b, r) for b in batches for r in range(len(b["id"]))]
+
+
+def raw_features(ds: Any, b: dict, r: int) -> np.ndarray:
+    """Raw features (t, d) of row r of a collated batch (undoing the dataset's z-score)."""
+    t = int(b["lengths"][r])
+    return (b["motion"][r, :t].numpy() * ds.std + ds.mean).astype(np.float32)
+
+
+def first_rows(batches: list[dict]) -> list[tuple[dict, int]]:
+    """One row per sample id (its first caption), in order."""
+    seen, out = set(), []
+    for b, r in all_rows(batches):
+        if b["id"][r] not in seen:
+            seen.add(b["id"][r])
+            out.append((b, r))
+    return out
+
+
+def _index(batches: list[dict]) -> tuple[np.ndarray, list[tuple[dict, int]]]:
+    """text_to_motion (N,) of every row, and the first row of each motion."""
+    firsts = first_rows(batches)
+    ids = {b["id"][r]: i for i, (b, r) in enumerate(firsts)}
+    return np.array([ids[b["id"][r]] for b, r in all_rows(batches)]), firsts
+
+
+def _protocols(scores: np.ndarray, index: np.ndarray, distance: bool, cfg: EvaluateConfig) -> dict:
+    out = {"full": retrieval_metrics(scores, index, distance)}
+    if scores.shape[1] >= cfg.batch_size:
+        out[f"batches of {cfg.batch_size}"] = batched_retrieval_metrics(
+            scores, index, distance, batch_size=cfg.batch_size, seed=cfg.seed)
+    return out
+
+
+def evaluator_retrieval(cfg: EvaluateConfig, evaluator: Any, ds: Any, batches: list[dict]) -> dict:
+    embed_text, embed_motion = t2m_embedders(evaluator, cfg.data, ds.mean, ds.std)
+    index, firsts = _index(batches)
+    text = np.concatenate([embed_text(b["caption"], [(b, r) for r in range(len(b["id"]))]) for b in batches])
+    motion = []
+    for s in range(0, len(firsts), 64):
+        chunk = firsts[s:s + 64]
+        lengths = torch.stack([b["lengths"][r] for b, r in chunk])
+        m = torch.zeros(len(chunk), int(lengths.max()), ds.mean.shape[0])
+        for k, (b, r) in enumerate(chunk):
+            m[k, : int(lengths[k])] = b["motion"][r, : int(lengths[k])]
+        motion.append(np.asarray(embed_motion(m, lengths)))
+    return _protocols(euclidean_distance_matrix(text, np.concatenate(motion)), index, True, cfg)
+
+
+def _pair_scores(model: Any, captions: list[str], segments: list[list[str]], motions: list[np.ndarray],
+                 pairs: list[tuple[int, int]], batch_size: int, progress: bool = False) -> np.ndarray:
+    """Mean paired-segment cosine (uniform spans) of each (text i, motion j) pair, (len(pairs),).
+    SegMo's motion features depend on the text prefix, so every pair is its own forward pass."""
+    from tqdm import tqdm
+
+    from segmo.pipeline.grounding import pair_scores
+
+    out = []
+    for s in tqdm(range(0, len(pairs), batch_size), desc="pairs", leave=False, disable=not progress):
+        chunk = pairs[s:s + batch_size]
+        t, m, mask = model.embed_pairs([captions[i] for i, _ in chunk], [motions[j] for _, j in chunk],
+                                       "uniform", segments=[segments[i] for i, _ in chunk])
+        out.append(pair_scores(t.float(), m.float(), mask.bool()).cpu().numpy())
+    return np.concatenate(out)
+
+
+def segmo_retrieval(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict],
+                    segments_of: dict[str, list[str]] | None) -> dict:
+    """Retrieval in SegMo's space, score = mean cosine of the paired segments (as
+    `SegMo.retrieve_motions`). Full protocol on the first `retrieval_motions` motions with
+    their first caption (N² forward passes); batches protocol as `batched_retrieval_metrics`."""
+    firsts = first_rows(batches)
+    captions = [b["caption"][r] for b, r in firsts]
+    segments = known_segments(captions, segments_of) or model.segment_texts(captions)
+    motions = [raw_features(ds, b, r) for b, r in firsts]
+    out = {}
+    k = len(firsts) if cfg.retrieval_motions <= 0 else min(cfg.retrieval_motions, len(firsts))
+    pairs = [(i, j) for i in range(k) for j in range(k)]
+    full = _pair_scores(model, captions, segments, motions, pairs, cfg.batch_size, cfg.progress).reshape(k, k)
+    out[f"full ({k} motions)"] = retrieval_metrics(full)
+    if len(firsts) >= cfg.batch_size:
+        # One random caption per motion, shuffled blocks of batch_size motions, metrics averaged.
+        rows = all_rows(batches)
+        by_id: dict[str, list[int]] = {}
+        for i, (b, r) in enumerate(rows):
+            by_id.setdefault(b["id"][r], []).append(i)
+        rng = np.random.default_rng(cfg.seed)
+        pick = [by_id[b["id"][r]][rng.integers(len(by_id[b["id"][r]]))] for b, r in firsts]
+        all_captions = [b["caption"][r] for b, r in rows]
+        all_segments = known_segments(all_captions, segments_of) or model.segment_texts(all_captions)
+        order = rng.permutation(len(firsts))
+        blocks = []
+        for s in range(0, (len(order) // cfg.batch_size) * cfg.batch_size, cfg.batch_size):
+            block = order[s:s + cfg.batch_size]
+            texts = [all_captions[pick[j]] for j in block]
+            segs = [all_segments[pick[j]] for j in block]
+            pairs = [(i, j) for i in range(len(block)) for j in range(len(block))]
+            scores = _pair_scores(model, texts, segs, [motions[j] for j in block], pairs, cfg.batch_size)
+            blocks.append(retrieval_metrics(scores.reshape(len(block), len(block))))
+        out[f"batches of {cfg.batch_size}"] = {key: float(np.mean([bl[key] for bl in blocks])) for key in blocks[0]}
+    return out
+
+
+def known_segments(captions: list[str], segments_of: dict[str, list[str]] | None) -> list[list[str]] | None:
+    return [segments_of.get(c, [c]) for c in captions] if segments_of else None
+
+
+# ---------------------------------------------------------------------- grounding, ISC
+
+def ground_truth(cfg: EvaluateConfig, mid: str, caption_index: int, t: int) -> list[dict] | None:
+    """Ground-truth segments of one caption clipped to the motion's first t frames."""
+    path = Path(cfg.data) / "segments" / f"{mid}.json"
+    if not path.is_file():
+        return None
+    segs = json.loads(path.read_text())["captions"][caption_index]["segments"]
+    return [dict(s, start=min(int(s["start"]), t), end=min(int(s["end"]), t)) for s in segs]
+
+
+def _windows(cfg: EvaluateConfig, n: int, a: int) -> int | list[int]:
+    """Window sizes in tokens: "auto" = 0.5–2× the mean segment length (multi-scale, as
+    `segmo.pipeline.grounding.grounding_accuracy`), else the given comma-separated sizes."""
+    if cfg.grounding_window == "auto":
+        return sorted({max(1, min(n, round(n / a * k))) for k in (0.5, 0.75, 1, 1.5, 2)})
+    return [int(w) for w in str(cfg.grounding_window).split(",")]
+
+
+def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict], out: Path
+                      ) -> dict[str, float] | None:
+    """Ground the true segments of every caption with ≥ 2 of them; R@1 at IoU and mIoU of the
+    best window vs the true span, and the same for the text-free uniform split (baseline)."""
+    from tqdm import tqdm
+
+    from segmo.evaluation.grounding import grounding_metrics
+    from segmo.pipeline.grounding import plot_similarity_map
+    from segmo.segmentation import uniform_spans
+
+    pred, gold, uniform, plotted = [], [], [], 0
+    for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
+        t = int(b["lengths"][r])
+        truth = ground_truth(cfg, b["id"][r], b["caption_index"][r], t)
+        n = t // 4
+        if not truth or not 2 <= len(truth) <= min(model.max_segments, n) or any(
+                s["end"] <= s["start"] for s in truth):
+            continue
+        g = model.ground(b["caption"][r], raw_features(ds, b, r), window=_windows(cfg, n, len(truth)),
+                         segments=[s["text"] for s in truth])
+        pred += [tuple(p) for p in g.best_spans_frames]
+        gold += [(s["start"], s["end"]) for s in truth]
+        uniform += [(4 * s, 4 * e) for s, e in uniform_spans(n, len(truth))]
+        if plotted < cfg.similarity_maps:
+            plt = report._pyplot()
+            (out / "similarity_maps").mkdir(parents=True, exist_ok=True)
+            ax = plot_similarity_map(g, title=b["caption"][r] + "\ntruth (frames): " + ", ".join(
+                f"{s['start']}-{s['end']}" for s in truth))
+            ax.figure.tight_layout()
+            ax.figure.savefig(out / "similarity_maps" / f"{b['id'][r]}_{b['caption_index'][r]}.png", dpi=110)
+            plt.close(ax.figure)
+            plotted += 1
+    if not gold:
+        return None
+    result = {**grounding_metrics(np.array(pred), np.array(gold)), "queries": float(len(gold))}
+    result |= {f"uniform/{k}": v for k, v in grounding_metrics(np.array(uniform), np.array(gold)).items()}
+    return result
+
+
+def isc_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict],
+                segments_of: dict[str, list[str]] | None) -> dict[str, dict[str, float]]:
+    from segmo.models.alignment import isc_from_cosines, paired_cosine
+
+    rows = all_rows(batches)
+    out = {}
+    for name in SEGMENTERS:
+        cosines = []
+        for s in range(0, len(rows), cfg.batch_size):
+            chunk = rows[s:s + cfg.batch_size]
+            captions = [b["caption"][r] for b, r in chunk]
+            t, m, mask = model.embed_pairs(captions, [raw_features(ds, b, r) for b, r in chunk], name,
+                                           segments=known_segments(captions, segments_of))
+            cosines.append(paired_cosine(t.float(), m.float(), mask.bool()).cpu())
+        c = torch.cat(cosines)
+        mean, cv = isc_from_cosines(c)
+        out[name] = {"mean": mean, "cv": cv, "pairs": float(c.numel())}
+    return out
+
+
+# ------------------------------------------------------------------------ action order
+
+def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
+    from segmo.evaluation.action_order import ActionClassifier
+
+    if cfg.action_classifier == "train":
+        clf = ActionClassifier.fit(cfg.data, "train", epochs=10, seed=cfg.seed)
+        clf.save_pretrained(out / "action_classifier")
+        return clf
+    return ActionClassifier.from_pretrained(cfg.action_classifier)
+
+
+def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict],
+                         generate: Any) -> dict[str, dict[str, float]]:
+    from segmo.evaluation.action_order import (
+        collapse,
+        evaluate_action_order,
+        normalised_edit_distance,
+        sequence_accuracy,
+    )
+
+    result = {"real": evaluate_action_order(clf, cfg.data, cfg.split, max_motions=cfg.max_motions)}
+    if generate is None:
+        return result
+    firsts = [(b, r) for b, r in first_rows(batches) if ground_truth(cfg, b["id"][r], b["caption_index"][r], 1)]
+    preds, trues = [], []
+    for s in range(0, len(firsts), cfg.batch_size):
+        chunk = firsts[s:s + cfg.batch_size]
+        captions = [b["caption"][r] for b, r in chunk]
+        lengths = torch.stack([b["lengths"][r] for b, r in chunk])
+        features, got = generate.raw(captions, lengths, cfg.seed * 1_000_003 + 9_000_000 + s)
+        for k, (b, r) in enumerate(chunk):
+            preds.append(clf.predict_sequence(features[k, : int(got[k])].numpy()))
+            truth = ground_truth(cfg, b["id"][r], b["caption_index"][r], int(lengths[k]))
+            trues.append(collapse([seg["action"] for seg in truth]))
+    if preds:
+        result["generated"] = {"sequence_accuracy": sequence_accuracy(preds, trues),
+                               "normalised_edit_distance": normalised_edit_distance(preds, trues),
+                               "motions": float(len(preds))}
+    return result
+
+
+# ---------------------------------------------------------------------------- driver
