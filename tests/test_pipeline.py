@@ -1,0 +1,360 @@
+"""The `SegMo` inference pipeline and `segmo generate/ground/bundle` on a tiny random bundle.
+
+No training: the stages are randomly initialised (sharpened so that the text matters)
+and the text encoder is the deterministic hash encoder of conftest.py.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import hash_encoder
+
+from segmo.models.alignment import AlignmentConfig
+from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+from segmo.models.rvq import RVQVAE
+from segmo.pipeline import GenerationOutput, SegMo, edit_drift
+from segmo.pipeline.cli import bundle_main, generate_main, ground_main
+from segmo.pipeline.grounding import grounding_accuracy, pair_scores, plot_similarity_map
+
+TEXT_DIM = 8
+TINY = dict(codebook_size=16, text_dim=TEXT_DIM, max_segments=3, max_tokens=49, dim=32,
+            depth=2, heads=2, ff_dim=64, dropout=0.1)
+PROMPTS = ["a person walks forward, then waves.", "someone jumps twice and then sits down."]
+
+
+def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=True):
+    """A tokenizer with random codebooks (the fixture's are all zero, so every token would
+    decode alike) and random mask/residual/length stages; returns their directories."""
+    torch.manual_seed(0)
+    rvq = RVQVAE.from_pretrained(tokenizer)
+    rvq.quantizer.codebooks.normal_()
+    rvq.quantizer.initialised.fill_(True)
+    tokenizer = rvq.save_pretrained(root / "tokenizer")
+    config = dict(TINY, text_dim=text_dim)
+    mask = MaskTransformer(MaskTransformerConfig(
+        **config, alignment=AlignmentConfig(max_segments=3, out_dim=16) if alignment else None))
+    residual = ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3))
+    length = LengthEstimator(LengthEstimatorConfig(text_dim=text_dim, hidden=16, max_tokens=49))
+    with torch.no_grad():  # sharper than the 0.02-std initialisation, so the text matters
+        mask.classifier.weight.mul_(50)
+        residual.code_embeddings.mul_(50)
+    meta = {"text_encoder": encoder, "tokenizer": str(tokenizer)}
+    dirs = {"tokenizer": tokenizer}
+    for name, model in (("mask", mask), ("residual", residual), ("length", length)):
+        dirs[name] = model.save_pretrained(root / name, meta=meta)
+    return dirs
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # Tiny models: on a busy 2-core machine a second intra-op thread only spins (a 48-frame
+    # tokenizer pass takes ~0.9 s with 2 threads, ~5 ms with 1).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def stages(tmp_path_factory, tokenizer_dir):
+    return build_stages(tmp_path_factory.mktemp("stages"), tokenizer_dir["t2m"])
+
+
+@pytest.fixture(scope="module")
+def bundle(stages, tmp_path_factory):
+    """A bundle directory written by `segmo bundle` (through the `segmo` dispatcher)."""
+    from segmo.cli import main
+
+    out = tmp_path_factory.mktemp("bundle") / "model"
+    main(["bundle", "--tokenizer", str(stages["tokenizer"]), "--mask", str(stages["mask"]),
+                 "--residual", str(stages["residual"]), "--length", str(stages["length"]),
+                 "--out", str(out)])
+    return out
+
+
+@pytest.fixture(scope="module")
+def model(bundle):
+    return SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+
+
+def seeded(seed=0):
+    return torch.Generator().manual_seed(seed)
+
+
+@pytest.fixture(scope="module")
+def generated(model):
+    return model.generate(PROMPTS, [48, 32], generator=seeded())
+
+
+def test_bundle_layout_and_config(bundle, model):
+    payload = json.loads((bundle / "segmo.json").read_text())
+    assert payload["format"] == 1 and payload["text_encoder"] == "hash"
+    assert payload["skeleton"] == "t2m" and payload["fps"] == 20.0
+    assert payload["guidance_scale"] == 4.0 and payload["text_segmenter"] == "rule"
+    for stage in ("tokenizer", "mask", "residual", "length"):
+        assert (bundle / stage / "config.json").is_file()
+    assert model.max_frames == 196 and model.text_encoder_name == "hash"
+    assert model.skeleton.name == "t2m" and model.fps == 20.0
+
+
+def test_generation_shapes_and_padding(model, generated):
+    out = generated
+    assert out.features.shape == (2, 48, 263) and out.joints.shape == (2, 48, 22, 3)
+    assert out.tokens.shape == (2, 12, 3) and out.lengths.tolist() == [48, 32]
+    assert out.segments[0] == ["a person walks forward", "a person waves"]
+    assert bool((out.features[1, 32:] == 0).all()) and bool((out.joints[1, 32:] == 0).all())
+    assert bool((out.tokens[1, 8:] == -1).all()) and bool((out.tokens[:, :8] >= 0).all())
+    # features are de-normalised: tokenizer std 0.1, so z-scored values shrink tenfold
+    z = model.tokenizer.normalize(out.features[0])
+    assert torch.allclose(model.tokenizer.denormalize(z), out.features[0], atol=1e-5)
+    assert out.motion(1).shape == (32, 263)
+
+
+def test_seeded_generation_is_reproducible(model, generated):
+    again = model.generate(PROMPTS, [48, 32], generator=seeded())
+    assert torch.equal(again.tokens, generated.tokens)
+    assert torch.equal(again.features, generated.features)
+    other = model.generate(PROMPTS, [48, 32], generator=seeded(1))
+    assert not torch.equal(other.tokens, generated.tokens)
+
+
+def test_bundle_round_trip_gives_identical_generations(model, generated, tmp_path):
+    model.save_pretrained(tmp_path / "copy")
+    loaded = SegMo.from_pretrained(tmp_path / "copy", text_encoder=hash_encoder("hash", 8))
+    again = loaded.generate(PROMPTS, [48, 32], generator=seeded())
+    assert torch.equal(again.tokens, generated.tokens)
+    assert torch.equal(again.features, generated.features)
+
+
+def test_from_stages_equals_bundle(stages, generated):
+    model = SegMo.from_stages(stages["tokenizer"], stages["mask"], stages["residual"],
+                              stages["length"], text_encoder=hash_encoder("hash", TEXT_DIM))
+    assert torch.equal(model.generate(PROMPTS, [48, 32], generator=seeded()).tokens,
+                       generated.tokens)
+
+
+def test_lengths_from_estimator_and_text_cache(model):
+    out = model.generate(PROMPTS, generator=seeded(3))
+    assert all(int(n) % 4 == 0 and 4 <= int(n) <= model.max_frames for n in out.lengths)
+    assert PROMPTS[0] in model._sentence_cache
+    assert torch.equal(model.encode_texts(PROMPTS[:1])[0],
+                       hash_encoder("hash", TEXT_DIM).encode(PROMPTS[:1]).sentence[0])
+
+
+@pytest.mark.parametrize("lengths", [[30, 48], [0, 48], [48, 200], [48], [48, 48, 48]])
+def test_bad_lengths_are_refused(model, lengths):
+    with pytest.raises(ValueError, match="lengths|texts"):
+        model.generate(PROMPTS, lengths, generator=seeded())
+
+
+def test_missing_length_estimator_and_bad_inputs(model):
+    bare = SegMo(model.tokenizer, model.mask, model.residual, None, model.config,
+                 text_encoder=model.text_encoder)
+    with pytest.raises(ValueError, match="no length estimator"):
+        bare.generate(PROMPTS)
+    with pytest.raises(ValueError, match="segments"):
+        model.generate(["x"], [16], segments=[["a", "b", "c", "d"]])
+    with pytest.raises(ValueError, match=r"raw features \(t, 263\)"):
+        model.ground("a person walks", np.zeros((40, 22, 3)))
+    with pytest.raises(FileNotFoundError, match="segmo.json"):
+        SegMo.from_pretrained("/nonexistent/segmo-model")
+
+
+def test_edit_keeps_every_token_outside_the_span(model, generated, capsys):
+    span = (16, 32)  # frames → tokens 4..8
+    edited = model.edit(generated, span, "a person jumps", generator=seeded(5))
+    outside = torch.ones(12, dtype=torch.bool)
+    outside[4:8] = False
+    assert torch.equal(edited.tokens[:, outside], generated.tokens[:, outside])  # all q layers
+    assert not torch.equal(edited.tokens[:, 4:8], generated.tokens[:, 4:8])
+    assert edited.texts == ["a person jumps"] * 2
+    drift = edit_drift(generated.motion(0), edited.motion(0), span)
+    print("edit drift (frames from span → mean |Δ feature|):",
+          {d: round(v, 5) for d, v in drift.items()})
+    assert set(drift) == set(range(1, 17))  # 16 frames before and 16 after the span
+    assert all(math.isfinite(v) and v >= 0 for v in drift.values())
+    # the convolutional decoder's reach is bounded: adjacent frames move at least as much
+    assert drift[1] >= drift[16]
+    # raw features are tokenized first; the span must lie inside the motion
+    raw = model.edit(generated.motion(1), (0, 8), "someone waves", generator=seeded(6))
+    assert raw.features.shape == (1, 32, 263)
+    with pytest.raises(ValueError, match="span"):
+        model.edit(generated, (40, 60), "x")
+
+
+def test_edit_drift_is_by_distance():
+    a = np.zeros((10, 2))
+    b = a.copy()
+    b[3] = 1.0  # distance 2 before span (5, 8)
+    b[9] = 3.0  # distance 2 after
+    assert edit_drift(a, b, (5, 8)) == {1: 0.0, 2: 2.0, 3: 0.0, 4: 0.0, 5: 0.0}
+
+
+def test_grounding_shapes_and_best_span(model, generated):
+    motion = np.concatenate([generated.motion(0), generated.motion(0)[:6]])  # 54 frames
+    out = model.ground(PROMPTS[0], motion, window=5, stride=1)
+    assert out.segments == ["a person walks forward", "a person waves"]
+    assert out.num_frames == 54
+    assert out.windows.shape == (13 - 5 + 1, 2)  # 13 tokens (52 frames used)
+    assert out.similarity.shape == (2, 9)
+    assert bool((out.similarity.abs() <= 1 + 1e-5).all())
+    for (s, e), score, row in zip(out.best_spans_frames, out.best_scores, out.similarity):
+        assert 0 <= s < e <= 54 and e - s == 20
+        assert score == pytest.approx(float(row.max()))
+        assert out.windows[int(row.argmax())].tolist() == [s // 4, e // 4]
+    assert "frames" in str(out)
+    ax = plot_similarity_map(out, truth=[(0, 24), (24, 54)])
+    assert len(ax.get_yticklabels()) == 2 and len(ax.patches) == 2
+    assert len(ax.collections) == 2  # one true-span underline per segment
+    import matplotlib.pyplot as plt
+
+    plt.close(ax.figure)
+    multi = model.ground(PROMPTS[0], motion, window=[3, 6], stride=2, segments=["walk", "wave"])
+    assert multi.segments == ["walk", "wave"] and multi.similarity.shape[0] == 2
+
+
+def test_embed_pairs_spans(model, generated):
+    motions = [generated.motion(0), generated.motion(1)]
+    for spans in (None, "uniform", "cpd", "kmeans"):
+        text, motion, mask = model.embed_pairs(PROMPTS, motions, spans)
+        assert text.shape == motion.shape == (2, 2, 16)
+        assert mask.tolist() == [[True, True], [True, True]]
+    explicit = torch.tensor([[[0, 3], [3, 12]], [[0, 8], [0, 0]]])
+    _, _, mask = model.embed_pairs(PROMPTS, motions, explicit)
+    assert mask.tolist() == [[True, True], [True, False]]
+    # a padded z-scored batch gives the same embeddings as the list of raw motions
+    z = model.tokenizer.normalize(generated.features)
+    t1, m1, _ = model.embed_pairs(PROMPTS, motions)
+    t2, m2, _ = model.embed_pairs(PROMPTS, z, lengths=generated.lengths, normalized=True)
+    assert torch.allclose(t1, t2, atol=1e-5) and torch.allclose(m1, m2, atol=1e-4)
+    with pytest.raises(ValueError, match="explicit spans"):
+        model.embed_pairs(PROMPTS, motions, torch.zeros(2, 3, 2, dtype=torch.long))
+
+
+def test_retrieval_ranks(model, generated):
+    candidates = PROMPTS + ["the figure claps three times.", "a woman kicks."]
+    ranked = model.retrieve_texts(generated.motion(0), candidates, top_k=10)
+    assert sorted(t for t, _ in ranked) == sorted(candidates)
+    scores = [s for _, s in ranked]
+    assert scores == sorted(scores, reverse=True)
+    # the score is the mean paired cosine of embed_pairs
+    pairs = model.embed_pairs([ranked[0][0]], [generated.motion(0)], "uniform")
+    assert float(pair_scores(*pairs)[0]) == pytest.approx(scores[0], abs=1e-5)
+    assert len(model.retrieve_texts(generated.motion(0), candidates, span=(8, 40), top_k=2)) == 2
+    motions = [generated.motion(1), generated.motion(0), generated.motion(1)]
+    ranked = model.retrieve_motions(PROMPTS[0], motions, top_k=3)
+    assert sorted(i for i, _ in ranked) == [0, 1, 2]
+    by_index = dict(ranked)
+    assert by_index[0] == pytest.approx(by_index[2], abs=1e-5)  # same motion, same score
+    assert [s for _, s in ranked] == sorted((s for _, s in ranked), reverse=True)
+
+
+def test_no_alignment_head_is_a_clear_error(tmp_path, tokenizer_dir, generated):
+    dirs = build_stages(tmp_path, tokenizer_dir["t2m"], alignment=False)
+    plain = SegMo.from_stages(dirs["tokenizer"], dirs["mask"],
+                              text_encoder=hash_encoder("hash", TEXT_DIM))
+    assert plain.generate(PROMPTS[:1], [16], generator=seeded()).tokens.shape == (1, 4, 1)
+    with pytest.raises(ValueError, match="without segment alignment"):
+        plain.ground(PROMPTS[0], generated.motion(0))
+
+
+def test_grounding_accuracy_on_builtin_corpus(model, tmp_path_factory):
+    from segmo.synth.corpus import build_corpus
+
+    root = build_corpus(tmp_path_factory.mktemp("corpus") / "c", 6, progress=False)
+    metrics = grounding_accuracy(model, root, split="train", max_motions=3)
+    assert metrics["segments"] >= 2
+    assert 0 <= metrics["rate"] <= 1 and 0 <= metrics["mIoU"] <= 1
+    assert 0 <= metrics["uniform/mIoU"] <= 1
+
+
+@pytest.fixture
+def hash_text_encoder(monkeypatch):
+    """The CLI builds the encoder named in the bundle: serve the hash encoder for it."""
+    import segmo.text.encoders
+
+    monkeypatch.setattr(segmo.text.encoders, "get_text_encoder",
+                        lambda name, device="cpu": hash_encoder(name, TEXT_DIM))
+
+
+def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, capsys):
+    out = tmp_path / "gen"
+    generate_main(["--model", str(bundle), "--text", PROMPTS[0], "--text", PROMPTS[1],
+                   "--length", "16", "--seed", "3", "--out", str(out)])
+    printed = capsys.readouterr().out
+    for i in range(2):
+        assert np.load(out / f"sample_{i:02d}_features.npy").shape == (16, 263)
+        assert np.load(out / f"sample_{i:02d}_joints.npy").shape == (16, 22, 3)
+        assert (out / f"sample_{i:02d}.gif").stat().st_size > 0
+        text = (out / f"sample_{i:02d}.bvh").read_text()
+        assert text.startswith("HIERARCHY") and "Frames: 16" in text
+    index = json.loads((out / "prompts.json").read_text())
+    assert [e["text"] for e in index] == PROMPTS and str(out / "sample_00.gif") in printed
+    assert np.load(out / "sample_00_tokens.npy").shape == (4, 3)
+    # the same command and seed give the same motions
+    generate_main(["--model", str(bundle), "--text", PROMPTS[0], "--text", PROMPTS[1],
+                   "--length", "16", "--seed", "3", "--out", str(tmp_path / "again"),
+                   "--formats", "npy"])
+    for i in range(2):
+        for what in ("tokens", "features"):
+            assert np.array_equal(np.load(tmp_path / "again" / f"sample_{i:02d}_{what}.npy"),
+                                  np.load(out / f"sample_{i:02d}_{what}.npy"))
+    assert not (tmp_path / "again" / "sample_00.gif").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--model", "/nonexistent/model"], "segmo.json"),
+    (["--length", "30"], "multiples of 4"),
+    (["--formats", "npy,mp3"], "--formats"),
+])
+def test_cli_generate_errors(bundle, tmp_path, hash_text_encoder, capsys, argv, message):
+    base = {"--model": str(bundle), "--text": "a person walks", "--out": str(tmp_path)}
+    for flag, value in zip(argv[::2], argv[1::2]):
+        base[flag] = value
+    with pytest.raises(SystemExit):
+        generate_main([x for kv in base.items() for x in kv])
+    assert message in capsys.readouterr().err
+
+
+def test_cli_ground_prints_spans(bundle, generated, tmp_path, hash_text_encoder, capsys):
+    motion = tmp_path / "motion.npy"
+    np.save(motion, generated.motion(0))
+    ground_main(["--model", str(bundle), "--text", PROMPTS[0], "--motion", str(motion),
+                 "--window", "4", "--out", str(tmp_path / "map.png")])
+    printed = capsys.readouterr().out
+    assert "a person walks forward" in printed and "a person waves" in printed
+    assert printed.count("frames ") == 2 and (tmp_path / "map.png").stat().st_size > 0
+    np.save(tmp_path / "joints.npy", generated.motion_joints(0))
+    with pytest.raises(SystemExit):
+        ground_main(["--model", str(bundle), "--text", "x", "--motion",
+                     str(tmp_path / "joints.npy")])
+    assert "joints" in capsys.readouterr().err
+
+
+def test_generation_output_save_rejects_unknown_format(generated, tmp_path):
+    assert isinstance(generated, GenerationOutput)
+    with pytest.raises(ValueError, match="unknown format"):
+        generated.save(tmp_path, formats=("npy", "fbx"))
+
+
+def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
+    out = tmp_path / "b"
+    bundle_main(["--tokenizer", str(stages["tokenizer"]), "--mask", str(stages["mask"]),
+                 "--guidance", "2.5", "--out", str(out)])
+    payload = json.loads((out / "segmo.json").read_text())
+    assert payload["guidance_scale"] == 2.5 and not (out / "residual").exists()
+    with pytest.raises(SystemExit):
+        bundle_main(["--tokenizer", str(stages["tokenizer"]), "--mask",
+                     str(stages["tokenizer"]), "--out", str(tmp_path / "c")])
+    assert "holds a 'rvq' model" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bundle_main(["--tokenizer", str(tmp_path / "none"), "--mask", str(stages["mask"]),
+                     "--out", str(tmp_path / "d")])
+    assert "not a segmo model directory" in capsys.readouterr().err
