@@ -1,0 +1,205 @@
+"""`segmo demo`: the whole flow on the built-in corpus, end to end, on a CPU.
+
+build corpus → extract text segments (rule) → cache text features (MiniLM) → train the
+tokenizer, the mask transformer (with segment alignment), the residual transformer and
+the length estimator with the `configs/*/synthetic.yaml` recipes → export and bundle →
+generate motions for a few prompts → render GIFs and a grounding map.
+
+Each step prints the equivalent stand-alone command and is skipped when its output
+already exists, so an interrupted demo resumes where it stopped. Outputs:
+
+    OUT/corpus/          the built-in corpus (HumanML3D layout)
+    OUT/runs/<stage>/    training runs (logs, checkpoints, resolved configs)
+    OUT/models/<stage>/  exported stage models
+    OUT/model/           the SegMo bundle (`segmo.SegMo.from_pretrained`)
+    OUT/samples/         generated motions: .npy, .gif, .bvh
+    OUT/grounding.png    a grounding similarity map (paper Fig. 5)
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+PROMPTS = [
+    "a person walks forward, then waves with the right hand.",
+    "someone jumps twice and then sits down.",
+    "a man turns left after walking, then runs.",
+    "a person kicks with the left foot while standing.",
+]
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Corpus size and training steps; `full` fits in about 20 minutes on 2 CPU cores."""
+
+    num_motions: int
+    rvq_steps: int
+    mask_steps: int
+    residual_steps: int
+    length_epochs: int
+
+
+BUDGETS = {
+    "full": Budget(num_motions=1000, rvq_steps=1200, mask_steps=1500, residual_steps=1000,
+                   length_epochs=20),
+    # For the test suite: every step runs, nothing is learnt.
+    "quick": Budget(num_motions=24, rvq_steps=2, mask_steps=2, residual_steps=2,
+                    length_epochs=1),
+}
+
+
+def _step(title: str, command: str) -> float:
+    print(f"\n==> {title}\n    $ {command}", flush=True)
+    return time.perf_counter()
+
+
+def _done(start: float, timings: dict[str, float], key: str) -> None:
+    timings[key] = time.perf_counter() - start
+    print(f"    done in {timings[key]:.0f} s", flush=True)
+
+
+def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
+    """`segmo fit` one synthetic config, then `segmo export` its last checkpoint."""
+    from segmo.export import export
+    from segmo.training.cli import main as fit
+
+    # Lightning's banners and model tables would drown the demo's own progress lines.
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+
+    model_dir = out / "models" / stage
+    if (model_dir / "config.json").is_file():
+        print(f"    {model_dir} exists, skipped")
+        return model_dir
+    cli = fit(["fit", "--config", str(CONFIGS / stage / "synthetic.yaml"),
+               f"--data.root={root}", f"--runs_dir={out / 'runs'}", "--run_name=demo",
+               "--trainer.enable_model_summary=false", *overrides])
+    export(cli.trainer.checkpoint_callback.last_model_path, model_dir)
+    return model_dir
+
+
+def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
+    from segmo.synth import build_corpus
+    from segmo.text.cache import update_cache
+    from segmo.text.extract import segment_folder
+    from segmo.text.rules import RuleSegmenter
+
+    out.mkdir(parents=True, exist_ok=True)
+    root = out / "corpus"
+    timings: dict[str, float] = {}
+
+    def steps(n: int) -> list[str]:
+        # Validate once, on the last step, so that last.ckpt holds the final weights.
+        return [f"--trainer.max_steps={n}", "--trainer.max_epochs=-1",
+                "--trainer.check_val_every_n_epoch=null", f"--trainer.val_check_interval={n}"]
+
+    t = _step("1/8 build the built-in corpus",
+              f"segmo synth --out {root} --num-motions {budget.num_motions} --seed {seed}")
+    if not (root / "corpus.json").is_file():
+        build_corpus(root, budget.num_motions, seed)
+    _done(t, timings, "corpus")
+
+    t = _step("2/8 extract text segments", f"segmo segment-texts --data {root} --backend rule")
+    segment_folder(root, RuleSegmenter(), "rule")
+    _done(t, timings, "segment_texts")
+
+    t = _step("3/8 cache text features",
+              f"segmo encode-texts --data {root} --encoder minilm --segments rule")
+    update_cache(root, "minilm", segments=["rule"])
+    _done(t, timings, "encode_texts")
+
+    t = _step("4/8 train the RVQ-VAE tokenizer",
+              f"segmo fit --config configs/rvq/synthetic.yaml --data.root {root}")
+    tokenizer = _train("rvq", root, out, steps(budget.rvq_steps))
+    _done(t, timings, "rvq")
+
+    tok = [f"--model.init_args.tokenizer={tokenizer}"]
+    t = _step("5/8 train the mask transformer with segment alignment",
+              f"segmo fit --config configs/mask/synthetic.yaml --data.root {root} "
+              f"--model.init_args.tokenizer {tokenizer}")
+    mask = _train("mask", root, out, [*tok, *steps(budget.mask_steps)])
+    _done(t, timings, "mask")
+
+    t = _step("6/8 train the residual transformer",
+              f"segmo fit --config configs/residual/synthetic.yaml --data.root {root} "
+              f"--model.init_args.tokenizer {tokenizer}")
+    residual = _train("residual", root, out, [*tok, *steps(budget.residual_steps)])
+    _done(t, timings, "residual")
+
+    t = _step("7/8 train the length estimator",
+              f"segmo fit --config configs/length/synthetic.yaml --data.root {root}")
+    length = _train("length", root, out, [f"--trainer.max_epochs={budget.length_epochs}"])
+    _done(t, timings, "length")
+
+    t = _step("8/8 bundle, generate, render and ground",
+              f"segmo bundle --tokenizer {tokenizer} --mask {mask} --residual {residual} "
+              f"--length {length} --out {out / 'model'}")
+    _generate_and_render(out, root, tokenizer, mask, residual, length, seed)
+    _done(t, timings, "generate")
+    return timings
+
+
+def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, residual: Path,
+                         length: Path, seed: int) -> None:
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    import torch
+
+    from segmo.pipeline import SegMo
+    from segmo.pipeline.grounding import plot_similarity_map
+
+    model = SegMo.from_stages(tokenizer=str(tokenizer), mask=str(mask), residual=str(residual),
+                              length=str(length))
+    model.save_pretrained(out / "model")
+    result = model.generate(PROMPTS, generator=torch.Generator().manual_seed(seed))
+    samples = out / "samples"
+    result.save(samples)
+    print(f"    generated {len(PROMPTS)} motions -> {samples}")
+
+    # Ground a multi-segment test caption in its real motion.
+    test_ids = (root / "test.txt").read_text().split()
+    for motion_id in test_ids:
+        truth = json.loads((root / "segments" / f"{motion_id}.json").read_text())
+        caption = truth["captions"][0]
+        if len(caption["segments"]) >= 2:
+            break
+    features = np.load(root / "new_joint_vecs" / f"{motion_id}.npy")
+    grounding = model.ground(caption["text"], features)
+    truth = [(s["start"], s["end"]) for s in caption["segments"]]
+    ax = plot_similarity_map(grounding, title=caption["text"],
+                             truth=truth if len(truth) == len(grounding.segments) else None)
+    ax.figure.savefig(out / "grounding.png", dpi=100, bbox_inches="tight")
+    plt.close(ax.figure)
+    for text, span, truth_segment in zip(grounding.segments, grounding.best_spans_frames,
+                                         caption["segments"]):
+        print(f"    ground {text!r}: frames {span}, truth {truth_segment['start']}-{truth_segment['end']}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="segmo demo", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
+    parser.add_argument("--budget", choices=sorted(BUDGETS), default="full",
+                        help="full: ~20 min on 2 CPU cores; quick: a smoke run for the tests")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    start = time.perf_counter()
+    timings = run(args.out, BUDGETS[args.budget], args.seed)
+    total = time.perf_counter() - start
+    print("\nTimings: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items())
+          + f"; total {total / 60:.1f} min")
+    print(f"Outputs in {args.out}: model/ (load with segmo.SegMo.from_pretrained), samples/ "
+          "(npy, gif, bvh), grounding.png, runs/ (logs), corpus/")
+
+
+if __name__ == "__main__":
+    main()
