@@ -46,7 +46,7 @@ class Budget:
 
 
 BUDGETS = {
-    "full": Budget(num_motions=1000, rvq_steps=1200, mask_steps=1500, residual_steps=1000,
+    "full": Budget(num_motions=1000, rvq_steps=1200, mask_steps=1000, residual_steps=600,
                    length_epochs=20),
     # For the test suite: every step runs, nothing is learnt.
     "quick": Budget(num_motions=24, rvq_steps=2, mask_steps=2, residual_steps=2,

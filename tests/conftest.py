@@ -99,6 +99,15 @@ def build_tokenizer(path: Path, feature_dim: int, codebook_size: int = 16,
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def single_thread():
+    """Tiny models run faster on one thread, and the suite's timing stays predictable."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 @pytest.fixture(scope="session")
 def text_dataset(tmp_path_factory) -> dict[str, Path]:
     """{skeleton name: dataset root} for t2m and kit."""
