@@ -46,7 +46,7 @@ class Budget:
 
 
 BUDGETS = {
-    "full": Budget(num_motions=1000, rvq_steps=1200, mask_steps=1000, residual_steps=600,
+    "full": Budget(num_motions=1000, rvq_steps=1200, mask_steps=1800, residual_steps=1000,
                    length_epochs=20),
     # For the test suite: every step runs, nothing is learnt.
     "quick": Budget(num_motions=24, rvq_steps=2, mask_steps=2, residual_steps=2,
@@ -174,7 +174,11 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
         if len(caption["segments"]) >= 2:
             break
     features = np.load(root / "new_joint_vecs" / f"{motion_id}.npy")
-    grounding = model.ground(caption["text"], features)
+    # One window the size of an average segment: the paper's 5 tokens are far shorter than
+    # the corpus's segments, so no window could overlap a true span well.
+    window = max(1, len(features) // 4 // len(caption["segments"]))
+    grounding = model.ground(caption["text"], features, window=window,
+                             segments=[s["text"] for s in caption["segments"]])
     truth = [(s["start"], s["end"]) for s in caption["segments"]]
     ax = plot_similarity_map(grounding, title=caption["text"],
                              truth=truth if len(truth) == len(grounding.segments) else None)
