@@ -37,6 +37,8 @@ import re
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from segmo.text import lexicon
+
 MAX_SEGMENTS = 5
 
 
@@ -51,155 +53,6 @@ class TextSegmenter(Protocol):
         ...
 
 
-# ---------------------------------------------------------------- verb lexicon
-# Regular verbs, base form. Words that are mostly nouns/directions in captions
-# ("left", "hand", "back", "forward", "figure") are left out on purpose.
-_REGULAR = """
-walk jog run sprint march stroll stride step stomp tiptoe sneak limp shuffle stagger stumble
-trip fall jump hop skip leap bounce land climb crawl roll flip tumble slide slip glide skate
-ski swim fly turn rotate spin twirl pivot circle twist lean bend bow crouch squat kneel sit
-stand lie rise get go come move return stop pause halt wait rest stay remain start begin
-continue proceed keep try perform do make take wave clap point reach grab pick place put
-lift raise lower drop throw toss catch push pull carry hold kick punch hit strike box jab
-block dodge duck swing shake nod stretch extend fold cross flex flap wiggle wobble sway rock
-dance balance lunge look glance stare watch touch tap pat rub scratch wipe brush wash clean
-drink eat play shoot aim fight wrestle hug salute gesture signal beckon shrug open close
-answer talk call yell sing pray juggle dribble pass stir pour cut chop sweep mop paint draw
-write type sew knit fish row paddle pedal drive ride steer imitate mimic act pretend
-shiver tremble jiggle bob swat slap stab thrust sprawl collapse recover regain straighten
-crank hammer saw dig shovel lay descend ascend mount dismount enter exit leave sidestep
-backpedal retreat approach accelerate decelerate slow speed hurry rush dash charge chase
-flail swirl wind unwind cartwheel somersault spread relax tilt arch curl hunch slouch
-squeeze shove trudge wander pace jerk kneel hover sneeze cough stamp grasp release shoot
-bring set drag spin lift flick swipe swat sway knock shield cover hide clean comb dust
-compensate counterbalance end avoid stroke receive let bump search repeat gain protect assume
-inspect beat change support check curve use circulate evade find yank stoop give listen form
-show need knee drift prepare practice practise simulate demonstrate execute complete reverse
-"""
-# "base 3sg past participle gerund" where the regular rules fail
-_IRREGULAR = {
-    e.split()[0]: tuple(e.split()[1:])
-    for e in """
-run runs ran run running | sit sits sat sat sitting | stand stands stood stood standing |
-lie lies lay lain lying | lay lays laid laid laying | fall falls fell fallen falling |
-rise rises rose risen rising | get gets got gotten getting | go goes went gone going |
-come comes came come coming | take takes took taken taking | make makes made made making |
-do does did done doing | throw throws threw thrown throwing |
-catch catches caught caught catching | hold holds held held holding |
-hit hits hit hit hitting | strike strikes struck struck striking |
-swing swings swung swung swinging | shake shakes shook shaken shaking |
-bend bends bent bent bending | spin spins spun spun spinning |
-kneel kneels knelt knelt kneeling | fly flies flew flown flying |
-swim swims swam swum swimming | leap leaps leapt leapt leaping |
-begin begins began begun beginning | keep keeps kept kept keeping | put puts put put putting |
-cut cuts cut cut cutting | set sets set set setting | bring brings brought brought bringing |
-drink drinks drank drunk drinking | eat eats ate eaten eating | sing sings sang sung singing |
-write writes wrote written writing | draw draws drew drawn drawing |
-drive drives drove driven driving | ride rides rode ridden riding |
-shoot shoots shot shot shooting | sweep sweeps swept swept sweeping |
-wind winds wound wound winding | dig digs dug dug digging | slide slides slid slid sliding |
-spread spreads spread spread spreading | hide hides hid hidden hiding |
-stride strides strode stridden striding | leave leaves left left leaving |
-seem seems seemed seemed seeming | sneak sneaks snuck snuck sneaking
-""".split("|")
-}
-# Words an inflection would make that are really nouns/directions in captions.
-_NOT_VERB_FORMS = {"left", "leaves", "lay"}
-_DOUBLED = set("""jog step trip hop skip flip slip stop pat rub tap nod flap bob drop
-shrug grab jab swat slap chop mop knit dig plan drag stab""".split())
-_STATIC = {"stand", "sit", "kneel", "lie", "stay", "remain", "hover", "wait", "rest", "balance"}
-# after a static posture these start a new action, not a simultaneous one ("stands and walks away")
-_MOVING = set("""walk run jog sprint march jump hop skip leap crawl climb fall step stride limp stumble go
-come leave turn spin rise get stand sit lie kneel squat crouch""".split())
-_PARTICLES = {"up", "down", "back", "over", "onto", "off", "out"}
-_TRANSITIVE = set("""raise lift lower swing bend move extend stretch rotate twist shake open
-close cross fold flex pick put drop throw toss catch push pull wave kick punch grab hold
-clap rub wipe tap touch spread straighten flap wiggle release""".split())
-
-
-def _inflect(base: str) -> dict[str, set[str]]:
-    if base in _IRREGULAR:
-        s3, past, pp, ing = _IRREGULAR[base]
-        return {base: {"base"}, s3: {"3sg"}, past: {"past"}, pp: {"pp"}, ing: {"ing"}}
-    if base.endswith(("s", "x", "z", "ch", "sh", "o")):
-        s3 = base + "es"
-    elif base.endswith("y") and base[-2] not in "aeiou":
-        s3 = base[:-1] + "ies"
-    else:
-        s3 = base + "s"
-    if base in _DOUBLED:
-        ing, past = base + base[-1] + "ing", base + base[-1] + "ed"
-    elif base.endswith("ie"):
-        ing, past = base[:-2] + "ying", base + "d"
-    elif base.endswith("e") and not base.endswith(("ee", "ye", "oe")):
-        ing, past = base[:-1] + "ing", base + "d"
-    elif base.endswith("y") and base[-2] not in "aeiou":
-        ing, past = base + "ing", base[:-1] + "ied"
-    else:
-        ing, past = base + "ing", base + "ed"
-    return {base: {"base"}, s3: {"3sg"}, past: {"past", "pp"}, ing: {"ing"}}
-
-
-def _build_lexicon() -> tuple[dict[str, tuple[str, frozenset[str]]], dict[str, str]]:
-    forms: dict[str, tuple[str, set[str]]] = {}
-    third: dict[str, str] = {}
-    for base in dict.fromkeys(_REGULAR.split() + list(_IRREGULAR)):
-        for form, kinds in _inflect(base).items():
-            if form in _NOT_VERB_FORMS:
-                continue
-            entry = forms.setdefault(form, (base, set()))
-            entry[1].update(kinds)
-        third[base] = next(f for f, k in _inflect(base).items() if "3sg" in k)
-    return {f: (b, frozenset(k)) for f, (b, k) in forms.items()}, third
-
-
-_FORMS, _THIRD = _build_lexicon()
-
-# ---------------------------------------------------------------- other word classes
-_PRONOUNS = {"he", "she", "they", "it", "someone", "somebody", "everyone", "i", "we"}
-_DETERMINERS = {"a", "an", "the", "this", "that", "one", "some", "another", "our"}
-_SUBJECT_NOUNS = set("""person man woman human figure subject someone somebody individual guy
-lady boy girl character people persons child kid actor player dancer humanoid avatar body
-performer athlete men women""".split())
-_RELATIVE = {"that", "who", "which"}
-_AUX = {"is", "are", "was", "were", "be", "been", "being", "am"}
-_ADVERBS = set("""then also again still just first immediately now once twice very really
-almost nearly simply slowly quickly soon later suddenly finally afterwards afterward
-eventually next gradually repeatedly continuously""".split())
-_NOT_GUESSABLE = set("""his her their its this that these those steps times degrees meters
-metres arms hands legs feet is was has as us its yes thus always sideways towards upwards
-downwards backwards forwards afterwards outwards inwards onwards stairs series something
-anything nothing everything thing ceiling""".split())
-_DIRECTIONS = set("""back backward backwards forward forwards left right around sideways away
-up down to towards home""".split())
-# after "then", these start an action that reuses the previous verb ("then two steps back")
-_COPYABLE = _DIRECTIONS | set("a an one two three four five six another 1 2 3 4 5 6".split())
-_OBJECT_STARTERS = set("""his her their the a an both its one left right arms hands arm hand
-leg legs something an object objects""".split())
-# 3sg verb forms that are mostly plural nouns when they follow another word directly
-_NOUNISH = set("""steps strides circles punches gestures moves curves hops kicks jumps waves squats
-lunges rounds stops bows dances swings rolls flips claps points lifts pushes pulls
-throws catches""".split())
-_SIMULTANEOUS_PHRASES = ("at the same time", "simultaneously", "meanwhile", "in the meantime")
-
-# connective token sequences -> kind; longer entries are tried first
-_CONNECTIVES: list[tuple[tuple[str, ...], str]] = sorted(
-    [
-        (("at", "the", "same", "time"), "simul"), (("in", "the", "meantime"), "simul"),
-        (("after", "that"), "strong"), (("after", "this"), "strong"), (("after", "which"), "strong"),
-        (("followed", "by"), "strong"), (("and",), "weak"), ((",",), "weak"), (("but",), "weak"),
-        (("then",), "strong"), (("afterwards",), "strong"), (("afterward",), "strong"),
-        (("finally",), "strong"), (("lastly",), "strong"), (("next",), "strong"),
-        (("later",), "strong"), (("subsequently",), "strong"), (("thereafter",), "strong"),
-        ((";",), "sentence"), ((".",), "sentence"), (("!",), "sentence"), (("?",), "sentence"),
-        (("before",), "before"), (("after",), "after"), (("while",), "simul"),
-        (("whilst",), "simul"), (("as",), "simul"), (("meanwhile",), "simul"),
-        (("simultaneously",), "simul"), (("during",), "simul"),
-    ],
-    key=lambda item: -len(item[0]),
-)
-_PRECEDENCE = ["weak", "strong", "sentence", "before", "after", "simul"]
-_LEADS = {"after": "after", "before": "before", "while": "simul", "whilst": "simul", "as": "simul"}
 _TOKEN_RE = re.compile(r"[A-Za-z0-9]+(?:['’/\-][A-Za-z0-9]+)*|[^\sA-Za-z0-9]")
 
 
@@ -226,7 +79,7 @@ class _Clause:
 
 
 def _kinds(tok: _Tok) -> frozenset[str]:
-    entry = _FORMS.get(tok.low)
+    entry = lexicon.FORMS.get(tok.low)
     return entry[1] if entry else frozenset()
 
 
@@ -235,18 +88,18 @@ def _verb_kinds(toks: list[_Tok], k: int | None) -> frozenset[str]:
     if k is None:
         return frozenset()
     low = toks[k].low
-    if low in _FORMS:
-        return _FORMS[low][1]
+    if low in lexicon.FORMS:
+        return lexicon.FORMS[low][1]
     return frozenset({"ing"} if low.endswith("ing") else {"past"} if low.endswith("ed") else {"3sg"})
 
 
 def _is_adverb(low: str) -> bool:
-    return low in _ADVERBS or (low.endswith("ly") and len(low) > 4 and low not in _FORMS)
+    return low in lexicon.ADVERBS or (low.endswith("ly") and len(low) > 4 and low not in lexicon.FORMS)
 
 
 def _guess_verb(low: str) -> bool:
     """An unknown word that looks inflected; only trusted right after a strong connective."""
-    if low in _NOT_GUESSABLE or low in _DIRECTIONS or not low.isalpha() or len(low) < 4:
+    if low in lexicon.NOT_GUESSABLE or low in lexicon.DIRECTIONS or not low.isalpha() or len(low) < 4:
         return False
     return low.endswith(("ing", "ed")) or (low.endswith("s") and not low.endswith(("ss", "us")))
 
@@ -257,15 +110,15 @@ def _match_subject(toks: list[_Tok], k: int) -> int | None:
     if k >= n:
         return None
     low = toks[k].low
-    if low in _PRONOUNS or (low in _SUBJECT_NOUNS and low not in _FORMS):
+    if low in lexicon.PRONOUNS or (low in lexicon.SUBJECT_NOUNS and low not in lexicon.FORMS):
         end = k + 1
-    elif low in _DETERMINERS:
-        end = next((m + 1 for m in range(k + 1, min(k + 4, n)) if toks[m].low in _SUBJECT_NOUNS), 0)
+    elif low in lexicon.DETERMINERS:
+        end = next((m + 1 for m in range(k + 1, min(k + 4, n)) if toks[m].low in lexicon.SUBJECT_NOUNS), 0)
         if not end:
             return None
     else:
         return None
-    while end < n and toks[end].low in _RELATIVE:
+    while end < n and toks[end].low in lexicon.RELATIVE:
         end += 1
     return end
 
@@ -277,8 +130,8 @@ def _find_verb(toks: list[_Tok], j: int, join: str, main: frozenset[str], has_au
     end = _match_subject(toks, k)
     if end is not None and end < n:
         k, own = end, True
-    while k < n and (toks[k].low in _AUX or _is_adverb(toks[k].low)):
-        aux = aux or toks[k].low in _AUX
+    while k < n and (toks[k].low in lexicon.AUX or _is_adverb(toks[k].low)):
+        aux = aux or toks[k].low in lexicon.AUX
         k += 1
     if k >= n:
         return None
@@ -293,7 +146,7 @@ def _find_verb(toks: list[_Tok], j: int, join: str, main: frozenset[str], has_au
         return k, own, False
     if join != "weak" and _guess_verb(toks[k].low):
         return k, own, False
-    if join in ("strong", "sentence") and not own and k == j and (toks[k].low in _COPYABLE or toks[k].low.isdigit()):
+    if join in ("strong", "sentence") and not own and k == j and (toks[k].low in lexicon.COPYABLE or toks[k].low.isdigit()):
         return None, False, True
     return None
 
@@ -306,13 +159,13 @@ def _match_connective(toks: list[_Tok], i: int) -> tuple[int, str, bool]:
     """Longest run of connectives at i: (end index, strongest kind, starts with a comma)."""
     j, kind = i, ""
     while True:
-        for words, k in _CONNECTIVES:
+        for words, k in lexicon.CONNECTIVES:
             if tuple(t.low for t in toks[j : j + len(words)]) == words:
                 after = toks[j + len(words)].low if j + len(words) < len(toks) else ""
                 if (words == ("as",) and after in ("if", "though", "well")) or (words == ("next",) and after == "to"):
                     continue
                 j += len(words)
-                kind = max(kind, k, key=lambda x: _PRECEDENCE.index(x) if x else -1)
+                kind = max(kind, k, key=lambda x: lexicon.PRECEDENCE.index(x) if x else -1)
                 break
         else:
             return j, kind, bool(j > i and toks[i].low == ",")
@@ -324,9 +177,9 @@ def _has_verb(toks: list[_Tok], a: int, b: int) -> bool:
 
 def _asyndeton(prev: _Tok, tok: _Tok) -> bool:
     """Whether `tok`, a 3sg verb right after `prev`, starts a new action with no connective."""
-    if tok.low in _NOUNISH:  # "takes five forward steps", "draws circles"
+    if tok.low in lexicon.NOUNISH:  # "takes five forward steps", "draws circles"
         return False
-    return prev.low in _DIRECTIONS - {"to"} or _is_adverb(prev.low) or "3sg" in _kinds(prev)
+    return prev.low in lexicon.DIRECTIONS - {"to"} or _is_adverb(prev.low) or "3sg" in _kinds(prev)
 
 
 def _last_verb(toks: list[_Tok], clause: _Clause) -> str:
@@ -341,7 +194,7 @@ def _first_verb(toks: list[_Tok]) -> int | None:
     k = _match_subject(toks, 0)
     if k is None:
         return first
-    while k < n and (toks[k].low in _AUX or _is_adverb(toks[k].low)):
+    while k < n and (toks[k].low in lexicon.AUX or _is_adverb(toks[k].low)):
         k += 1
     if k < n and (first is None or k < first) and _guess_verb(toks[k].low):
         return k
@@ -351,14 +204,14 @@ def _first_verb(toks: list[_Tok]) -> int | None:
 def _split(toks: list[_Tok]) -> list[_Clause]:
     n = len(toks)
     first = _first_verb(toks)
-    lead = _LEADS.get(toks[0].low) if n and first is not None else None
+    lead = lexicon.LEADS.get(toks[0].low) if n and first is not None else None
     if lead and toks[1].low in ("that", "this", "which"):
         lead = None
     main_verb = first
     if lead and first is not None:
         main_verb = next((k for k in range(first + 1, n) if _kinds(toks[k]) - {"ing", "pp"}), first)
     main = _verb_kinds(toks, main_verb)
-    has_aux = main_verb is not None and main_verb > 0 and toks[main_verb - 1].low in _AUX
+    has_aux = main_verb is not None and main_verb > 0 and toks[main_verb - 1].low in lexicon.AUX
     start = 1 if lead and lead != "simul" else 0
     clauses = [_Clause(start, n, first, False, f"lead-{lead}" if lead else "")]
     i = first + 1 if first is not None else n
@@ -395,14 +248,14 @@ def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozens
             continue
         text = " ".join(t.low for t in toks[c.start : c.end])
         verb_kinds = _kinds(toks[c.verb]) if c.verb is not None else frozenset()
-        prev_base = _FORMS[toks[prev.verb].low][0] if prev.verb is not None and _kinds(toks[prev.verb]) else ""
-        verb_base = _FORMS[toks[c.verb].low][0] if verb_kinds else ""
+        prev_base = lexicon.FORMS[toks[prev.verb].low][0] if prev.verb is not None and _kinds(toks[prev.verb]) else ""
+        verb_base = lexicon.FORMS[toks[c.verb].low][0] if verb_kinds else ""
         static = (
-            prev_base in _STATIC
-            and verb_base not in _MOVING
+            prev_base in lexicon.STATIC
+            and verb_base not in lexicon.MOVING
             and c.verb is not None
-            and not any(t.low in _PARTICLES for t in toks[c.verb + 1 : c.verb + 2])
-            and not any(t.low in _PARTICLES for t in toks[prev.verb + 1 : prev.end])
+            and not any(t.low in lexicon.PARTICLES for t in toks[c.verb + 1 : c.verb + 2])
+            and not any(t.low in lexicon.PARTICLES for t in toks[prev.verb + 1 : prev.end])
             and c.join == "weak"
             and not c.own_subject
         )
@@ -412,14 +265,14 @@ def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozens
             or prev.join == "lead-simul" and len(units) == 1
             or static
             or manner
-            or (c.join in ("weak", "simul") and any(p in text for p in _SIMULTANEOUS_PHRASES))
+            or (c.join in ("weak", "simul") and any(p in text for p in lexicon.SIMULTANEOUS_PHRASES))
         ):
             prev.end = c.end
             continue
         bare = prev.verb is not None and all(_is_adverb(t.low) for t in toks[prev.verb + 1 : prev.end])
         if (
-            bare and c.join == "weak" and prev_base in _TRANSITIVE and c.verb is not None
-            and c.verb + 1 < c.end and toks[c.verb + 1].low in _OBJECT_STARTERS
+            bare and c.join == "weak" and prev_base in lexicon.TRANSITIVE and c.verb is not None
+            and c.verb + 1 < c.end and toks[c.verb + 1].low in lexicon.OBJECT_STARTERS
         ):
             prev.suffix = " " + caption[toks[c.verb + 1].start : toks[c.end - 1].end]
         units.append(c)
@@ -502,16 +355,16 @@ class RuleSegmenter:
         """The caption's subject ("A person") and auxiliary ("is"), from its main clause."""
         if clause.verb is None:
             return "", ""
-        aux = next((t.text for t in toks[clause.start : clause.verb] if t.low in _AUX), "")
+        aux = next((t.text for t in toks[clause.start : clause.verb] if t.low in lexicon.AUX), "")
         end = _match_subject(toks, clause.start)
         if end is None or end > clause.verb:
             # no recognised noun phrase: trust a short run of plain words ("some one walks")
             words = toks[clause.start : clause.verb]
             short = 0 < len(words) <= 3 and all(t.low.isalpha() and not _is_adverb(t.low) for t in words)
-            if not short or any(t.low in _AUX or _guess_verb(t.low) for t in words):
+            if not short or any(t.low in lexicon.AUX or _guess_verb(t.low) for t in words):
                 return "", aux
             end = clause.verb
-        while end > clause.start and toks[end - 1].low in _RELATIVE:
+        while end > clause.start and toks[end - 1].low in lexicon.RELATIVE:
             end -= 1
         return " ".join(t.text for t in toks[clause.start : end]), aux
 
@@ -526,9 +379,9 @@ class RuleSegmenter:
         elif verb_tok is not None and u.suffix:
             body = body + u.suffix
         gerund = verb_tok is not None and _kinds(verb_tok) == {"ing"}
-        if verb_tok is not None and gerund and not u.own_subject and "3sg" in main and verb_tok.low in _FORMS:
+        if verb_tok is not None and gerund and not u.own_subject and "3sg" in main and verb_tok.low in lexicon.FORMS:
             # "runs after walking" -> "walks": one tense across the segments of a caption
-            third = _THIRD[_FORMS[verb_tok.low][0]]
+            third = lexicon.THIRD[lexicon.FORMS[verb_tok.low][0]]
             a, b = verb_tok.start - toks[u.start].start, verb_tok.end - toks[u.start].start
             body = body[:a] + third + body[b:]
             gerund = False
@@ -550,8 +403,8 @@ def lemma(word: str) -> str:
     check that an LLM answer is made of the caption's words.
     """
     low = word.lower()
-    if low in _FORMS:
-        return _FORMS[low][0]
+    if low in lexicon.FORMS:
+        return lexicon.FORMS[low][0]
     for suffix, repl in (("ies", "y"), ("ing", ""), ("ed", ""), ("es", ""), ("s", "")):
         if low.endswith(suffix) and len(low) - len(suffix) >= 3:
             low = low[: -len(suffix)] + repl
