@@ -62,15 +62,6 @@ def setup(tmp_path_factory) -> dict[str, Path]:
     return paths
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models on a shared 2-core machine: one thread avoids oversubscription stalls."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture()
 def hash_text_encoder(monkeypatch):
     """The bundles name a hash encoder that `get_text_encoder` cannot build: stand it in."""

@@ -52,16 +52,6 @@ def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=T
     return dirs
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # Tiny models: on a busy 2-core machine a second intra-op thread only spins (a 48-frame
-    # tokenizer pass takes ~0.9 s with 2 threads, ~5 ms with 1).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def stages(tmp_path_factory, tokenizer_dir):
     return build_stages(tmp_path_factory.mktemp("stages"), tokenizer_dir["t2m"])

@@ -75,6 +75,8 @@ ARM_REACH = float(LENGTHS[18] + LENGTHS[20])
 
 
 # ---------------------------------------------------------------- numpy quaternions
+# segmo.motion.quaternion is torch; the corpus builder does thousands of tiny per-joint
+# operations per motion, where numpy is several times faster (2,000 motions in < 60 s).
 def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product (..., 4) * (..., 4), broadcasting."""
     aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
