@@ -122,6 +122,41 @@ def test_drop_condition_removes_text():
     assert not torch.allclose(a.logits[1], c.logits[1])
 
 
+@pytest.mark.parametrize("norm_first", [False, True])
+def test_text_prefix_sees_the_text_only(norm_first):
+    """Prefix tokens attend to the prefix alone: their outputs ignore the motion tokens, and
+    a condition encoded once gives the same outputs as one encoded on every call."""
+    model = tiny_mask(norm_first)
+    b, n = 2, 9
+    token_mask = torch.ones(b, n, dtype=torch.bool)
+    cond = text(b)
+    first = model(torch.randint(0, 18, (b, n)), token_mask, *cond)
+    second = model(torch.randint(0, 18, (b, n)), token_mask, *cond)
+    torch.testing.assert_close(first.segment_features, second.segment_features, rtol=0, atol=0)
+    torch.testing.assert_close(first.sentence_features, second.sentence_features, rtol=0, atol=0)
+    assert not torch.allclose(first.motion_features, second.motion_features)
+
+    indices = torch.randint(0, 18, (b, n))
+    condition = model.condition(*cond)
+    assert condition.encoded is not None
+    cached = model.forward_condition(indices, token_mask, condition)
+    condition.encoded = None  # encoded again inside the call
+    fresh = model.forward_condition(indices, token_mask, condition)
+    torch.testing.assert_close(cached.logits, fresh.logits, rtol=0, atol=0)
+
+
+def test_dropped_condition_keeps_prefix_states_finite():
+    """A row with every prefix slot masked still gets finite prefix states (PyTorch < 2.5
+    gives NaN to a query without any key), so NaN cannot reach the motion through masked
+    values."""
+    model = tiny_mask()
+    condition = model.condition(*text(2), drop_condition=torch.tensor([True, False]))
+    assert not bool(condition.mask[0].any())
+    assert torch.isfinite(condition.encoded.states).all()
+    for block in condition.encoded.blocks:
+        assert torch.isfinite(block.keys).all() and torch.isfinite(block.values).all()
+
+
 def test_too_many_segments_and_tokens_refused():
     model = tiny_mask()
     with pytest.raises(ValueError, match="segment slots"):

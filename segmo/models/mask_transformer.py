@@ -65,7 +65,8 @@ class MaskTransformerConfig:
 class MaskTransformerOutput:
     """logits (b, n, codebook_size); motion_features (b, n, dim) trunk outputs at the motion
     positions; segment_features (b, a, dim) and sentence_features (b, dim) trunk outputs at
-    the prefix positions (meaningless for rows whose condition was dropped)."""
+    the prefix positions, which see the text only (meaningless for rows whose condition
+    was dropped)."""
 
     logits: torch.Tensor
     motion_features: torch.Tensor
@@ -105,8 +106,11 @@ class MaskTransformer(nn.Module, Pretrained):
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
                   segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None
                   ) -> Condition:
-        """Prefix tokens, (b, 1 + a, dim); computed once per generation, reused per step."""
-        return self.prefix(sentence, segments, segment_mask, drop_condition)
+        """Prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which does not
+        depend on the motion tokens: computed once per generation, reused at every step."""
+        condition = self.prefix(sentence, segments, segment_mask, drop_condition)
+        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        return condition
 
     def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
                           condition: Condition) -> MaskTransformerOutput:
@@ -117,14 +121,15 @@ class MaskTransformer(nn.Module, Pretrained):
                              f"{condition.tokens.shape[0]} disagree")
         token_mask = token_mask.bool()
         indices = torch.where(token_mask, indices, self.pad_id)
-        h = self.trunk(condition.tokens, condition.mask, self.token_embedding(indices), token_mask)
-        p = condition.tokens.shape[1]
-        motion = h[:, p:]
+        encoded = condition.encoded
+        if encoded is None:
+            encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        motion = self.trunk.forward_motion(self.token_embedding(indices), token_mask, encoded)
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),
             motion_features=motion,
-            segment_features=h[:, 1:p],
-            sentence_features=h[:, 0],
+            segment_features=encoded.states[:, 1:],
+            sentence_features=encoded.states[:, 0],
         )
 
     def forward(self, indices: torch.Tensor, token_mask: torch.Tensor, sentence: torch.Tensor,

@@ -130,8 +130,8 @@ class ResidualTransformer(nn.Module, Pretrained):
             layer_token = self.layer_tokens[layer][:, None]
         prefix = torch.cat([condition.tokens, layer_token.to(condition.tokens.dtype)], dim=1)
         prefix_mask = torch.cat([condition.mask, condition.mask.new_ones(b, 1)], dim=1)
-        h = self.trunk(prefix, prefix_mask, x, token_mask)
-        motion = h[:, prefix.shape[1]:]
+        encoded = self.trunk.encode_prefix(prefix, prefix_mask)
+        motion = self.trunk.forward_motion(x, token_mask, encoded)
         out = self.head(motion)
         if isinstance(layer, int):
             logits = linear(out, self.output_weight(layer), self.output_bias[layer])

@@ -1,11 +1,17 @@
 """The transformer trunk shared by the mask and residual transformers (spec §4, §6).
 
-Bottom-up: attention → block → trunk, plus the text-conditioning prefix. The sequence the
-trunk sees is `[prefix tokens, motion tokens]`; only motion tokens get (sinusoidal)
-positions, the prefix slots get learned slot embeddings instead.
+Bottom-up: attention → block → trunk, plus the text-conditioning prefix. The trunk runs
+over `[prefix tokens, motion tokens]`; only motion tokens get (sinusoidal) positions, the
+prefix slots get learned type embeddings instead.
+
+The prefix is encoded on its own: prefix tokens attend to prefix tokens only, motion
+tokens attend to both. So the text side depends on the text alone (the segment features
+that alignment, grounding and retrieval compare with motion segments are not coloured by
+the motion they are compared with), and the prefix's keys and values are computed once
+per generation and reused at every decoding step (`Trunk.encode_prefix`).
 
 Masks follow the package convention (`(b, n) bool`, True = valid) and are turned into an
-attention mask only inside `SelfAttention`. Invalid keys (padded motion tokens, empty
+attention mask only inside `attention`. Invalid keys (padded motion tokens, empty
 segment slots, the whole text prefix of a sample whose condition is dropped) are excluded
 from attention, so their content cannot influence any valid position.
 """
@@ -85,8 +91,32 @@ class Linear(nn.Linear):
         return _ONEDNN_LINEAR(x.to(torch.bfloat16), weight, bias, self.activation, [], algorithm)
 
 
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torch.Tensor,
+              dropout: float = 0.0) -> torch.Tensor:
+    """Scaled dot-product attention with a key mask.
+
+    q (b, heads, l, head_dim), k and v (b, heads, m, head_dim), key_valid (b, m) bool keys
+    that may be attended to (every row needs one) → (b, heads, l, head_dim).
+    """
+    # Boolean SDPA mask: True = take part; broadcast over heads and queries.
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=key_valid[:, None, None, :],
+                                          dropout_p=dropout)
+
+
+@dataclass
+class PrefixKeys:
+    """One block's keys and values of the encoded prefix, for the motion tokens to attend to.
+
+    keys, values: (b, heads, p, head_dim); mask: (b, p) bool, True = may be attended to.
+    """
+
+    keys: torch.Tensor
+    values: torch.Tensor
+    mask: torch.Tensor
+
+
 class SelfAttention(nn.Module):
-    """Multi-head self-attention on `scaled_dot_product_attention` with a key mask."""
+    """Multi-head self-attention with a key mask, optionally also over a prefix's keys."""
 
     def __init__(self, dim: int, heads: int, dropout: float) -> None:
         super().__init__()
@@ -97,17 +127,21 @@ class SelfAttention(nn.Module):
         self.qkv = Linear(dim, 3 * dim)
         self.out = Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """x (b, l, dim), valid (b, l) bool keys that may be attended to → (b, l, dim)."""
+    def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None
+                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """x (b, l, dim), valid (b, l) bool keys of x that may be attended to; `prefix`:
+        further keys in front of x's own → (output (b, l, dim), x's (keys, values), each
+        (b, heads, l, head_dim))."""
         b, length, dim = x.shape
         q, k, v = self.qkv(x).view(b, length, 3, self.heads, dim // self.heads).unbind(2)
         q, k, v = (t.transpose(1, 2) for t in (q, k, v))  # (b, heads, l, head_dim)
-        # Boolean SDPA mask: True = take part; broadcast over heads and queries.
-        attn_mask = valid[:, None, None, :]
-        y = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0
-        )
-        return self.out(y.transpose(1, 2).reshape(b, length, dim))
+        keys, values, key_valid = k, v, valid
+        if prefix is not None:
+            keys = torch.cat([prefix.keys.to(k.dtype), k], dim=2)
+            values = torch.cat([prefix.values.to(v.dtype), v], dim=2)
+            key_valid = torch.cat([prefix.mask, valid], dim=1)
+        y = attention(q, keys, values, key_valid, self.dropout if self.training else 0.0)
+        return self.out(y.transpose(1, 2).reshape(b, length, dim)), (k, v)
 
 
 class Block(nn.Module):
@@ -123,25 +157,32 @@ class Block(nn.Module):
                                 Linear(ff_dim, dim))
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """x (b, l, dim), valid (b, l) bool → (b, l, dim)."""
+    def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None
+                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """x (b, l, dim), valid (b, l) bool, prefix as in `SelfAttention` →
+        (output (b, l, dim), this block's (keys, values) of x)."""
         if self.norm_first:
-            x = x + self.drop(self.attention(self.norm1(x), valid))
-            return x + self.drop(self.ff(self.norm2(x)))
-        x = self.norm1(x + self.drop(self.attention(x, valid)))
-        return self.norm2(x + self.drop(self.ff(x)))
+            y, kv = self.attention(self.norm1(x), valid, prefix)
+            x = x + self.drop(y)
+            return x + self.drop(self.ff(self.norm2(x))), kv
+        y, kv = self.attention(x, valid, prefix)
+        x = self.norm1(x + self.drop(y))
+        return self.norm2(x + self.drop(self.ff(x))), kv
 
 
 @dataclass
 class Condition:
     """Text conditioning as prefix tokens, computed once per generation.
 
-    tokens: (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A).
-    mask:   (b, p) bool, True = the slot takes part in attention.
+    tokens:  (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A).
+    mask:    (b, p) bool, True = the slot takes part in attention.
+    encoded: the prefix run through the trunk, when the model's prefix is exactly these
+             tokens (the mask transformer's; the residual one adds a layer token per pass).
     """
 
     tokens: torch.Tensor
     mask: torch.Tensor
+    encoded: EncodedPrefix | None = None
 
 
 class TextPrefix(nn.Module):
@@ -194,10 +235,24 @@ class TextPrefix(nn.Module):
         return Condition(tokens=tokens, mask=valid)
 
 
+@dataclass
+class EncodedPrefix:
+    """A prefix run through the trunk on its own (`Trunk.encode_prefix`).
+
+    states: (b, p, dim) trunk outputs at the prefix positions; blocks: per block, the keys
+    and values the motion tokens attend to. Depends on the text alone, so one encoding
+    serves every decoding step of a generation.
+    """
+
+    states: torch.Tensor
+    blocks: list[PrefixKeys]
+
+
 class Trunk(nn.Module):
     """Stack of encoder blocks over `[prefix, motion tokens]`.
 
-    Positions: sinusoidal on motion tokens only (the prefix has slot embeddings).
+    Prefix tokens attend to the prefix only; motion tokens attend to the prefix and to each
+    other. Positions: sinusoidal on motion tokens only (the prefix has type embeddings).
     """
 
     def __init__(self, dim: int, depth: int, heads: int, ff_dim: int, dropout: float,
@@ -211,21 +266,35 @@ class Trunk(nn.Module):
         # Post-norm blocks already end in a LayerNorm; pre-norm needs a final one.
         self.norm = nn.LayerNorm(dim) if norm_first else nn.Identity()
 
-    def forward(self, prefix: torch.Tensor, prefix_mask: torch.Tensor, tokens: torch.Tensor,
-                token_mask: torch.Tensor) -> torch.Tensor:
-        """prefix (b, p, dim), prefix_mask (b, p), tokens (b, n, dim) embedded motion tokens,
-        token_mask (b, n) → hidden states (b, p + n, dim)."""
+    def encode_prefix(self, prefix: torch.Tensor, prefix_mask: torch.Tensor) -> EncodedPrefix:
+        """prefix (b, p, dim) tokens, prefix_mask (b, p) bool valid slots → EncodedPrefix.
+
+        A row without any valid slot (condition dropped) lets its slots attend to each
+        other so that its states stay finite; no motion token ever attends to them.
+        """
+        prefix_mask = prefix_mask.bool()
+        among = prefix_mask | ~prefix_mask.any(dim=1, keepdim=True)
+        x = self.drop(prefix)
+        blocks = []
+        for block in self.blocks:
+            x, (keys, values) = block(x, among)
+            blocks.append(PrefixKeys(keys, values, prefix_mask))
+        return EncodedPrefix(states=self.norm(x), blocks=blocks)
+
+    def forward_motion(self, tokens: torch.Tensor, token_mask: torch.Tensor,
+                       prefix: EncodedPrefix) -> torch.Tensor:
+        """tokens (b, n, dim) embedded motion tokens, token_mask (b, n) bool, prefix from
+        `encode_prefix` → hidden states at the motion positions (b, n, dim)."""
         n = tokens.shape[1]
         if n > self.positions.shape[0]:
             raise ValueError(f"Trunk: {n} motion tokens, the model has max_tokens="
                              f"{self.positions.shape[0]}")
+        token_mask = token_mask.bool()
         if not bool(token_mask.any(dim=1).all()):
             raise ValueError("Trunk: every sample needs at least one valid motion token")
-        x = torch.cat([prefix, tokens + self.positions[:n].to(tokens.dtype)], dim=1)
-        valid = torch.cat([prefix_mask, token_mask.bool()], dim=1)
-        x = self.drop(x)
-        for block in self.blocks:
-            x = block(x, valid)
+        x = self.drop(tokens + self.positions[:n].to(tokens.dtype))
+        for block, keys in zip(self.blocks, prefix.blocks, strict=True):
+            x, _ = block(x, token_mask, keys)
         return self.norm(x)
 
 
