@@ -207,3 +207,19 @@ def test_decode_tokens_with_stub_tokenizer(models):
     base = decode_tokens(tokenizer, indices[..., :1], lengths)  # missing layers → −1
     expected = tokenizer.codes[0][indices[0, :, 0]].repeat_interleave(4, dim=0)
     torch.testing.assert_close(base[0], expected)
+    with pytest.raises(ValueError, match="precision"):
+        decode_tokens(tokenizer, indices, lengths, precision="fp16")
+
+
+def test_bf16_decoding_agrees_with_fp32():
+    from segmo.models.rvq import RVQVAE, RVQConfig
+
+    torch.manual_seed(0)
+    tokenizer = RVQVAE(RVQConfig(feature_dim=12, width=32, code_dim=16, codebook_size=16,
+                                 num_quantizers=3)).eval()
+    indices = torch.randint(0, 16, (2, 6, 3))
+    lengths = torch.tensor([24, 16])
+    fp32 = decode_tokens(tokenizer, indices, lengths)
+    bf16 = decode_tokens(tokenizer, indices, lengths, precision="bf16")
+    assert bf16.dtype == torch.float32 and not torch.equal(bf16, fp32)  # it did run in bf16
+    torch.testing.assert_close(bf16, fp32, rtol=0.05, atol=0.05 * fp32.abs().max().item())

@@ -19,6 +19,7 @@ from segmo.models.residual_transformer import (
     layer_probabilities,
     sample_layers,
 )
+from segmo.models.transformer import attention
 
 TINY = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2,
             heads=2, ff_dim=64, dropout=0.1)
@@ -155,6 +156,27 @@ def test_dropped_condition_keeps_prefix_states_finite():
     assert torch.isfinite(condition.encoded.states).all()
     for block in condition.encoded.blocks:
         assert torch.isfinite(block.keys).all() and torch.isfinite(block.values).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_inference_attention_matches_sdpa(dtype):
+    """CPU inference attention (two matmuls) computes what SDPA's fused kernel does."""
+    g = torch.Generator().manual_seed(0)
+    q, k, v = (torch.randn(3, 2, length, 8, generator=g).to(dtype) for length in (5, 7, 7))
+    key_valid = torch.ones(3, 7, dtype=torch.bool)
+    key_valid[1, :3] = False
+    key_valid[2, 4:] = False
+    v[2, :, 4:] = 1e4  # masked values must not leak
+    with torch.inference_mode():
+        fast = attention(q, k, v, key_valid)
+    reference = torch.nn.functional.scaled_dot_product_attention(
+        q.float(), k.float(), v.float(), attn_mask=key_valid[:, None, None, :])
+    tolerance = 1e-6 if dtype == torch.float32 else 2e-2
+    torch.testing.assert_close(fast.float(), reference, rtol=tolerance, atol=tolerance)
+    assert fast.dtype == dtype
+    # With autograd the fused kernel runs, and the two agree.
+    trained = attention(q.float().requires_grad_(), k.float(), v.float(), key_valid)
+    torch.testing.assert_close(trained.detach(), reference, rtol=1e-6, atol=1e-6)
 
 
 def test_too_many_segments_and_tokens_refused():

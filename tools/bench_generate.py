@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
         cpu_s = time.process_time() - cpu_start
         decode_s = 0.0
         if tokenizer is not None:
-            decode_s = timed(lambda: decode_tokens(tokenizer, out[-1], lengths))
+            decode_s = timed(lambda: decode_tokens(tokenizer, out[-1], lengths, args.precision))
         return tokens_s, decode_s, cpu_s
 
     out: list[torch.Tensor] = []

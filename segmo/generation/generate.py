@@ -74,18 +74,23 @@ def guided_logits(logits: torch.Tensor, scale: float) -> torch.Tensor:
     return unconditional + scale * (conditional - unconditional)
 
 
+def _autocast(precision: Precision, device: torch.device) -> torch.autocast:
+    """bf16 autocast for precision "bf16", a disabled one for "fp32"."""
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
 @contextmanager
 def _inference(models: list[nn.Module], precision: Precision, device: torch.device
                ) -> Iterator[None]:
     """Eval mode (restored afterwards), inference mode and, for bf16, autocast."""
-    if precision not in ("fp32", "bf16"):
-        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    autocast = _autocast(precision, device)
     modes = [(model, model.training) for model in models]
     for model, _ in modes:
         model.eval()
     try:
-        with torch.inference_mode(), torch.autocast(device.type, dtype=torch.bfloat16,
-                                                    enabled=precision == "bf16"):
+        with torch.inference_mode(), autocast:
             yield
     finally:
         for model, mode in modes:
@@ -264,11 +269,13 @@ def edit_tokens(
         return residual_decode(residual_model, out, editable, token_mask, condition, options)
 
 
-def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,
+                  precision: Precision = "fp32") -> torch.Tensor:
     """Tokens → motion features with a tokenizer (design.md, `RVQVAE.decode`).
 
     indices (b, n, q') with q' ≤ tokenizer.num_quantizers (missing layers decode as zero
-    codes, index −1); lengths (b,) frames → features (b, t, d), frames ≥ length set to 0.
+    codes, index −1); lengths (b,) frames → features (b, t, d) float32, frames ≥ length set
+    to 0. precision "bf16" runs the decoder under bf16 autocast (half the time on CPU).
     """
     b, n, q = indices.shape
     missing = tokenizer.num_quantizers - q
@@ -277,7 +284,7 @@ def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor) -> to
                          f"{tokenizer.num_quantizers}")
     if missing:
         indices = torch.cat([indices, indices.new_full((b, n, missing), -1)], dim=2)
-    with torch.inference_mode():
-        features = tokenizer.decode(indices)
+    with torch.inference_mode(), _autocast(precision, indices.device):
+        features = tokenizer.decode(indices).float()
     frames = torch.arange(features.shape[1], device=features.device)
     return features * (frames < lengths.to(features.device)[:, None])[..., None]

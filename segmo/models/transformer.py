@@ -91,6 +91,15 @@ class Linear(nn.Linear):
         return _ONEDNN_LINEAR(x.to(torch.bfloat16), weight, bias, self.activation, [], algorithm)
 
 
+# Why CPU inference computes attention with two matmuls instead of SDPA's fused kernel:
+# at this project's lengths (≤ ~60 keys) PyTorch's CPU flash kernel spends its time on
+# per-block overhead, not arithmetic: for a bf16 guidance batch (64 rows, 6 heads, 49
+# queries, 55 keys) it takes 4.0 ms per call against 1.4 ms here, ~10 ms per generated
+# motion (tools/bench_generate.py). The softmax runs in fp32 (bf16 softmax is 3× slower on
+# CPU). Training, dropout, GPUs and long sequences keep the fused kernel.
+_MATMUL_ATTENTION_MAX_KEYS = 256
+
+
 def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torch.Tensor,
               dropout: float = 0.0) -> torch.Tensor:
     """Scaled dot-product attention with a key mask.
@@ -98,9 +107,15 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torc
     q (b, heads, l, head_dim), k and v (b, heads, m, head_dim), key_valid (b, m) bool keys
     that may be attended to (every row needs one) → (b, heads, l, head_dim).
     """
-    # Boolean SDPA mask: True = take part; broadcast over heads and queries.
-    return F.scaled_dot_product_attention(q, k, v, attn_mask=key_valid[:, None, None, :],
-                                          dropout_p=dropout)
+    mask = key_valid[:, None, None, :]  # True = take part; broadcast over heads and queries
+    grad = torch.is_grad_enabled() and (q.requires_grad or k.requires_grad or v.requires_grad)
+    if (q.device.type != "cpu" or dropout > 0.0 or grad
+            or k.shape[2] > _MATMUL_ATTENTION_MAX_KEYS):
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
+    scores = torch.matmul(q, k.transpose(-1, -2)).float()
+    bias = torch.zeros(mask.shape, device=q.device).masked_fill(~mask, -math.inf)
+    weights = torch.softmax(torch.add(bias, scores, alpha=q.shape[-1] ** -0.5), dim=-1)
+    return torch.matmul(weights.to(v.dtype), v)
 
 
 @dataclass

@@ -333,9 +333,9 @@ class SegMo:
             return self.tokenizer.encode(self.normalize_motion(motion)[0])
 
     def decode(self, tokens: torch.Tensor, lengths: torch.Tensor, texts: list[str],
-               segments: list[list[str]]) -> GenerationOutput:
+               segments: list[list[str]], precision: Precision = "fp32") -> GenerationOutput:
         """tokens (b, n, q) + lengths (b,) frames → GenerationOutput (raw features, joints)."""
-        z = decode_tokens(self.tokenizer, tokens, lengths)
+        z = decode_tokens(self.tokenizer, tokens, lengths, precision)
         with torch.inference_mode():
             features = self.tokenizer.denormalize(z)
         valid = (torch.arange(features.shape[1], device=features.device)
@@ -384,7 +384,7 @@ class SegMo:
                                                 "residual_guidance_scale"),
             top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
             generator=generator, precision=precision)
-        return self.decode(tokens, lengths, texts, segments)
+        return self.decode(tokens, lengths, texts, segments, precision)
 
     def _scale(self, value: float | None, name: str) -> float:
         return float(getattr(self.config, name) if value is None else value)
@@ -426,7 +426,7 @@ class SegMo:
                                                 "residual_guidance_scale"),
             top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
             generator=generator, precision=precision)
-        return self.decode(edited, lengths, texts, used)
+        return self.decode(edited, lengths, texts, used, precision)
 
     # -- grounding and retrieval (segmo.pipeline.grounding) ----------------------------------
 
