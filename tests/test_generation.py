@@ -223,3 +223,14 @@ def test_bf16_decoding_agrees_with_fp32():
     bf16 = decode_tokens(tokenizer, indices, lengths, precision="bf16")
     assert bf16.dtype == torch.float32 and not torch.equal(bf16, fp32)  # it did run in bf16
     torch.testing.assert_close(bf16, fp32, rtol=0.05, atol=0.05 * fp32.abs().max().item())
+
+
+def test_keep_freed_memory_takes_effect_on_glibc():
+    import platform
+
+    from segmo.generation.allocator import keep_freed_memory
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("mallopt is glibc's")
+    assert keep_freed_memory() is True
+    assert keep_freed_memory() is True  # idempotent

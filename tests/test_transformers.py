@@ -146,6 +146,28 @@ def test_text_prefix_sees_the_text_only(norm_first):
     torch.testing.assert_close(cached.logits, fresh.logits, rtol=0, atol=0)
 
 
+def test_residual_passes_share_one_prefix_encoding():
+    """The target layer enters with the motion inputs, so one encoded text prefix serves
+    every layer's pass and gives what encoding it afresh gives."""
+    model = tiny_residual()
+    cond = text(2)
+    indices = torch.randint(0, 16, (2, 6, 3))
+    token_mask = torch.ones(2, 6, dtype=torch.bool)
+    condition = model.condition(*cond)
+    x = model.embed(indices, 2)
+    shared = [model.forward_embedded(x, layer, token_mask, condition).logits for layer in (1, 2)]
+    condition.encoded = None
+    fresh = [model.forward_embedded(x, layer, token_mask, condition).logits for layer in (1, 2)]
+    for a, c in zip(shared, fresh):
+        torch.testing.assert_close(a, c, rtol=0, atol=0)
+    # The layer embedding reaches the output through the trunk, not only through the tied projection.
+    before = model.forward_embedded(x, torch.tensor([1, 1]), token_mask, condition).logits
+    with torch.no_grad():
+        model.layer_embeddings[1] += 1.0
+    moved = model.forward_embedded(x, torch.tensor([1, 1]), token_mask, condition).logits
+    assert not torch.allclose(before, moved)
+
+
 def test_dropped_condition_keeps_prefix_states_finite():
     """A row with every prefix slot masked still gets finite prefix states (PyTorch < 2.5
     gives NaN to a query without any key), so NaN cannot reach the motion through masked

@@ -16,6 +16,8 @@ Measured after one warm-up, over `--repeats` runs, median:
   passes, each on the 2b guidance batch, same precision, no sampling), timed in the same
   run, interleaved with the generation runs so that machine load affects both alike;
 - floor_ratio = token-generation time / floor time; peak RSS of the process;
+- allocator_tuned: whether glibc malloc keeps freed memory (`keep_freed_memory`, as the
+  `segmo generate` and `segmo evaluate` commands do); `--default-allocator` turns it off;
 - *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
   (OpenMP threads wait for descheduled peers); `--threads 1` CPU times stay stable.
 The last printed line is JSON.
@@ -34,6 +36,7 @@ from pathlib import Path
 
 import torch
 
+from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import (
     _inference,
     decode_tokens,
@@ -114,10 +117,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--default-allocator", action="store_true",
+                        help="leave glibc malloc at its defaults (segmo.generation.allocator)")
     parser.add_argument("--compare-precision", action="store_true",
                         help="report bf16 vs fp32 token agreement on the same seeds")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    allocator_tuned = False if args.default_allocator else keep_freed_memory()
 
     if args.model is not None:
         mask, residual, tokenizer = directory_models(args.model)
@@ -195,6 +201,7 @@ def main(argv: list[str] | None = None) -> None:
         "peak_rss_mb": round(peak_rss_mb, 1),
         "batch": b, "precision": args.precision, "threads": args.threads,
         "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
+        "allocator_tuned": allocator_tuned,
     }))
 
 

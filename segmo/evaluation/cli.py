@@ -58,6 +58,7 @@ from segmo.evaluation.sections import (
     load_classifier,
     segmo_retrieval,
 )
+from segmo.generation.allocator import keep_freed_memory
 
 # ------------------------------------------------------------------------- generation
 
@@ -308,6 +309,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--skip: unknown section(s) {sorted(unknown)}; choose from {SECTIONS}")
     if args.threads:
         torch.set_num_threads(args.threads)
+    keep_freed_memory()
     cfg = EvaluateConfig(**{k: v for k, v in vars(args).items() if k not in ("compare", "skip", "threads")},
                          skip=skip)
     metrics = evaluate(cfg)

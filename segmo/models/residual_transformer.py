@@ -1,8 +1,11 @@
 """The residual transformer: predicts the tokens of RVQ layer j from layers 0..j−1 (spec §6).
 
-Prefix = [sentence, segments 1..A, quantizer-layer token]; the motion input is the sum of
-the per-layer code embeddings of layers 0..j−1 (index −1, a dropped or padded code, adds
-nothing). The logits of layer j are the dot products with the embedding table of layer j
+Prefix = [sentence, segments 1..A]; the motion input is the sum of the per-layer code
+embeddings of layers 0..j−1 (index −1, a dropped or padded code, adds nothing) plus an
+embedding of the target layer j. MoMask (and spec §6) put the layer in a prefix token
+instead; as a prefix token it would change the prefix's encoding with every layer, while
+added to the motion inputs it leaves the text prefix the same for all q−1 passes of a
+generation, so it is encoded once (`condition()`), as in the mask transformer. The logits of layer j are the dot products with the embedding table of layer j
 ("shared weights"), so each layer's codes have a single vector used both ways.
 
 Training (the task owns the loop; CFG drop probability 0.2 is the task's):
@@ -58,7 +61,7 @@ class ResidualTransformerOutput:
 
 
 class ResidualTransformer(nn.Module, Pretrained):
-    """Bidirectional transformer over `[sentence, segments, layer token, Σ code embeddings]`."""
+    """Bidirectional transformer over `[sentence, segments, Σ code embeddings + layer]`."""
 
     kind = "residual"
     config_class = ResidualTransformerConfig
@@ -75,7 +78,7 @@ class ResidualTransformer(nn.Module, Pretrained):
             torch.randn(config.num_quantizers, config.codebook_size, config.dim) * 0.02
         )
         self.output_bias = nn.Parameter(torch.zeros(config.num_quantizers, config.codebook_size))
-        self.layer_tokens = nn.Parameter(torch.randn(config.num_quantizers, config.dim) * 0.02)
+        self.layer_embeddings = nn.Parameter(torch.randn(config.num_quantizers, config.dim) * 0.02)
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
                            config.norm_first, config.max_tokens)
@@ -89,8 +92,11 @@ class ResidualTransformer(nn.Module, Pretrained):
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
                   segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None
                   ) -> Condition:
-        """Text prefix tokens (b, 1 + a, dim), without the layer token."""
-        return self.prefix(sentence, segments, segment_mask, drop_condition)
+        """Text prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which depends
+        on neither the motion nor the layer: computed once for all residual passes."""
+        condition = self.prefix(sentence, segments, segment_mask, drop_condition)
+        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        return condition
 
     def embed_layer(self, indices: torch.Tensor, layer: int) -> torch.Tensor:
         """indices (b, n) codes of one layer, −1 = none → embeddings (b, n, dim)."""
@@ -124,14 +130,14 @@ class ResidualTransformer(nn.Module, Pretrained):
         token_mask = token_mask.bool()
         if isinstance(layer, int):
             self._check_layer(torch.tensor([layer]))
-            layer_token = self.layer_tokens[layer].expand(b, 1, -1)
+            layer_embedding = self.layer_embeddings[layer]
         else:
             self._check_layer(layer)
-            layer_token = self.layer_tokens[layer][:, None]
-        prefix = torch.cat([condition.tokens, layer_token.to(condition.tokens.dtype)], dim=1)
-        prefix_mask = torch.cat([condition.mask, condition.mask.new_ones(b, 1)], dim=1)
-        encoded = self.trunk.encode_prefix(prefix, prefix_mask)
-        motion = self.trunk.forward_motion(x, token_mask, encoded)
+            layer_embedding = self.layer_embeddings[layer][:, None]
+        encoded = condition.encoded
+        if encoded is None:
+            encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        motion = self.trunk.forward_motion(x + layer_embedding.to(x.dtype), token_mask, encoded)
         out = self.head(motion)
         if isinstance(layer, int):
             logits = linear(out, self.output_weight(layer), self.output_bias[layer])

@@ -191,8 +191,8 @@ class Condition:
 
     tokens:  (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A).
     mask:    (b, p) bool, True = the slot takes part in attention.
-    encoded: the prefix run through the trunk, when the model's prefix is exactly these
-             tokens (the mask transformer's; the residual one adds a layer token per pass).
+    encoded: the prefix run through the trunk (the models' `condition()` fill it, so that
+             one encoding serves every pass of a generation); None = encode on each call.
     """
 
     tokens: torch.Tensor

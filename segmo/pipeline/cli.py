@@ -36,6 +36,8 @@ def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
 def generate_main(argv: list[str] | None = None) -> None:
     import torch
 
+    from segmo.generation.allocator import keep_freed_memory
+
     parser = argparse.ArgumentParser(prog="segmo generate",
                                      description="generate motions from text with a SegMo bundle")
     parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
@@ -65,6 +67,7 @@ def generate_main(argv: list[str] | None = None) -> None:
         lengths = lengths * len(args.text)
     model = _load(parser, args.model).to(args.device)
     generator = torch.Generator(device=args.device).manual_seed(args.seed)
+    keep_freed_memory()
     try:
         out = model.generate(args.text, lengths, guidance_scale=args.guidance,
                              residual_guidance_scale=args.residual_guidance, steps=args.steps,
