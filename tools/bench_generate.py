@@ -16,6 +16,8 @@ Measured after one warm-up, over `--repeats` runs, median:
   passes, each on the 2b guidance batch, same precision, no sampling), timed in the same
   run, interleaved with the generation runs so that machine load affects both alike;
 - floor_ratio = token-generation time / floor time; peak RSS of the process;
+- matmul_gmacs_before_after: the machine's matmul speed just before and after the timed
+  runs (`gemm_gmacs`); on a shared host it drifts, and every figure above drifts with it;
 - allocator_tuned: whether glibc malloc keeps freed memory (`keep_freed_memory`, as the
   `segmo generate` and `segmo evaluate` commands do); `--default-allocator` turns it off;
 - *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
@@ -46,6 +48,7 @@ from segmo.generation.generate import (
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.pretrained import load_pretrained, read_config
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+from segmo.models.transformer import Linear
 
 RANDOM_CONFIGS = {"humanml3d": dict(feature_dim=263, max_tokens=49)}
 
@@ -98,6 +101,21 @@ def floor_passes(mask, residual, text, n: int, steps: int, precision: str) -> No
         x = residual.embed_layer(ids.clamp(max=mask.config.codebook_size - 1), 0)
         for layer in range(1, residual.config.num_quantizers):
             residual.forward_embedded(x, layer, token_mask, condition)
+
+
+def gemm_gmacs(precision: str, repeats: int = 20) -> float:
+    """This machine's matmul throughput right now (GMAC/s): the paper-sized QKV projection of
+    a batch-32 guidance batch (3136 × 384 → 1152), timed as generation runs it. Shared
+    machines drift by 20 % and more between minutes; read the other figures against it."""
+    layer = Linear(384, 1152).eval()
+    x = torch.randn(64, 49, 384)
+    with _inference([layer], precision, x.device):
+        layer(x)
+        start = time.perf_counter()
+        for _ in range(repeats):
+            layer(x)
+        seconds = (time.perf_counter() - start) / repeats
+    return 64 * 49 * 384 * 1152 / seconds / 1e9
 
 
 def timed(fn, clock=time.perf_counter) -> float:
@@ -167,6 +185,7 @@ def main(argv: list[str] | None = None) -> None:
     out: list[torch.Tensor] = []
     run_generation()  # warm-up (allocator, oneDNN kernels, autocast caches)
     floor_passes(mask, residual, text, n, args.steps, args.precision)
+    gmacs = [gemm_gmacs(args.precision)]
     token_times, decode_times, floor_times, cpu_times, floor_cpu_times = [], [], [], [], []
     for _ in range(args.repeats):
         tokens_s, decode_s, cpu_s = run_generation()
@@ -177,6 +196,7 @@ def main(argv: list[str] | None = None) -> None:
         floor_times.append(timed(lambda: floor_passes(mask, residual, text, n, args.steps,
                                                       args.precision)))
         floor_cpu_times.append(time.process_time() - cpu_start)
+    gmacs.append(gemm_gmacs(args.precision))
     tokens_ms = statistics.median(token_times) * 1000 / b
     decode_ms = statistics.median(decode_times) * 1000 / b
     floor_ms = statistics.median(floor_times) * 1000 / b
@@ -188,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"tokens {tokens_ms:.1f} ms/motion, decode {decode_ms:.1f} ms/motion"
           f"{'' if tokenizer is not None else ' (no tokenizer: decoding excluded)'}, "
           f"floor {floor_ms:.1f} ms/motion, token CPU time {cpu_ms:.1f} ms/motion, "
-          f"load average {load:.2f}")
+          f"load average {load:.2f}, matmul {gmacs[0]:.0f}/{gmacs[1]:.0f} GMAC/s before/after")
     print(json.dumps({
         "ms_per_motion": round(tokens_ms + decode_ms, 2),
         "token_ms_per_motion": round(tokens_ms, 2),
@@ -202,6 +222,7 @@ def main(argv: list[str] | None = None) -> None:
         "batch": b, "precision": args.precision, "threads": args.threads,
         "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
         "allocator_tuned": allocator_tuned,
+        "matmul_gmacs_before_after": [round(x) for x in gmacs],
     }))
 
 

