@@ -349,3 +349,12 @@ def test_linear_fast_paths_match_f_linear():
         refreshed = layer(x).float()
     doubled = torch.nn.functional.gelu(torch.nn.functional.linear(x, layer.weight, layer.bias))
     torch.testing.assert_close(refreshed, doubled, rtol=0.05, atol=0.05)
+    # ...and so must the fp32 packed weights; a used layer still copies and pickles.
+    with torch.inference_mode():
+        torch.testing.assert_close(layer(x), doubled, rtol=1e-5, atol=1e-5)
+    import copy
+    import pickle
+
+    for clone in (copy.deepcopy(layer), pickle.loads(pickle.dumps(layer))):
+        with torch.inference_mode():
+            torch.testing.assert_close(clone(x), doubled, rtol=1e-5, atol=1e-5)
