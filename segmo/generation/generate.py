@@ -2,7 +2,7 @@
 
 Every transformer pass runs the conditional and the unconditional branch of
 classifier-free guidance as ONE batch of 2b rows (rows b..2b−1 have their text prefix
-masked out), and the text prefix is projected once per call, not once per step.
+masked out), and the text prefix is projected and encoded once per call, not once per step.
 
     indices = generate_tokens(mask_model, residual_model, sentence, segments, segment_mask,
                               lengths=torch.tensor([196, 120]), generator=torch.Generator().manual_seed(0))
