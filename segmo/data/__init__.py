@@ -6,11 +6,11 @@ from segmo.data.collate import collate
 from segmo.data.humanml3d import (
     Caption,
     MotionDataset,
-    MotionWindowDataset,
     load_stats,
     parse_text_line,
     read_split,
 )
+from segmo.data.windows import MotionWindowDataset
 
 __all__ = [
     "Caption",

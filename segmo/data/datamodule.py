@@ -11,7 +11,8 @@ from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 from segmo.data.collate import collate
-from segmo.data.humanml3d import MotionDataset, MotionWindowDataset, load_stats
+from segmo.data.humanml3d import MotionDataset, load_stats
+from segmo.data.windows import MotionWindowDataset
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
 

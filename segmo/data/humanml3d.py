@@ -3,10 +3,10 @@
 The folder layout is the same for every dataset; what differs (feature width, fps, length
 limits) comes from a `SkeletonSpec`. Two datasets are built on one reader:
 
-* `MotionDataset`: one sample per caption line (time-tagged captions are their own
-  sub-clip samples), with text segments, ground-truth spans and cached text features.
-* `MotionWindowDataset`: one entry per motion, for tokenizer training (random windows)
-  and its validation (whole clips).
+* `MotionDataset` (here): one sample per caption line (time-tagged captions are their
+  own sub-clip samples), with text segments, ground-truth spans and cached text features.
+* `MotionWindowDataset` (`segmo.data.windows`): one entry per motion, for tokenizer
+  training (random windows) and its validation (whole clips).
 
 What is skipped and what raises (``strict=True`` turns every skip into a ``ValueError``):
 
@@ -239,7 +239,7 @@ class MotionStore:
         return arr
 
 
-class _SeededGenerator:
+class SeededGenerator:
     """A torch.Generator seeded from ``seed`` in the main process, re-seeded per DataLoader worker."""
 
     def __init__(self, seed: int) -> None:
@@ -262,7 +262,7 @@ class _SeededGenerator:
         return {"seed": self.seed, "_gen": None, "_owner": None}
 
 
-def _crop_offset(t: int, size: int, random: bool, gen: _SeededGenerator) -> int:
+def crop_offset(t: int, size: int, random: bool, gen: SeededGenerator) -> int:
     if not random or t == size:
         return 0
     return int(torch.randint(0, t - size + 1, (1,), generator=gen.get()))
@@ -326,8 +326,8 @@ class MotionDataset(Dataset):
         self.unit_length = unit_length
         self.random_crop = random_crop
         self.max_segments = max_segments
-        self.mean, self.std = _stats(self.root, self.skeleton, mean, std)
-        self._gen = _SeededGenerator(seed)
+        self.mean, self.std = resolve_stats(self.root, self.skeleton, mean, std)
+        self._gen = SeededGenerator(seed)
         seg_dir = None
         if text_segments is not None:
             seg_dir = self.root / "text_segments" / text_segments
@@ -433,7 +433,7 @@ class MotionDataset(Dataset):
         e = self.entries[i]
         raw = self.motions.get(e.motion_id)[e.start:e.end]
         t = raw.shape[0] - raw.shape[0] % self.unit_length
-        off = _crop_offset(raw.shape[0], t, self.random_crop, self._gen)
+        off = crop_offset(raw.shape[0], t, self.random_crop, self._gen)
         motion = torch.from_numpy((raw[off:off + t] - self.mean) / self.std)
         spans = None
         if e.spans is not None:
@@ -457,73 +457,7 @@ class MotionDataset(Dataset):
                 "segment_mask": mask, "tokens": cache.tokens(e.caption).float()}
 
 
-class MotionWindowDataset(Dataset):
-    """One entry per motion of a split, for tokenizer training (texts are not read).
-
-    ``window`` frames: a window at a random offset (``random_crop``, training) or at 0;
-    motions shorter than the window are skipped and counted, and the length limits of the
-    skeleton do not apply. ``window=None``: the whole clip, kept if
-    ``min_frames <= t < max_frames`` and cropped to a multiple of ``unit_length`` from the
-    end (validation). A sample is ``{"motion": (w, d) z-scored, "length": w, "id": str}``.
-    """
-
-    def __init__(
-        self,
-        root: str | Path,
-        split: str = "train",
-        skeleton: str | SkeletonSpec = "t2m",
-        *,
-        window: int | None = 64,
-        mean: np.ndarray | None = None,
-        std: np.ndarray | None = None,
-        unit_length: int = 4,
-        random_crop: bool = True,
-        seed: int = 0,
-        max_motions: int | None = None,
-        preload: bool = True,
-        strict: bool = False,
-    ) -> None:
-        if window is not None and (window <= 0 or window % unit_length):
-            raise ValueError(f"window={window} must be a positive multiple of unit_length={unit_length}")
-        self.root = Path(root)
-        self.skeleton = get_skeleton(skeleton)
-        self.window = window
-        self.unit_length = unit_length
-        self.random_crop = random_crop
-        self.mean, self.std = _stats(self.root, self.skeleton, mean, std)
-        self._gen = _SeededGenerator(seed)
-        report = LoadReport(strict)
-        ids = read_split(self.root, split)[:max_motions]
-        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload)
-        self.ids: list[str] = []
-        for mid in ids:
-            if mid not in self.motions:
-                continue
-            t = self.motions.lengths[mid]
-            if window is not None and t < window:
-                report.filtered("shorter_than_window")
-            elif window is None and t < self.skeleton.min_frames:
-                report.filtered("too_short")
-            elif window is None and t >= self.skeleton.max_frames:
-                report.filtered("too_long")
-            else:
-                self.ids.append(mid)
-        self.summary = report.finish(f"{self.root.name}/{split}", len(self.ids), len(self.ids))
-        self.problems = report.problems
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def __getitem__(self, i: int) -> dict[str, Any]:
-        mid = self.ids[i]
-        raw = self.motions.get(mid)
-        size = self.window if self.window is not None else raw.shape[0] - raw.shape[0] % self.unit_length
-        off = _crop_offset(raw.shape[0], size, self.random_crop, self._gen)
-        motion = torch.from_numpy((raw[off:off + size] - self.mean) / self.std)
-        return {"motion": motion, "length": size, "id": mid}
-
-
-def _stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[np.ndarray, np.ndarray]:
+def resolve_stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[np.ndarray, np.ndarray]:
     """The given statistics (validated copies), or those of ``root`` when both are None."""
     if mean is None and std is None:
         return load_stats(root, spec)
