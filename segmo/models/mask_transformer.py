@@ -121,9 +121,7 @@ class MaskTransformer(nn.Module, Pretrained):
                              f"{condition.tokens.shape[0]} disagree")
         token_mask = token_mask.bool()
         indices = torch.where(token_mask, indices, self.pad_id)
-        encoded = condition.encoded
-        if encoded is None:
-            encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        encoded = self.trunk.encoded(condition)
         motion = self.trunk.forward_motion(self.token_embedding(indices), token_mask, encoded)
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),

@@ -134,9 +134,7 @@ class ResidualTransformer(nn.Module, Pretrained):
         else:
             self._check_layer(layer)
             layer_embedding = self.layer_embeddings[layer][:, None]
-        encoded = condition.encoded
-        if encoded is None:
-            encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        encoded = self.trunk.encoded(condition)
         motion = self.trunk.forward_motion(x + layer_embedding.to(x.dtype), token_mask, encoded)
         out = self.head(motion)
         if isinstance(layer, int):

@@ -316,6 +316,12 @@ class Trunk(nn.Module):
             blocks.append(PrefixKeys(keys, values, prefix_mask))
         return EncodedPrefix(states=self.norm(x), blocks=blocks)
 
+    def encoded(self, condition: Condition) -> EncodedPrefix:
+        """The condition's encoded prefix: the cached one from `condition()`, else a fresh one."""
+        if condition.encoded is not None:
+            return condition.encoded
+        return self.encode_prefix(condition.tokens, condition.mask)
+
     def forward_motion(self, tokens: torch.Tensor, token_mask: torch.Tensor,
                        prefix: EncodedPrefix) -> torch.Tensor:
         """tokens (b, n, dim) embedded motion tokens, token_mask (b, n) bool, prefix from
