@@ -210,6 +210,16 @@ def test_grounding_shapes_and_best_span(model, generated):
     assert multi.segments == ["walk", "wave"] and multi.similarity.shape[0] == 2
 
 
+def test_grounding_locates_segments_by_content_not_order(model, generated):
+    """Grounding feeds the segments as a set: listing them in another order moves no span."""
+    motion = generated.motion(0)
+    forward = model.ground(PROMPTS[0], motion, segments=["walk", "wave", "jump"])
+    shuffled = model.ground(PROMPTS[0], motion, segments=["jump", "walk", "wave"])
+    torch.testing.assert_close(torch.as_tensor(shuffled.similarity)[[1, 2, 0]],
+                               torch.as_tensor(forward.similarity), rtol=1e-5, atol=1e-5)
+    assert shuffled.best_spans_frames[1:] + shuffled.best_spans_frames[:1] == forward.best_spans_frames
+
+
 def test_embed_pairs_spans(model, generated):
     motions = [generated.motion(0), generated.motion(1)]
     for spans in (None, "uniform", "cpd", "kmeans"):

@@ -1,9 +1,10 @@
 """Segment alignment head and losses (SegMo §3.4–3.5, spec §5). Pure torch.
 
 Motion side: m_i = MLP(concat(mean(h[s_i:e_i]), max(h[s_i:e_i]))) over the mask
-transformer's output features h and token spans from `segmo.segmentation`. Text side: a
-projection of the segment features (the transformer's outputs at the segment prefix
-positions). Both land in a shared `out_dim` space compared by cosine similarity / τ.
+transformer's output features h and token spans from `segmo.segmentation`. Text side: an
+MLP over the segment features (the mask transformer's projected text vectors, which carry
+no slot order, so that ordered slots cannot meet the loss by position alone). Both land
+in a shared `out_dim` space compared by cosine similarity / τ.
 
 Losses (`AlignMethod`, Table 3 of the paper), each unweighted; the caller adds
 `config.weight * losses["align"]` to the mask loss:

@@ -1,9 +1,9 @@
 """The mask transformer: text + segments + masked base tokens → base-token logits (spec §4).
 
 Besides the logits, the forward pass returns the trunk's output features at the motion
-positions and at the segment prefix positions: the segment-alignment loss (spec §5,
-`segmo.models.alignment`) aggregates the former over motion segments and contrasts them
-with the latter.
+positions and the projected text vectors of the segments: the segment-alignment loss
+(spec §5, `segmo.models.alignment`) aggregates the former over motion segments and
+contrasts them with the latter.
 
 Training helpers are plain functions so that the task owns the loop:
 
@@ -64,9 +64,9 @@ class MaskTransformerConfig:
 @dataclass
 class MaskTransformerOutput:
     """logits (b, n, codebook_size); motion_features (b, n, dim) trunk outputs at the motion
-    positions; segment_features (b, a, dim) and sentence_features (b, dim) trunk outputs at
-    the prefix positions, which see the text only (meaningless for rows whose condition
-    was dropped)."""
+    positions; segment_features (b, a, dim) and sentence_features (b, dim) the projected
+    text vectors (`Condition.content`): what each segment says, without its slot order,
+    so that alignment cannot be met by order alone (`TextPrefix`)."""
 
     logits: torch.Tensor
     motion_features: torch.Tensor
@@ -104,11 +104,12 @@ class MaskTransformer(nn.Module, Pretrained):
                           if config.alignment is not None else None)
 
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
-                  segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None
-                  ) -> Condition:
+                  segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
+                  unordered: torch.Tensor | None = None) -> Condition:
         """Prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which does not
-        depend on the motion tokens: computed once per generation, reused at every step."""
-        condition = self.prefix(sentence, segments, segment_mask, drop_condition)
+        depend on the motion tokens: computed once per generation, reused at every step.
+        `unordered` (b,) bool: rows whose segments enter without order (`TextPrefix`)."""
+        condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered)
         condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
         return condition
 
@@ -126,17 +127,19 @@ class MaskTransformer(nn.Module, Pretrained):
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),
             motion_features=motion,
-            segment_features=encoded.states[:, 1:],
-            sentence_features=encoded.states[:, 0],
+            segment_features=condition.content[:, 1:],
+            sentence_features=condition.content[:, 0],
         )
 
     def forward(self, indices: torch.Tensor, token_mask: torch.Tensor, sentence: torch.Tensor,
                 segments: torch.Tensor, segment_mask: torch.Tensor,
-                drop_condition: torch.Tensor | None = None) -> MaskTransformerOutput:
+                drop_condition: torch.Tensor | None = None,
+                unordered: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long with masked positions already replaced by `mask_id`;
-        token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim);
-        segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free guidance)."""
-        condition = self.condition(sentence, segments, segment_mask, drop_condition)
+        token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim) in
+        execution order; segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free
+        guidance); unordered (b,) bool (segments as a set, as grounding uses them)."""
+        condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered)
         return self.forward_condition(indices, token_mask, condition)
 
 

@@ -1,14 +1,12 @@
 """The transformer trunk shared by the mask and residual transformers (spec §4, §6).
 
 Bottom-up: attention → block → trunk, plus the text-conditioning prefix. The trunk runs
-over `[prefix tokens, motion tokens]`; only motion tokens get (sinusoidal) positions, the
-prefix slots get learned type embeddings instead.
+over `[prefix tokens, motion tokens]`; motion tokens get sinusoidal positions, the prefix
+slots get learned type embeddings and the segments a learned execution-order embedding.
 
 The prefix is encoded on its own: prefix tokens attend to prefix tokens only, motion
-tokens attend to both. So the text side depends on the text alone (the segment features
-that alignment, grounding and retrieval compare with motion segments are not coloured by
-the motion they are compared with), and the prefix's keys and values are computed once
-per generation and reused at every decoding step (`Trunk.encode_prefix`).
+tokens attend to both. So the prefix's keys and values depend on the text alone and are
+computed once per generation, then reused at every decoding step (`Trunk.encode_prefix`).
 
 Masks follow the package convention (`(b, n) bool`, True = valid) and are turned into an
 attention mask only inside `attention`. Invalid keys (padded motion tokens, empty
@@ -211,12 +209,15 @@ class Condition:
 
     tokens:  (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A).
     mask:    (b, p) bool, True = the slot takes part in attention.
+    content: (b, p, dim) the projected text vectors alone, without type or order
+             embeddings: what each slot says, the text side of segment alignment.
     encoded: the prefix run through the trunk (the models' `condition()` fill it, so that
              one encoding serves every pass of a generation); None = encode on each call.
     """
 
     tokens: torch.Tensor
     mask: torch.Tensor
+    content: torch.Tensor
     encoded: EncodedPrefix | None = None
 
 
@@ -224,12 +225,22 @@ class TextPrefix(nn.Module):
     """Projects pooled text vectors to prefix tokens: [sentence, segment 1..A].
 
     One projection is shared by the sentence and its segments (they come from the same
-    frozen encoder); a learned type embedding tells the sentence from the segments. The
-    segments carry no slot position (positions are on motion tokens only, spec §4): with
-    one, the alignment loss is met by slot order alone (slot i ↔ i-th span) and teaches
-    nothing about content; without, a segment must find its span by what it says. Dropping
-    the condition (classifier-free guidance) masks the whole prefix out of attention, so
-    the unconditional branch is a row of the same batch with no parameter of its own.
+    frozen encoder); a learned type embedding tells the sentence from the segments, and a
+    learned order embedding tells the trunk which segment comes first. The order has to
+    come from the slots: pooled sentence vectors hardly encode it (MiniLM gives cosine
+    0.985 between "a person walks forward, then waves" and "a person waves, then walks
+    forward"), and without it the model cannot know which action to put where.
+
+    Because the slots are ordered, the alignment loss must not compare motion segments with
+    anything that carries the slot order (it would be met by slot i ↔ i-th span alone, and
+    teach nothing about content): its text side is `Condition.content`, the projected
+    vectors without type or order embeddings. Rows marked `unordered` get no order
+    embedding: their segments enter as a set and a motion token must find its segment by
+    what the segment says. Trained on a share of the samples (`MaskTask.order_drop_prob`),
+    that mode is what grounding and retrieval use, so that they locate a segment by what the
+    motion does rather than by where the caption put it. Dropping the condition
+    (classifier-free guidance) masks the whole prefix out of attention, so the unconditional
+    branch is a row of the same batch with no parameter of its own.
     """
 
     def __init__(self, text_dim: int, dim: int, max_segments: int) -> None:
@@ -237,6 +248,7 @@ class TextPrefix(nn.Module):
         self.max_segments = max_segments
         self.project = nn.Linear(text_dim, dim)
         self.types = nn.Parameter(torch.randn(2, dim) * 0.02)  # sentence, segment
+        self.order = nn.Parameter(torch.randn(max_segments, dim) * 0.02)  # segment 1..A
 
     def forward(
         self,
@@ -244,9 +256,12 @@ class TextPrefix(nn.Module):
         segments: torch.Tensor,
         segment_mask: torch.Tensor,
         drop_condition: torch.Tensor | None = None,
+        unordered: torch.Tensor | None = None,
     ) -> Condition:
-        """sentence (b, text_dim), segments (b, a, text_dim), segment_mask (b, a) bool,
-        drop_condition (b,) bool or None → Condition with p = 1 + a."""
+        """sentence (b, text_dim), segments (b, a, text_dim) in execution order,
+        segment_mask (b, a) bool, drop_condition (b,) bool or None, unordered (b,) bool or
+        None: rows whose segments enter as a set, without order embeddings → Condition
+        with p = 1 + a."""
         b, a = segment_mask.shape
         if sentence.dim() != 2 or segments.shape[:2] != (b, a) or sentence.shape[0] != b:
             raise ValueError(
@@ -257,29 +272,27 @@ class TextPrefix(nn.Module):
         if a > self.max_segments:
             raise ValueError(f"TextPrefix: {a} segment slots given, the model has {self.max_segments}")
         segment_mask = segment_mask.bool()
-        text = torch.cat([sentence[:, None], segments], dim=1)  # (b, 1 + a, text_dim)
-        kinds = torch.ones(1 + a, dtype=torch.long, device=text.device)
-        kinds[0] = 0
-        tokens = self.project(text) + self.types[kinds]
         valid = torch.cat([segment_mask.new_ones(b, 1), segment_mask], dim=1)
+        # Masked keys get zero attention weight, but 0 · NaN is NaN: zero what an empty slot
+        # holds (NaN padding included) so that it cannot leak.
+        text = torch.cat([sentence[:, None], segments], dim=1)  # (b, 1 + a, text_dim)
+        content = self.project(text.masked_fill(~valid[..., None], 0.0))
+        order = self.order[:a].expand(b, a, -1)
+        if unordered is not None:
+            order = order * ~unordered.bool()[:, None, None]
+        slots = torch.cat([self.types[:1].expand(b, 1, -1), self.types[1:] + order], dim=1)
         if drop_condition is not None:
             valid = valid & ~drop_condition.bool()[:, None]
-        # Masked keys get zero attention weight, but 0 · NaN is NaN: zero their values so
-        # that whatever an empty slot holds (NaN padding included) cannot leak.
-        tokens = tokens.masked_fill(~valid[..., None], 0.0)
-        return Condition(tokens=tokens, mask=valid)
+        tokens = (content + slots).masked_fill(~valid[..., None], 0.0)
+        return Condition(tokens=tokens, mask=valid, content=content)
 
 
 @dataclass
 class EncodedPrefix:
-    """A prefix run through the trunk on its own (`Trunk.encode_prefix`).
+    """A prefix run through the trunk on its own (`Trunk.encode_prefix`): per block, the
+    keys and values the motion tokens attend to. Depends on the text alone, so one encoding
+    serves every decoding step of a generation."""
 
-    states: (b, p, dim) trunk outputs at the prefix positions; blocks: per block, the keys
-    and values the motion tokens attend to. Depends on the text alone, so one encoding
-    serves every decoding step of a generation.
-    """
-
-    states: torch.Tensor
     blocks: list[PrefixKeys]
 
 
@@ -287,7 +300,7 @@ class Trunk(nn.Module):
     """Stack of encoder blocks over `[prefix, motion tokens]`.
 
     Prefix tokens attend to the prefix only; motion tokens attend to the prefix and to each
-    other. Positions: sinusoidal on motion tokens only (the prefix has type embeddings).
+    other. Positions: sinusoidal on motion tokens (the prefix has type and order embeddings).
     """
 
     def __init__(self, dim: int, depth: int, heads: int, ff_dim: int, dropout: float,
@@ -305,7 +318,7 @@ class Trunk(nn.Module):
         """prefix (b, p, dim) tokens, prefix_mask (b, p) bool valid slots → EncodedPrefix.
 
         A row without any valid slot (condition dropped) lets its slots attend to each
-        other so that its states stay finite; no motion token ever attends to them.
+        other so that its keys and values stay finite; no motion token ever attends to them.
         """
         prefix_mask = prefix_mask.bool()
         among = prefix_mask | ~prefix_mask.any(dim=1, keepdim=True)
@@ -314,7 +327,7 @@ class Trunk(nn.Module):
         for block in self.blocks:
             x, (keys, values) = block(x, among)
             blocks.append(PrefixKeys(keys, values, prefix_mask))
-        return EncodedPrefix(states=self.norm(x), blocks=blocks)
+        return EncodedPrefix(blocks=blocks)
 
     def encoded(self, condition: Condition) -> EncodedPrefix:
         """The condition's encoded prefix: the cached one from `condition()`, else a fresh one."""

@@ -1,9 +1,10 @@
 """Model-side grounding and retrieval in SegMo's learned segment space (paper §4.4).
 
 The query text and the motion both go through the mask transformer, UNMASKED and
-conditioned on the text and its segments, as in training validation. Text segments are
-the alignment head's `embed_text` of the segment-prefix outputs; motion segments are its
-`embed_motion` (mean ‖ max pooling + MLP) over token spans of the motion outputs. Cosine
+conditioned on the text and its segments, fed as a set (without their order embeddings,
+the mode `MaskTask.order_drop_prob` trains), so that a segment is located by content. Text segments are
+the alignment head's `embed_text` of the segments' projected text vectors; motion segments
+are its `embed_motion` (mean ‖ max pooling + MLP) over token spans of the motion outputs. Cosine
 similarity compares them. Because the motion features depend on the text prefix, every
 (text, motion) pair is its own forward pass; pairs are batched.
 
@@ -102,7 +103,10 @@ def _forward(model: SegMo, z: torch.Tensor, frames: torch.Tensor, texts: list[st
         base = model.tokenizer.encode(z)[..., 0]
         n_valid = frames // UNIT_LENGTH
         token_mask = torch.arange(base.shape[1], device=z.device) < n_valid[:, None]
-        out = model.mask(base, token_mask, sentence, vectors, segment_mask)
+        # Segments as a set: the motion features must say where each segment is from what
+        # the motion does, not from where the caption put it (`TextPrefix`).
+        unordered = torch.ones(len(texts), dtype=torch.bool, device=z.device)
+        out = model.mask(base, token_mask, sentence, vectors, segment_mask, unordered=unordered)
     return out, n_valid, segment_mask, latents
 
 

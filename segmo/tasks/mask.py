@@ -2,9 +2,9 @@
 
 Each step encodes the batch's motions with the frozen tokenizer, masks base tokens with
 the cosine schedule, predicts them from the caption and its segments, and adds
-λ · alignment loss between the text segments (the transformer's outputs at the segment
-prefix positions) and motion segments (spans from `segmo.segmentation` aggregated over
-the outputs of the masked input). Validation measures what the paper's claims rest on:
+λ · alignment loss between the text segments (their projected text vectors, which carry
+no slot order: `segmo.models.transformer.TextPrefix`) and motion segments (spans from
+`segmo.segmentation` aggregated over the outputs of the masked input). Validation measures what the paper's claims rest on:
 held-out masked-token accuracy under a fixed masking, and — where the data has ground-
 truth spans (the built-in corpus) — how often a text segment's most similar motion
 segment is its own (`segment_top1`).
@@ -104,6 +104,7 @@ class MaskTask(L.LightningModule):
         max_segments: int = 5,
         max_tokens: int = 49,
         cond_drop_prob: float = 0.1,
+        order_drop_prob: float = 0.0,
         alignment: AlignMethod = "in_sample",
         alignment_weight: float = 1.0,
         temperature: float = 0.1,
@@ -164,13 +165,18 @@ class MaskTask(L.LightningModule):
                              max_segments=self.hparams.max_segments)
 
     def step(self, batch: dict, generator: torch.Generator | None = None,
-             drop: Tensor | None = None) -> dict[str, Tensor]:
+             drop: Tensor | None = None, unordered: Tensor | None = None) -> dict[str, Tensor]:
+        """Losses of one batch; `drop` (condition dropped) and `unordered` (segments without
+        order) are drawn with their probabilities unless given, (b,) bool."""
         base, valid, lengths = self.tokens(batch)
         sentence, segments, segment_mask = text_condition(batch)
         inputs, target = mask_tokens(base, valid, self.model.config.codebook_size, generator)
+        b = base.shape[0]
         if drop is None:
-            drop = torch.rand(base.shape[0], device=base.device) < self.hparams.cond_drop_prob
-        out = self.model(inputs, valid, sentence, segments, segment_mask, drop)
+            drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
+        if unordered is None:
+            unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
+        out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered)
         mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
         terms = {"mask_loss": mask_loss,
@@ -204,8 +210,8 @@ class MaskTask(L.LightningModule):
         b = batch["motion"].shape[0]
         # The same masking every epoch, so the accuracy of two runs is comparable.
         generator = torch.Generator(device=batch["motion"].device).manual_seed(batch_idx)
-        terms = self.step(batch, generator, drop=torch.zeros(b, dtype=torch.bool,
-                                                             device=batch["motion"].device))
+        never = torch.zeros(b, dtype=torch.bool, device=batch["motion"].device)
+        terms = self.step(batch, generator, drop=never, unordered=never)
         self.log_dict({f"{prefix}/{k}": v for k, v in terms.items()}, batch_size=b,
                       sync_dist=True, prog_bar=False)
         if batch.get("spans") is not None:
@@ -222,29 +228,37 @@ class MaskTask(L.LightningModule):
         out = self.model(base, valid, sentence, segments, segment_mask)
         mask = segment_mask & usable[:, None] & (gt[..., 1] > gt[..., 0])
         total = int(mask.sum())
-        # Head-free score: mean motion feature over the span vs the segment's prefix output.
+        # Head-free score: mean motion feature over the span vs the segment's text vector.
         inside = (torch.arange(base.shape[1], device=base.device) >= gt[..., :1]) & (
             torch.arange(base.shape[1], device=base.device) < gt[..., 1:])
         pooled = torch.einsum("ban,bnd->bad", inside.float(), out.motion_features)
         correct_raw, _ = segment_top1(out.segment_features, pooled, mask)
         self.log(f"{prefix}/segment_top1_raw", correct_raw / total, batch_size=total, sync_dist=True)
-        if self.model.alignment is not None:
-            head = self.model.alignment
-            correct, _ = segment_top1(head.embed_text(out.segment_features),
-                                      head.embed_motion(out.motion_features, gt), mask)
-            self.log(f"{prefix}/segment_top1", correct / total, batch_size=total, sync_dist=True,
-                     prog_bar=True)
-            # Ordered segments can be matched by slot position alone (slot i ↔ i-th span).
-            # Feeding them in reverse order tells content from position: a model that
-            # matches by content still finds each segment's own span.
-            order = reversed_order(segment_mask)
-            rev = self.model(base, valid, sentence, segments.gather(
-                1, order[..., None].expand_as(segments)), segment_mask)
-            text = head.embed_text(rev.segment_features).gather(
-                1, order[..., None].expand(-1, -1, head.config.out_dim))
-            correct, _ = segment_top1(text, head.embed_motion(rev.motion_features, gt), mask)
-            self.log(f"{prefix}/segment_top1_reversed", correct / total, batch_size=total,
-                     sync_dist=True)
+        if self.model.alignment is None:
+            return
+        head = self.model.alignment
+
+        def top1(order: Tensor | None = None, unordered: bool = False) -> float:
+            """Own-head segment top-1 with the segments fed in `order` (b, a) or as given."""
+            fed = segments if order is None else segments.gather(
+                1, order[..., None].expand_as(segments))
+            flag = torch.full((base.shape[0],), unordered, device=base.device)
+            run = self.model(base, valid, sentence, fed, segment_mask, unordered=flag)
+            text = head.embed_text(run.segment_features)
+            if order is not None:  # back to the original slots (the permutation is an involution)
+                text = text.gather(1, order[..., None].expand(-1, -1, text.shape[-1]))
+            return segment_top1(text, head.embed_motion(run.motion_features, gt), mask)[0] / total
+
+        self.log(f"{prefix}/segment_top1", top1(), batch_size=total, sync_dist=True,
+                 prog_bar=True)
+        # The motion features see the segments in their slot order, so they can simply copy
+        # slot i into the i-th span. Fed in reverse order, a model whose motion features
+        # describe the motion itself still finds each segment's own span; one that copies
+        # does not. Fed as a set (unordered, as grounding feeds them) only content is left.
+        self.log(f"{prefix}/segment_top1_reversed", top1(order=reversed_order(segment_mask)),
+                 batch_size=total, sync_dist=True)
+        self.log(f"{prefix}/segment_top1_unordered", top1(unordered=True), batch_size=total,
+                 sync_dist=True)
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         self._evaluate("val", batch, batch_idx)
