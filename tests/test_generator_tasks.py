@@ -107,3 +107,50 @@ def test_reversed_order_is_an_involution_on_valid_slots():
     order = reversed_order(mask)
     assert order.tolist() == [[2, 1, 0, 3, 4], [0, 1, 2, 3, 4]]
     assert torch.equal(order.gather(1, order), torch.arange(5).expand(2, 5))
+
+
+def test_segment_probe_tool_scores_any_mask_transformer(tmp_path, capsys):
+    """tools/segment_probe.py fits a head on a frozen model (with or without alignment) and
+    scores every ground-truth segment of the split whose caption the rule backend split
+    into as many segments."""
+    import importlib.util
+    import json
+
+    from conftest import build_tokenizer, hash_encoder
+
+    from segmo.models.alignment import AlignmentConfig
+    from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+    from segmo.synth.corpus import build_corpus
+    from segmo.text.cache import update_cache
+    from segmo.text.extract import segment_folder
+    from segmo.text.rules import RuleSegmenter
+
+    root = build_corpus(tmp_path / "synth", 40, seed=0, progress=False)
+    segment_folder(root, RuleSegmenter(), "rule", progress=False)
+    update_cache(root, hash_encoder("minilm", 16), segments=["rule"], progress=False)
+    tokenizer = build_tokenizer(tmp_path / "rvq", 263)
+    spec = importlib.util.spec_from_file_location("segment_probe", REPO / "tools" / "segment_probe.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+
+    expected = 0  # segments with a ground-truth span, counted from the files themselves
+    for mid in (root / "val.txt").read_text().split():
+        truth = json.loads((root / "segments" / f"{mid}.json").read_text())["captions"]
+        rule = (root / "text_segments" / "rule" / f"{mid}.txt").read_text().splitlines()
+        for caption, line in zip(truth, rule):
+            a = len(line.split("#"))
+            expected += a if len(caption["segments"]) == a >= 2 else 0
+    assert expected > 0
+    tiny = dict(codebook_size=16, text_dim=16, max_segments=5, max_tokens=49, dim=32, depth=1,
+                heads=2, ff_dim=64)
+    for alignment in (AlignmentConfig(out_dim=16), None):
+        torch.manual_seed(0)
+        path = tmp_path / f"mask-{alignment is None}"
+        MaskTransformer(MaskTransformerConfig(**tiny, alignment=alignment)).save_pretrained(
+            path, meta={"text_encoder": "minilm"})
+        tool.main(["--mask", str(path), "--tokenizer", str(tokenizer), "--data", str(root),
+                   "--steps", "3", "--batch-size", "8"])
+        result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert result["segments"] == expected
+        assert 0.0 <= result["probe"] <= 1.0
+        assert ("own_head" in result) == (alignment is not None)
