@@ -20,6 +20,9 @@ Measured after one warm-up, over `--repeats` runs, median:
   runs (`gemm_gmacs`); on a shared host it drifts, and every figure above drifts with it;
 - allocator_tuned: whether glibc malloc keeps freed memory (`keep_freed_memory`, as the
   `segmo generate` and `segmo evaluate` commands do); `--default-allocator` turns it off;
+- with --momask-floor: momask_floor_ms_per_motion, the MoMask reference's bare passes
+  (fp32, `momask_floor`) timed on this machine, and speedup_vs_momask_floor = that time /
+  ms_per_motion, a ratio that does not depend on the host;
 - *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
   (OpenMP threads wait for descheduled peers); `--threads 1` CPU times stay stable.
 The last printed line is JSON.
@@ -103,6 +106,35 @@ def floor_passes(mask, residual, text, n: int, steps: int, precision: str) -> No
             residual.forward_embedded(x, layer, token_mask, condition)
 
 
+def momask_models(dim: int = 384, depth: int = 8, heads: int = 6, ff_dim: int = 1024,
+                  codes: int = 512) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """The MoMask reference's transformer at the paper's sizes: PyTorch's post-norm
+    `nn.TransformerEncoder` (GELU) and its output head (dense, GELU, LayerNorm, projection
+    to the codes), random weights, eval mode."""
+    layer = torch.nn.TransformerEncoderLayer(dim, heads, ff_dim, 0.2, "gelu")
+    trunk = torch.nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
+    head = torch.nn.Sequential(torch.nn.Linear(dim, dim), torch.nn.GELU(),
+                               torch.nn.LayerNorm(dim), torch.nn.Linear(dim, codes))
+    return trunk.eval(), head.eval()
+
+
+def momask_floor(trunk: torch.nn.Module, head: torch.nn.Module, b: int, n: int, steps: int,
+                 num_quantizers: int) -> None:
+    """The bare passes of one MoMask-reference generation of b motions (fp32), as its code
+    runs them: sequence-first, the conditional and unconditional passes one after the other
+    (2 per step and per residual layer), one condition token before the n motion tokens (and
+    the quantizer-layer token for the residual transformer). Timed on the same machine at
+    the same moment as segmo's generation, so that their ratio does not depend on the host
+    (the reference figures of issue 5 were measured on another one)."""
+    dim = head[0].in_features
+    with torch.inference_mode():
+        for tokens, passes in ((n + 1, 2 * steps), (n + 2, 2 * (num_quantizers - 1))):
+            x = torch.randn(tokens, b, dim)
+            padding = torch.zeros(b, tokens, dtype=torch.bool)
+            for _ in range(passes):
+                head(trunk(x, src_key_padding_mask=padding)[1:])
+
+
 def gemm_gmacs(precision: str, repeats: int = 20) -> float:
     """This machine's matmul throughput right now (GMAC/s): the paper-sized QKV projection of
     a batch-32 guidance batch (3136 × 384 → 1152), timed as generation runs it. Shared
@@ -139,6 +171,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="leave glibc malloc at its defaults (segmo.generation.allocator)")
     parser.add_argument("--compare-precision", action="store_true",
                         help="report bf16 vs fp32 token agreement on the same seeds")
+    parser.add_argument("--momask-floor", action="store_true",
+                        help="also time the MoMask reference's bare passes (fp32) on this machine")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     allocator_tuned = False if args.default_allocator else keep_freed_memory()
@@ -197,6 +231,18 @@ def main(argv: list[str] | None = None) -> None:
                                                       args.precision)))
         floor_cpu_times.append(time.process_time() - cpu_start)
     gmacs.append(gemm_gmacs(args.precision))
+    momask_ms = None
+    if args.momask_floor:
+        trunk, head = momask_models(dim=mask.config.dim, depth=mask.config.depth,
+                                    heads=mask.config.heads, ff_dim=mask.config.ff_dim,
+                                    codes=mask.config.codebook_size)
+        q = residual.config.num_quantizers
+
+        def reference() -> None:
+            momask_floor(trunk, head, b, n, args.steps, q)
+
+        reference()  # warm-up
+        momask_ms = statistics.median(timed(reference) for _ in range(args.repeats)) * 1000 / b
     tokens_ms = statistics.median(token_times) * 1000 / b
     decode_ms = statistics.median(decode_times) * 1000 / b
     floor_ms = statistics.median(floor_times) * 1000 / b
@@ -223,6 +269,9 @@ def main(argv: list[str] | None = None) -> None:
         "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
         "allocator_tuned": allocator_tuned,
         "matmul_gmacs_before_after": [round(x) for x in gmacs],
+        "momask_floor_ms_per_motion": None if momask_ms is None else round(momask_ms, 2),
+        "speedup_vs_momask_floor": (None if momask_ms is None
+                                    else round(momask_ms / (tokens_ms + decode_ms), 3)),
     }))
 
 
