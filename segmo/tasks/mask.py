@@ -4,10 +4,10 @@ Each step encodes the batch's motions with the frozen tokenizer, masks base toke
 the cosine schedule, predicts them from the caption and its segments, and adds
 λ · alignment loss between the text segments (their projected text vectors, which carry
 no slot order: `segmo.models.transformer.TextPrefix`) and motion segments (spans from
-`segmo.segmentation` aggregated over the outputs of the masked input). Validation measures what the paper's claims rest on:
-held-out masked-token accuracy under a fixed masking, and — where the data has ground-
-truth spans (the built-in corpus) — how often a text segment's most similar motion
-segment is its own (`segment_top1`).
+`segmo.segmentation` aggregated over the outputs of the masked input). Validation
+measures what the paper's claims rest on: held-out masked-token accuracy under a fixed
+masking, and — where the data has ground-truth spans (the built-in corpus) — how often a
+text segment's most similar motion segment is its own (`segment_top1`).
 """
 
 from __future__ import annotations
@@ -238,26 +238,28 @@ class MaskTask(L.LightningModule):
             return
         head = self.model.alignment
 
-        def top1(order: Tensor | None = None, unordered: bool = False) -> float:
-            """Own-head segment top-1 with the segments fed in `order` (b, a) or as given."""
-            fed = segments if order is None else segments.gather(
-                1, order[..., None].expand_as(segments))
-            flag = torch.full((base.shape[0],), unordered, device=base.device)
-            run = self.model(base, valid, sentence, fed, segment_mask, unordered=flag)
+        def top1(run, order: Tensor | None = None) -> float:
+            """Own-head segment top-1 of a pass whose segments were fed in `order` (b, a)."""
             text = head.embed_text(run.segment_features)
             if order is not None:  # back to the original slots (the permutation is an involution)
                 text = text.gather(1, order[..., None].expand(-1, -1, text.shape[-1]))
             return segment_top1(text, head.embed_motion(run.motion_features, gt), mask)[0] / total
 
-        self.log(f"{prefix}/segment_top1", top1(), batch_size=total, sync_dist=True,
+        self.log(f"{prefix}/segment_top1", top1(out), batch_size=total, sync_dist=True,
                  prog_bar=True)
         # The motion features see the segments in their slot order, so they can simply copy
         # slot i into the i-th span. Fed in reverse order, a model whose motion features
         # describe the motion itself still finds each segment's own span; one that copies
         # does not. Fed as a set (unordered, as grounding feeds them) only content is left.
-        self.log(f"{prefix}/segment_top1_reversed", top1(order=reversed_order(segment_mask)),
+        order = reversed_order(segment_mask)
+        fed = segments.gather(1, order[..., None].expand_as(segments))
+        reversed_run = self.model(base, valid, sentence, fed, segment_mask)
+        self.log(f"{prefix}/segment_top1_reversed", top1(reversed_run, order),
                  batch_size=total, sync_dist=True)
-        self.log(f"{prefix}/segment_top1_unordered", top1(unordered=True), batch_size=total,
+        unordered = torch.ones(base.shape[0], dtype=torch.bool, device=base.device)
+        unordered_run = self.model(base, valid, sentence, segments, segment_mask,
+                                   unordered=unordered)
+        self.log(f"{prefix}/segment_top1_unordered", top1(unordered_run), batch_size=total,
                  sync_dist=True)
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
