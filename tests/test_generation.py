@@ -13,6 +13,7 @@ from segmo.generation import (
     guided_logits,
     sample_tokens,
 )
+from segmo.generation import generate as generate_module
 from segmo.generation.sampling import top_k_count
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
@@ -147,14 +148,35 @@ def test_one_batched_guidance_pass_per_step(models, monkeypatch):
     batches: list[int] = []
     original = MaskTransformer.forward_condition
 
-    def counting(self, indices, token_mask, condition):
+    computed: list[int] = []
+
+    def counting(self, indices, token_mask, condition, positions=None):
         batches.append(indices.shape[0])
-        return original(self, indices, token_mask, condition)
+        computed.append(indices.shape[1] if positions is None else positions.shape[1])
+        return original(self, indices, token_mask, condition, positions)
 
     monkeypatch.setattr(MaskTransformer, "forward_condition", counting)
     generate_tokens(mask, residual, *text(3), torch.tensor([16, 16, 8]), steps=5,
                     generator=torch.Generator().manual_seed(0))
     assert batches == [6] * 5
+    # Only the sampled positions reach the last block: ⌈γ(t)·4⌉ for t = 0, ¼, ½, ¾, 1.
+    assert computed == [4, 4, 3, 2, 1]
+
+
+def test_sampling_only_the_drawn_positions_changes_no_token(models, monkeypatch):
+    mask, residual = models
+    lengths = torch.tensor([48, 32, 20])
+
+    def run():
+        tokens = generate_tokens(mask, residual, *text(3), lengths, steps=6,
+                                 generator=torch.Generator().manual_seed(3))
+        edited = edit_tokens(mask, residual, tokens, (2, 6), *text(3, seed=4), steps=3,
+                             generator=torch.Generator().manual_seed(4))
+        return torch.cat([tokens, edited])
+
+    pruned = run()
+    monkeypatch.setattr(generate_module, "_sampled_positions", lambda select: (None, select))
+    assert torch.equal(pruned, run())
 
 
 @pytest.mark.parametrize("bad", [[46], [0], [52], [-4]])

@@ -193,6 +193,38 @@ def test_residual_passes_share_one_prefix_encoding():
     assert not torch.allclose(before, moved)
 
 
+@pytest.mark.parametrize("norm_first", [False, True])
+def test_outputs_at_chosen_positions_match_the_full_pass(norm_first):
+    """Asking for some positions (decoding asks for those it samples) gives exactly the
+    full pass's outputs there, for both transformers; other positions still act as keys."""
+    mask, residual = tiny_mask(norm_first).eval(), tiny_residual().eval()
+    b, n = 3, 7
+    token_mask = torch.arange(n) < torch.tensor([7, 5, 3])[:, None]
+    positions = torch.tensor([[0, 4, 6], [1, 2, 3], [0, 1, 2]])
+    rows = torch.arange(b)[:, None]
+    with torch.inference_mode():
+        indices = torch.randint(0, 16, (b, n))
+        condition = mask.condition(*text(b))
+        full = mask.forward_condition(indices, token_mask, condition)
+        some = mask.forward_condition(indices, token_mask, condition, positions)
+        assert some.logits.shape == (b, 3, 16)
+        torch.testing.assert_close(some.logits, full.logits[rows, positions])
+        torch.testing.assert_close(some.motion_features, full.motion_features[rows, positions])
+        changed = indices.clone()
+        changed[0, 5] = (changed[0, 5] + 1) % 16  # not asked for, still attended to
+        moved = mask.forward_condition(changed, token_mask, condition, positions)
+        assert not torch.allclose(moved.logits[0], some.logits[0])
+
+        condition = residual.condition(*text(b))
+        x = residual.embed(torch.randint(0, 16, (b, n, 3)), 2)
+        for layer in (2, torch.tensor([1, 2, 1])):
+            full = residual.forward_embedded(x, layer, token_mask, condition)
+            some = residual.forward_embedded(x, layer, token_mask, condition, positions)
+            torch.testing.assert_close(some.logits, full.logits[rows, positions])
+    with pytest.raises(ValueError, match="positions must be"):
+        mask.forward_condition(indices, token_mask, mask.condition(*text(b)), positions[0])
+
+
 def test_dropped_condition_keeps_prefix_keys_finite():
     """A row with every prefix slot masked still gets finite prefix keys and values
     (PyTorch < 2.5 gives NaN to a query without any key), so NaN cannot reach the motion

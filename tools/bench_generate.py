@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import statistics
@@ -48,7 +49,7 @@ from segmo.generation.generate import (
     generate_tokens,
     guidance_condition,
 )
-from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig, cosine_schedule
 from segmo.models.pretrained import load_pretrained, read_config
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 from segmo.models.transformer import Linear
@@ -91,15 +92,24 @@ def text_inputs(mask: MaskTransformer, b: int, seed: int):
             torch.ones(b, c.max_segments, dtype=torch.bool))
 
 
+def sampled_counts(n: int, steps: int) -> list[int]:
+    """How many positions each mask pass of a generation of n tokens samples, and so
+    computes in its last block: ⌈γ(t)·n⌉ (≥ 1) for t ∈ linspace(0, 1, steps)."""
+    return [max(1, math.ceil(cosine_schedule(t) * n))
+            for t in torch.linspace(0, 1, steps).tolist()]
+
+
 def floor_passes(mask, residual, text, n: int, steps: int, precision: str) -> None:
-    """The transformer passes of one generation, without any sampling logic."""
+    """The transformer passes of one generation, without any sampling logic: each mask
+    pass computed at as many positions as generation samples in it."""
     b = text[0].shape[0]
     token_mask = torch.ones(2 * b, n, dtype=torch.bool)
     ids = torch.full((2 * b, n), mask.mask_id)
     with _inference([mask, residual], precision, text[0].device):
         condition = guidance_condition(mask, *text)
-        for _ in range(steps):
-            mask.forward_condition(ids, token_mask, condition)
+        for m in sampled_counts(n, steps):
+            positions = None if m == n else torch.arange(m).expand(2 * b, m)
+            mask.forward_condition(ids, token_mask, condition, positions)
         condition = guidance_condition(residual, *text)
         x = residual.embed_layer(ids.clamp(max=mask.config.codebook_size - 1), 0)
         for layer in range(1, residual.config.num_quantizers):

@@ -97,10 +97,26 @@ def _inference(models: list[nn.Module], precision: Precision, device: torch.devi
             model.train(mode)
 
 
+def _sampled_positions(select: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """select (b, n) bool, the positions a pass samples → (positions (b, m) long, picked
+    (b, m) bool): per row, in ascending order, m = the largest row count of positions,
+    holding that row's selected ones (picked) and, for rows with fewer, filler positions
+    whose outputs go unused. (None, select) when m = n: the pass computes every position.
+    A pass computes its last block, head and classifier only at these positions."""
+    n = select.shape[1]
+    m = int(select.sum(dim=1).max())
+    if m == n:
+        return None, select
+    # A stable sort puts each row's selected positions first, in ascending order.
+    first = (~select).to(torch.uint8).argsort(dim=1, stable=True)[:, :m]
+    positions = first.sort(dim=1).values
+    return positions, select.gather(1, positions)
+
+
 def _draw(logits: torch.Tensor, select: torch.Tensor, options: SamplingOptions
           ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Guidance batch logits (2b, n, v), select (b, n) bool → tokens (m,), confidence (m,)
-    for the m selected positions (row-major order); only those are guided and sampled."""
+    """Guidance batch logits (2b, m, v), select (b, m) bool → tokens (k,), confidence (k,)
+    for the k selected positions (row-major order); only those are guided and sampled."""
     conditional, unconditional = logits.chunk(2)
     conditional, unconditional = conditional[select].float(), unconditional[select].float()
     guided = unconditional + options.guidance_scale * (conditional - unconditional)
@@ -121,6 +137,8 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     if steps < 1:
         raise ValueError(f"steps must be ≥ 1, got {steps}")
     counts = editable.sum(dim=1)
+    if not bool(counts.any()):
+        return ids
     scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
     for t in torch.linspace(0, 1, steps).tolist():
@@ -129,9 +147,11 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
         ranks = scores.argsort(dim=1).argsort(dim=1)
         is_masked = ranks < num[:, None]
         ids = ids.masked_fill(is_masked, model.mask_id)
-        logits = model.forward_condition(torch.cat([ids, ids]), mask2, condition).logits
-        tokens, confidence = _draw(logits, is_masked, options)
-        ids[is_masked] = tokens
+        positions, picked = _sampled_positions(is_masked)
+        twice = None if positions is None else torch.cat([positions, positions])
+        logits = model.forward_condition(torch.cat([ids, ids]), mask2, condition, twice).logits
+        tokens, confidence = _draw(logits, picked, options)
+        ids[is_masked] = tokens  # is_masked and picked list the same positions in one order
         scores = torch.full_like(scores, math.inf)
         scores[is_masked] = confidence
     return ids
@@ -146,13 +166,18 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
     """
     indices = indices.clone()
+    indices[..., 1:] = indices[..., 1:].masked_fill(~token_mask[..., None], -1)
     regenerate = regenerate & token_mask
+    if not bool(regenerate.any()):
+        return indices
     q = indices.shape[2]
     mask2 = torch.cat([token_mask, token_mask])
     x = model.embed_layer(indices[..., 0], 0)
+    positions, picked = _sampled_positions(regenerate)
+    twice = None if positions is None else torch.cat([positions, positions])
     for layer in range(1, q):
-        logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition).logits
-        tokens, _ = _draw(logits, regenerate, options)
+        logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition, twice).logits
+        tokens, _ = _draw(logits, picked, options)
         codes = indices[..., layer].masked_fill(~token_mask, -1)
         codes[regenerate] = tokens
         indices[..., layer] = codes

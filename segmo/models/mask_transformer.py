@@ -64,7 +64,7 @@ class MaskTransformerConfig:
 @dataclass
 class MaskTransformerOutput:
     """logits (b, n, codebook_size); motion_features (b, n, dim) trunk outputs at the motion
-    positions; segment_features (b, a, dim) and sentence_features (b, dim) the projected
+    positions (n → m when `forward_condition` is given positions); segment_features (b, a, dim) and sentence_features (b, dim) the projected
     text vectors (`Condition.content`): what each segment says, without its slot order,
     so that alignment cannot be met by order alone (`TextPrefix`)."""
 
@@ -114,8 +114,11 @@ class MaskTransformer(nn.Module, Pretrained):
         return condition
 
     def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
-                          condition: Condition) -> MaskTransformerOutput:
-        """indices (b, n) long, token_mask (b, n) bool, condition from `condition()`."""
+                          condition: Condition, positions: torch.Tensor | None = None
+                          ) -> MaskTransformerOutput:
+        """indices (b, n) long, token_mask (b, n) bool, condition from `condition()`;
+        positions (b, m) long: where logits and motion features are wanted (None = all n
+        positions; decoding asks for the positions it samples, `Trunk.forward_motion`)."""
         if indices.shape != token_mask.shape or indices.shape[0] != condition.tokens.shape[0]:
             raise ValueError(f"MaskTransformer: indices {tuple(indices.shape)}, token_mask "
                              f"{tuple(token_mask.shape)} and condition batch "
@@ -123,7 +126,8 @@ class MaskTransformer(nn.Module, Pretrained):
         token_mask = token_mask.bool()
         indices = torch.where(token_mask, indices, self.pad_id)
         encoded = self.trunk.encoded(condition)
-        motion = self.trunk.forward_motion(self.token_embedding(indices), token_mask, encoded)
+        motion = self.trunk.forward_motion(self.token_embedding(indices), token_mask, encoded,
+                                           positions)
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),
             motion_features=motion,

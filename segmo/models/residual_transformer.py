@@ -54,7 +54,8 @@ class ResidualTransformerConfig:
 
 @dataclass
 class ResidualTransformerOutput:
-    """logits (b, n, codebook_size) for layer j; motion_features (b, n, dim)."""
+    """logits (b, n, codebook_size) for layer j; motion_features (b, n, dim) (n → m when
+    `forward_embedded` is given positions)."""
 
     logits: torch.Tensor
     motion_features: torch.Tensor
@@ -118,10 +119,11 @@ class ResidualTransformer(nn.Module, Pretrained):
         return (embedded * keep[..., None].to(embedded.dtype)).sum(dim=2)
 
     def forward_embedded(self, x: torch.Tensor, layer: torch.Tensor | int,
-                         token_mask: torch.Tensor, condition: Condition
-                         ) -> ResidualTransformerOutput:
+                         token_mask: torch.Tensor, condition: Condition,
+                         positions: torch.Tensor | None = None) -> ResidualTransformerOutput:
         """x (b, n, dim) summed embeddings of the layers below `layer`; layer (b,) or int in
-        1..q−1; token_mask (b, n) bool; condition from `condition()`."""
+        1..q−1; token_mask (b, n) bool; condition from `condition()`; positions (b, m)
+        long: where logits and features are wanted (None = all n; `Trunk.forward_motion`)."""
         b = x.shape[0]
         if x.shape[:2] != token_mask.shape or b != condition.tokens.shape[0]:
             raise ValueError(f"ResidualTransformer: inputs {tuple(x.shape[:2])}, token_mask "
@@ -135,7 +137,8 @@ class ResidualTransformer(nn.Module, Pretrained):
             self._check_layer(layer)
             layer_embedding = self.layer_embeddings[layer][:, None]
         encoded = self.trunk.encoded(condition)
-        motion = self.trunk.forward_motion(x + layer_embedding.to(x.dtype), token_mask, encoded)
+        motion = self.trunk.forward_motion(x + layer_embedding.to(x.dtype), token_mask, encoded,
+                                           positions)
         out = self.head(motion)
         if isinstance(layer, int):
             logits = linear(out, self.output_weight(layer), self.output_bias[layer])

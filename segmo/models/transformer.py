@@ -160,21 +160,31 @@ class SelfAttention(nn.Module):
         self.qkv = Linear(dim, 3 * dim)
         self.out = Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None
+    def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None,
+                queries: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         """x (b, l, dim), valid (b, l) bool keys of x that may be attended to; `prefix`:
-        further keys in front of x's own → (output (b, l, dim), x's (keys, values), each
+        further keys in front of x's own; `queries` (b, m) long: the positions of x whose
+        outputs are wanted (None = all) → (output (b, m, dim), x's (keys, values), each
         (b, heads, l, head_dim))."""
         b, length, dim = x.shape
         q, k, v = self.qkv(x).view(b, length, 3, self.heads, dim // self.heads).unbind(2)
-        q, k, v = (t.transpose(1, 2) for t in (q, k, v))  # (b, heads, l, head_dim)
+        if queries is not None:
+            q = _gather_positions(q, queries)
+        q, k, v = (t.transpose(1, 2) for t in (q, k, v))  # (b, heads, l or m, head_dim)
         keys, values, key_valid = k, v, valid
         if prefix is not None:
             keys = torch.cat([prefix.keys.to(k.dtype), k], dim=2)
             values = torch.cat([prefix.values.to(v.dtype), v], dim=2)
             key_valid = torch.cat([prefix.mask, valid], dim=1)
         y = attention(q, keys, values, key_valid, self.dropout if self.training else 0.0)
-        return self.out(y.transpose(1, 2).reshape(b, length, dim)), (k, v)
+        return self.out(y.transpose(1, 2).reshape(b, q.shape[2], dim)), (k, v)
+
+
+def _gather_positions(x: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+    """x (b, l, ...) at positions (b, m) long → (b, m, ...)."""
+    index = positions.reshape(*positions.shape, *([1] * (x.dim() - 2)))
+    return x.gather(1, index.expand(*positions.shape, *x.shape[2:]))
 
 
 class Block(nn.Module):
@@ -190,16 +200,19 @@ class Block(nn.Module):
                                 Linear(ff_dim, dim))
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None
+    def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None,
+                queries: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """x (b, l, dim), valid (b, l) bool, prefix as in `SelfAttention` →
-        (output (b, l, dim), this block's (keys, values) of x)."""
+        """x (b, l, dim), valid (b, l) bool, prefix and queries (b, m) as in
+        `SelfAttention` → (output (b, m, dim) at the queried positions (m = l without
+        queries), this block's (keys, values) of all of x)."""
+        residual = x if queries is None else _gather_positions(x, queries)
         if self.norm_first:
-            y, kv = self.attention(self.norm1(x), valid, prefix)
-            x = x + self.drop(y)
+            y, kv = self.attention(self.norm1(x), valid, prefix, queries)
+            x = residual + self.drop(y)
             return x + self.drop(self.ff(self.norm2(x))), kv
-        y, kv = self.attention(x, valid, prefix)
-        x = self.norm1(x + self.drop(y))
+        y, kv = self.attention(x, valid, prefix, queries)
+        x = self.norm1(residual + self.drop(y))
         return self.norm2(x + self.drop(self.ff(x))), kv
 
 
@@ -336,9 +349,17 @@ class Trunk(nn.Module):
         return self.encode_prefix(condition.tokens, condition.mask)
 
     def forward_motion(self, tokens: torch.Tensor, token_mask: torch.Tensor,
-                       prefix: EncodedPrefix) -> torch.Tensor:
+                       prefix: EncodedPrefix, positions: torch.Tensor | None = None
+                       ) -> torch.Tensor:
         """tokens (b, n, dim) embedded motion tokens, token_mask (b, n) bool, prefix from
-        `encode_prefix` → hidden states at the motion positions (b, n, dim)."""
+        `encode_prefix`, positions (b, m) long: the motion positions whose hidden states
+        are wanted (None = all) → hidden states (b, m, dim), m = n without positions.
+
+        Every block but the last needs all positions (the next block's keys and values
+        come from them); the last one computes its keys and values everywhere and the rest
+        (attention output, feed-forward) only at `positions`. Decoding asks for the
+        positions it samples: 38 % fewer than n on average over 10 steps of MoMask's
+        cosine schedule."""
         n = tokens.shape[1]
         if n > self.positions.shape[0]:
             raise ValueError(f"Trunk: {n} motion tokens, the model has max_tokens="
@@ -347,8 +368,12 @@ class Trunk(nn.Module):
         if not bool(token_mask.any(dim=1).all()):
             raise ValueError("Trunk: every sample needs at least one valid motion token")
         x = self.drop(tokens + self.positions[:n].to(tokens.dtype))
-        for block, keys in zip(self.blocks, prefix.blocks, strict=True):
-            x, _ = block(x, token_mask, keys)
+        if positions is not None and (positions.dim() != 2 or positions.shape[0] != x.shape[0]):
+            raise ValueError(f"Trunk: positions must be (b, m) = ({x.shape[0]}, m), "
+                             f"got {tuple(positions.shape)}")
+        last = len(self.blocks) - 1
+        for depth, (block, keys) in enumerate(zip(self.blocks, prefix.blocks, strict=True)):
+            x, _ = block(x, token_mask, keys, positions if depth == last else None)
         return self.norm(x)
 
 
