@@ -1,4 +1,4 @@
-"""tools/bench_generate.py's same-machine MoMask reference: the passes it times."""
+"""tools/bench_generate.py: the MoMask reference passes it times, and its MAC count."""
 
 from __future__ import annotations
 
@@ -24,3 +24,41 @@ def test_momask_floor_runs_two_passes_per_step_and_layer():
     trunk.register_forward_hook(lambda module, args, output: calls.append(args[0].shape))
     tool.momask_floor(trunk, head, b=3, n=5, steps=4, num_quantizers=3)
     assert [tuple(s) for s in calls] == [(6, 3, 16)] * 8 + [(7, 3, 16)] * 4
+
+
+def test_generation_macs_counts_what_the_floor_passes_compute(monkeypatch):
+    """The arithmetic bound's MAC count equals what PyTorch's FLOP counter sees in the floor
+    passes (linear layers sent through `F.linear`, attention through matmuls)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from segmo.models import transformer
+    from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+    from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+
+    tool = _load_tool()
+    monkeypatch.setattr(transformer, "_ONEDNN_LINEAR", None)  # oneDNN calls go uncounted
+    shared = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32,
+                  depth=2, heads=2, ff_dim=64)
+    mask = MaskTransformer(MaskTransformerConfig(**shared)).eval()
+    residual = ResidualTransformer(ResidualTransformerConfig(**shared, num_quantizers=3)).eval()
+    b, n, steps = 2, 10, 4
+    text = tool.text_inputs(mask, b, seed=0)
+    sampled = []  # the positions generation itself asks for, pass by pass
+    original = MaskTransformer.forward_condition
+
+    def recording(self, indices, token_mask, condition, positions=None):
+        sampled.append(n if positions is None else positions.shape[1])
+        return original(self, indices, token_mask, condition, positions)
+
+    monkeypatch.setattr(MaskTransformer, "forward_condition", recording)
+    tool.generate_tokens(mask, residual, *text, torch.full((b,), 4 * n), steps=steps)
+    assert tool.sampled_counts(n, steps) == sampled == [10, 9, 6, 1]
+    with FlopCounterMode(display=False) as counter:
+        tool.floor_passes(mask, residual, text, n, steps, "fp32")
+    with FlopCounterMode(display=False) as prefix_counter, torch.inference_mode():
+        tool.guidance_condition(mask, *text)  # the prefix encodings, not counted as passes
+        tool.guidance_condition(residual, *text)
+    assert 0 < prefix_counter.get_total_flops() < counter.get_total_flops()
+    counted = counter.get_total_flops() - prefix_counter.get_total_flops()
+    assert counted == 2 * tool.generation_macs(mask, residual, b, n, steps)

@@ -12,12 +12,16 @@ paper-sized models (8 layers, width 384, 6 heads, FFN 1024, 512 codes, 6 quantiz
 
 Measured after one warm-up, over `--repeats` runs, median:
 - ms_per_motion: generation (+ decoding when a tokenizer is present) / batch size;
-- floor: the bare transformer passes generation needs (steps mask passes + q−1 residual
-  passes, each on the 2b guidance batch, same precision, no sampling), timed in the same
+- floor: the bare transformer passes generation needs (steps mask passes, each computed at
+  the positions generation samples in it, + q−1 residual passes, each on the 2b guidance
+  batch, same precision, no sampling), timed in the same
   run, interleaved with the generation runs so that machine load affects both alike;
 - floor_ratio = token-generation time / floor time; peak RSS of the process;
 - matmul_gmacs_before_after: the machine's matmul speed just before and after the timed
   runs (`gemm_gmacs`); on a shared host it drifts, and every figure above drifts with it;
+- gmac_per_motion: the multiply-accumulates of those passes (`generation_macs`), and
+  matmul_bound_ms_per_motion = that / the measured matmul speed: the time the arithmetic
+  alone takes at that speed, whatever the implementation;
 - allocator_tuned: whether glibc malloc keeps freed memory (`keep_freed_memory`, as the
   `segmo generate` and `segmo evaluate` commands do); `--default-allocator` turns it off;
 - with --momask-floor: momask_floor_ms_per_motion, the MoMask reference's bare passes
@@ -32,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import resource
 import statistics
@@ -95,8 +98,30 @@ def text_inputs(mask: MaskTransformer, b: int, seed: int):
 def sampled_counts(n: int, steps: int) -> list[int]:
     """How many positions each mask pass of a generation of n tokens samples, and so
     computes in its last block: ⌈γ(t)·n⌉ (≥ 1) for t ∈ linspace(0, 1, steps)."""
-    return [max(1, math.ceil(cosine_schedule(t) * n))
+    counts = torch.tensor([n])  # the arithmetic of `masked_decode`, float32 rounding included
+    return [int(torch.ceil(cosine_schedule(t) * counts).long().clamp(min=1))
             for t in torch.linspace(0, 1, steps).tolist()]
+
+
+def pass_macs(config, rows: int, n: int, m: int) -> int:
+    """Multiply-accumulates of one motion pass (`forward_condition` / `forward_embedded`)
+    over `rows` rows of n motion tokens, m of them asked for: the linear layers, the
+    attention matmuls over the prefix's 1 + A keys and the n motion keys, the head and
+    the projection to the codes. The prefix's own encoding (once per generation) is not
+    counted."""
+    d, ff, v = config.dim, config.ff_dim, config.codebook_size
+    keys = 1 + config.max_segments + n
+    block = n * (4 * d * d + 2 * d * ff) + 2 * n * keys * d  # QKV, output, FFN; attention
+    last = n * 3 * d * d + m * (d * d + 2 * d * ff) + 2 * m * keys * d
+    head = m * (d * d + d * v)
+    return rows * ((config.depth - 1) * block + last + head)
+
+
+def generation_macs(mask, residual, b: int, n: int, steps: int) -> int:
+    """Multiply-accumulates of the motion passes of one generation of b motions of n
+    tokens (what `floor_passes` runs): the arithmetic no implementation can skip."""
+    total = sum(pass_macs(mask.config, 2 * b, n, m) for m in sampled_counts(n, steps))
+    return total + (residual.config.num_quantizers - 1) * pass_macs(residual.config, 2 * b, n, n)
 
 
 def floor_passes(mask, residual, text, n: int, steps: int, precision: str) -> None:
@@ -241,6 +266,8 @@ def main(argv: list[str] | None = None) -> None:
                                                       args.precision)))
         floor_cpu_times.append(time.process_time() - cpu_start)
     gmacs.append(gemm_gmacs(args.precision))
+    macs = generation_macs(mask, residual, b, n, args.steps) / b
+    bound_ms = macs / (statistics.mean(gmacs) * 1e9) * 1000
     momask_ms = None
     if args.momask_floor:
         trunk, head = momask_models(dim=mask.config.dim, depth=mask.config.depth,
@@ -279,6 +306,8 @@ def main(argv: list[str] | None = None) -> None:
         "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
         "allocator_tuned": allocator_tuned,
         "matmul_gmacs_before_after": [round(x) for x in gmacs],
+        "gmac_per_motion": round(macs / 1e9, 3),
+        "matmul_bound_ms_per_motion": round(bound_ms, 2),
         "momask_floor_ms_per_motion": None if momask_ms is None else round(momask_ms, 2),
         "speedup_vs_momask_floor": (None if momask_ms is None
                                     else round(momask_ms / (tokens_ms + decode_ms), 3)),
