@@ -148,9 +148,10 @@ def test_segment_probe_tool_scores_any_mask_transformer(tmp_path, capsys):
         path = tmp_path / f"mask-{alignment is None}"
         MaskTransformer(MaskTransformerConfig(**tiny, alignment=alignment)).save_pretrained(
             path, meta={"text_encoder": "minilm"})
-        tool.main(["--mask", str(path), "--tokenizer", str(tokenizer), "--data", str(root),
-                   "--steps", "3", "--batch-size", "8"])
-        result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-        assert result["segments"] == expected
-        assert 0.0 <= result["probe"] <= 1.0
-        assert ("own_head" in result) == (alignment is not None)
+        for mode in ([], ["--unordered"]):
+            tool.main(["--mask", str(path), "--tokenizer", str(tokenizer), "--data", str(root),
+                       "--steps", "3", "--batch-size", "8", *mode])
+            result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+            assert result["segments"] == expected and result["unordered"] == bool(mode)
+            assert 0.0 <= result["probe"] <= 1.0
+            assert ("own_head" in result) == (alignment is not None)

@@ -9,7 +9,9 @@ FROZEN transformer's features of the train split, with uniform motion segments a
 training, then scores it on `--split` against the built-in corpus's ground-truth spans
 (`MaskTask`'s `segment_top1`). A model with a head is scored with its own head too, so the
 two columns compare like with like. Features come from unmasked inputs, as in validation
-and grounding. The last printed line is JSON.
+and grounding; `--unordered` feeds the segments as a set, as grounding does, so that a
+model cannot score by copying the i-th segment into the i-th span. The last printed line
+is JSON.
 """
 
 from __future__ import annotations
@@ -28,18 +30,21 @@ from segmo.tasks.common import load_tokenizer, text_condition, token_lengths, to
 from segmo.tasks.mask import gt_token_spans, segment_top1
 
 
-def features(mask: MaskTransformer, tokenizer, batch: dict):
+def features(mask: MaskTransformer, tokenizer, batch: dict, unordered: bool = False):
     """Unmasked pass → (motion features (b, n, dim), text features (b, a, dim),
-    segment_mask (b, a), token lengths (b,))."""
+    segment_mask (b, a), token lengths (b,)). `unordered`: the segments enter as a set
+    (no order embeddings), as grounding feeds them."""
     sentence, segments, segment_mask = text_condition(batch)
     with torch.no_grad():
         base = tokenizer.encode(batch["motion"])[..., 0]
         valid = token_mask(batch["lengths"], base.shape[1])
-        out = mask(base, valid, sentence, segments, segment_mask)
+        as_set = torch.full((base.shape[0],), unordered, dtype=torch.bool)
+        out = mask(base, valid, sentence, segments, segment_mask, unordered=as_set)
     return out.motion_features, out.segment_features, segment_mask, token_lengths(batch["lengths"])
 
 
-def fit_probe(mask: MaskTransformer, tokenizer, loader, steps: int, seed: int) -> AlignmentHead:
+def fit_probe(mask: MaskTransformer, tokenizer, loader, steps: int, seed: int,
+              unordered: bool = False) -> AlignmentHead:
     torch.manual_seed(seed)
     config = AlignmentConfig(method="in_sample", out_dim=mask.config.dim,
                              max_segments=mask.config.max_segments)
@@ -48,7 +53,7 @@ def fit_probe(mask: MaskTransformer, tokenizer, loader, steps: int, seed: int) -
     step = 0
     while step < steps:
         for batch in loader:
-            h, text, segment_mask, lengths = features(mask, tokenizer, batch)
+            h, text, segment_mask, lengths = features(mask, tokenizer, batch, unordered)
             num_segments = torch.minimum(segment_mask.sum(1), lengths)
             spans = segment_batch(None, num_segments, lengths, "uniform",
                                   max_segments=segment_mask.shape[1])
@@ -62,15 +67,15 @@ def fit_probe(mask: MaskTransformer, tokenizer, loader, steps: int, seed: int) -
     return head.eval()
 
 
-def score(mask: MaskTransformer, tokenizer, loader, heads: dict[str, AlignmentHead]
-          ) -> dict[str, float]:
+def score(mask: MaskTransformer, tokenizer, loader, heads: dict[str, AlignmentHead],
+          unordered: bool = False) -> dict[str, float]:
     correct = dict.fromkeys(heads, 0)
     total = 0
     for batch in loader:
         if batch.get("spans") is None:
             raise SystemExit("segment_probe: the split has no ground-truth spans "
                              "(the built-in corpus's segments/<id>.json)")
-        h, text, segment_mask, _ = features(mask, tokenizer, batch)
+        h, text, segment_mask, _ = features(mask, tokenizer, batch, unordered)
         gt, usable = gt_token_spans(batch["spans"], segment_mask.sum(1), batch["lengths"],
                                     segment_mask.shape[1])
         keep = segment_mask & usable[:, None] & (gt[..., 1] > gt[..., 0])
@@ -92,6 +97,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=600, help="probe training steps")
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--unordered", action="store_true",
+                        help="feed the segments as a set, as grounding does: the score then "
+                             "comes from what a segment says, not from its slot")
     args = parser.parse_args(argv)
 
     mask = MaskTransformer.from_pretrained(args.mask).eval().requires_grad_(False)
@@ -102,12 +110,13 @@ def main(argv: list[str] | None = None) -> None:
                             seed=args.seed)
     data.setup(None)
     start = time.perf_counter()
-    heads = {"probe": fit_probe(mask, tokenizer, data.train_dataloader(), args.steps, args.seed)}
+    heads = {"probe": fit_probe(mask, tokenizer, data.train_dataloader(), args.steps, args.seed,
+                                args.unordered)}
     if mask.alignment is not None:
         heads["own_head"] = mask.alignment.eval()
     loader = data.val_dataloader() if args.split == "val" else data.test_dataloader()
-    result = score(mask, tokenizer, loader, heads)
-    result |= {"split": args.split, "steps": args.steps,
+    result = score(mask, tokenizer, loader, heads, args.unordered)
+    result |= {"split": args.split, "steps": args.steps, "unordered": args.unordered,
                "seconds": round(time.perf_counter() - start, 1)}
     print(", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}"
                     for k, v in result.items()))
