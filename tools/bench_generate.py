@@ -25,8 +25,9 @@ Measured after one warm-up, over `--repeats` runs, median:
 - allocator_tuned: whether glibc malloc keeps freed memory (`keep_freed_memory`, as the
   `segmo generate` and `segmo evaluate` commands do); `--default-allocator` turns it off;
 - with --momask-floor: momask_floor_ms_per_motion, the MoMask reference's bare passes
-  (fp32, `momask_floor`) timed on this machine, and speedup_vs_momask_floor = that time /
-  ms_per_motion, a ratio that does not depend on the host;
+  (fp32, `momask_floor`) timed on this machine, interleaved with the runs above, and
+  speedup_vs_momask_floor = that time / ms_per_motion, a ratio that does not depend on
+  the host;
 - *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
   (OpenMP threads wait for descheduled peers); `--threads 1` CPU times stay stable.
 The last printed line is JSON.
@@ -255,20 +256,7 @@ def main(argv: list[str] | None = None) -> None:
     run_generation()  # warm-up (allocator, oneDNN kernels, autocast caches)
     floor_passes(mask, residual, text, n, args.steps, args.precision)
     gmacs = [gemm_gmacs(args.precision)]
-    token_times, decode_times, floor_times, cpu_times, floor_cpu_times = [], [], [], [], []
-    for _ in range(args.repeats):
-        tokens_s, decode_s, cpu_s = run_generation()
-        token_times.append(tokens_s)
-        decode_times.append(decode_s)
-        cpu_times.append(cpu_s)
-        cpu_start = time.process_time()
-        floor_times.append(timed(lambda: floor_passes(mask, residual, text, n, args.steps,
-                                                      args.precision)))
-        floor_cpu_times.append(time.process_time() - cpu_start)
-    gmacs.append(gemm_gmacs(args.precision))
-    macs = generation_macs(mask, residual, b, n, args.steps) / b
-    bound_ms = macs / (statistics.mean(gmacs) * 1e9) * 1000
-    momask_ms = None
+    reference = None
     if args.momask_floor:
         trunk, head = momask_models(dim=mask.config.dim, depth=mask.config.depth,
                                     heads=mask.config.heads, ff_dim=mask.config.ff_dim,
@@ -279,7 +267,23 @@ def main(argv: list[str] | None = None) -> None:
             momask_floor(trunk, head, b, n, args.steps, q)
 
         reference()  # warm-up
-        momask_ms = statistics.median(timed(reference) for _ in range(args.repeats)) * 1000 / b
+    token_times, decode_times, floor_times, cpu_times, floor_cpu_times = [], [], [], [], []
+    momask_times = []
+    for _ in range(args.repeats):  # interleaved, so that drift of the host affects all alike
+        tokens_s, decode_s, cpu_s = run_generation()
+        token_times.append(tokens_s)
+        decode_times.append(decode_s)
+        cpu_times.append(cpu_s)
+        cpu_start = time.process_time()
+        floor_times.append(timed(lambda: floor_passes(mask, residual, text, n, args.steps,
+                                                      args.precision)))
+        floor_cpu_times.append(time.process_time() - cpu_start)
+        if reference is not None:
+            momask_times.append(timed(reference))
+    gmacs.append(gemm_gmacs(args.precision))
+    macs = generation_macs(mask, residual, b, n, args.steps) / b
+    bound_ms = macs / (statistics.mean(gmacs) * 1e9) * 1000
+    momask_ms = statistics.median(momask_times) * 1000 / b if momask_times else None
     tokens_ms = statistics.median(token_times) * 1000 / b
     decode_ms = statistics.median(decode_times) * 1000 / b
     floor_ms = statistics.median(floor_times) * 1000 / b
