@@ -64,9 +64,10 @@ class MaskTransformerConfig:
 @dataclass
 class MaskTransformerOutput:
     """logits (b, n, codebook_size); motion_features (b, n, dim) trunk outputs at the motion
-    positions (n → m when `forward_condition` is given positions); segment_features (b, a, dim) and sentence_features (b, dim) the projected
-    text vectors (`Condition.content`): what each segment says, without its slot order,
-    so that alignment cannot be met by order alone (`TextPrefix`)."""
+    positions (n → m when `forward_condition` is given positions); segment_features
+    (b, a, dim) and sentence_features (b, dim) the projected text vectors
+    (`Condition.content`): what each segment says, without its slot order, so that
+    alignment cannot be met by order alone (`TextPrefix`)."""
 
     logits: torch.Tensor
     motion_features: torch.Tensor
