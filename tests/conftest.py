@@ -7,6 +7,7 @@ exercising the real cache, dataset and collate code.
 
 from __future__ import annotations
 
+import importlib.util
 import zlib
 from pathlib import Path
 
@@ -27,6 +28,14 @@ CAPTIONS = [
     "a person runs, then stops, then bows.",
     "a woman kicks with her right foot.",
 ]
+
+
+def load_tool(name: str):
+    """tools/<name>.py as a module (the tools are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def hash_vector(text: str, dim: int) -> torch.Tensor:

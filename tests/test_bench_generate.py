@@ -2,17 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
+from conftest import load_tool
 
 
 def _load_tool():
-    spec = importlib.util.spec_from_file_location("bench_generate", REPO / "tools" / "bench_generate.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("bench_generate")
 
 
 def test_momask_floor_runs_two_passes_per_step_and_layer():

@@ -113,10 +113,9 @@ def test_segment_probe_tool_scores_any_mask_transformer(tmp_path, capsys):
     """tools/segment_probe.py fits a head on a frozen model (with or without alignment) and
     scores every ground-truth segment of the split whose caption the rule backend split
     into as many segments."""
-    import importlib.util
     import json
 
-    from conftest import build_tokenizer, hash_encoder
+    from conftest import build_tokenizer, hash_encoder, load_tool
 
     from segmo.models.alignment import AlignmentConfig
     from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
@@ -129,9 +128,7 @@ def test_segment_probe_tool_scores_any_mask_transformer(tmp_path, capsys):
     segment_folder(root, RuleSegmenter(), "rule", progress=False)
     update_cache(root, hash_encoder("minilm", 16), segments=["rule"], progress=False)
     tokenizer = build_tokenizer(tmp_path / "rvq", 263)
-    spec = importlib.util.spec_from_file_location("segment_probe", REPO / "tools" / "segment_probe.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("segment_probe")
 
     expected = 0  # segments with a ground-truth span, counted from the files themselves
     for mid in (root / "val.txt").read_text().split():

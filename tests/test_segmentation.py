@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from conftest import load_tool
 
 from segmo.segmentation import (
     CPDSegmenter,
@@ -20,7 +19,6 @@ from segmo.segmentation import (
 )
 
 METHODS = ["uniform", "cpd", "kmeans"]
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def assert_contract(spans, a, n_valid):
@@ -113,12 +111,7 @@ def test_segment_batch_with_features(method):
 
 
 def _load_tool():
-    spec = importlib.util.spec_from_file_location(
-        "segmenter_boundary_error", ROOT / "tools" / "segmenter_boundary_error.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("segmenter_boundary_error")
 
 
 @pytest.fixture

@@ -6,7 +6,6 @@ is checked is the plumbing (CLI, run directory, checkpoints, buffers, export), n
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import load_tool
 
 from segmo.data import MotionDataModule
 from segmo.export import main as export_main
@@ -82,10 +82,7 @@ class _CaptureAtStart(L.Callback):
 
 
 def _load_eval_tokenizer():
-    spec = importlib.util.spec_from_file_location("eval_tokenizer", REPO / "tools" / "eval_tokenizer.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("eval_tokenizer")
 
 
 @pytest.mark.slow

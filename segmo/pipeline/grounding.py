@@ -5,8 +5,9 @@ conditioned on the text and its segments, fed as a set (without their order embe
 the mode `MaskTask.order_drop_prob` trains), so that a segment is located by content.
 Text segments are the alignment head's `embed_text` of the segments' projected text
 vectors; motion segments are its `embed_motion` (mean ‖ max pooling + MLP) over token
-spans of the motion outputs. Cosine similarity compares them. Because the motion features depend on the text prefix, every
-(text, motion) pair is its own forward pass; pairs are batched.
+spans of the motion outputs. Cosine similarity compares them. Because the motion
+features depend on the text prefix, every (text, motion) pair is its own forward pass;
+pairs are batched.
 
     out = model.ground("a person walks forward, then waves", features)   # (t, 263) raw
     print(out)                       # best frame span per text segment
