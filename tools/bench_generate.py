@@ -14,8 +14,8 @@ Measured after one warm-up, over `--repeats` runs, median:
 - ms_per_motion: generation (+ decoding when a tokenizer is present) / batch size;
 - floor: the bare transformer passes generation needs (steps mask passes, each computed at
   the positions generation samples in it, + q−1 residual passes, each on the 2b guidance
-  batch, same precision, no sampling), timed in the same
-  run, interleaved with the generation runs so that machine load affects both alike;
+  batch, same precision, no sampling), timed in the same run, interleaved with the
+  generation runs so that machine load affects both alike;
 - floor_ratio = token-generation time / floor time; peak RSS of the process;
 - matmul_gmacs_before_after: the machine's matmul speed just before and after the timed
   runs (`gemm_gmacs`); on a shared host it drifts, and every figure above drifts with it;
@@ -36,6 +36,7 @@ The last printed line is JSON.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import resource
@@ -52,8 +53,9 @@ from segmo.generation.generate import (
     decode_tokens,
     generate_tokens,
     guidance_condition,
+    masked_count,
 )
-from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig, cosine_schedule
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.pretrained import load_pretrained, read_config
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 from segmo.models.transformer import Linear
@@ -99,9 +101,7 @@ def text_inputs(mask: MaskTransformer, b: int, seed: int):
 def sampled_counts(n: int, steps: int) -> list[int]:
     """How many positions each mask pass of a generation of n tokens samples, and so
     computes in its last block: ⌈γ(t)·n⌉ (≥ 1) for t ∈ linspace(0, 1, steps)."""
-    counts = torch.tensor([n])  # the arithmetic of `masked_decode`, float32 rounding included
-    return [int(torch.ceil(cosine_schedule(t) * counts).long().clamp(min=1))
-            for t in torch.linspace(0, 1, steps).tolist()]
+    return [int(masked_count(t, torch.tensor([n]))) for t in torch.linspace(0, 1, steps).tolist()]
 
 
 def pass_macs(config, rows: int, n: int, m: int) -> int:
@@ -261,11 +261,8 @@ def main(argv: list[str] | None = None) -> None:
         trunk, head = momask_models(dim=mask.config.dim, depth=mask.config.depth,
                                     heads=mask.config.heads, ff_dim=mask.config.ff_dim,
                                     codes=mask.config.codebook_size)
-        q = residual.config.num_quantizers
-
-        def reference() -> None:
-            momask_floor(trunk, head, b, n, args.steps, q)
-
+        reference = functools.partial(momask_floor, trunk, head, b, n, args.steps,
+                                      residual.config.num_quantizers)
         reference()  # warm-up
     token_times, decode_times, floor_times, cpu_times, floor_cpu_times = [], [], [], [], []
     momask_times = []

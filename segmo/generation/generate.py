@@ -124,6 +124,13 @@ def _draw(logits: torch.Tensor, select: torch.Tensor, options: SamplingOptions
                          options.generator)
 
 
+def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
+    """How many of `counts` (b,) editable tokens the decoding step at t ∈ [0, 1] masks and
+    predicts: ⌈γ(t)·m⌉, at least 1 where m > 0, and 0 where m = 0 → (b,) long."""
+    num = torch.ceil(cosine_schedule(t) * counts).long().clamp(min=1)
+    return torch.where(counts > 0, num, 0)
+
+
 def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Tensor,
                   token_mask: torch.Tensor, condition: Condition, steps: int,
                   options: SamplingOptions) -> torch.Tensor:
@@ -142,8 +149,7 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
     for t in torch.linspace(0, 1, steps).tolist():
-        num = torch.ceil(cosine_schedule(t) * counts).long().clamp(min=1)
-        num = torch.where(counts > 0, num, 0)
+        num = masked_count(t, counts)
         ranks = scores.argsort(dim=1).argsort(dim=1)
         is_masked = ranks < num[:, None]
         ids = ids.masked_fill(is_masked, model.mask_id)
