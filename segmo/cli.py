@@ -37,7 +37,15 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run ``segmo [--debug] COMMAND [ARGS...]``.
+
+    Expected failures (`SegmoError`, and OS errors, which name their file) end as one line
+    ``segmo COMMAND: message`` on stderr with exit status 2; ``--debug`` (anywhere on the
+    line) shows the traceback instead. Ctrl-C ends with status 130.
+    """
     argv = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return
@@ -46,10 +54,36 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"segmo: unknown command {name!r}\n\n{_usage()}")
     module, function, _ = COMMANDS[name]
     command = getattr(importlib.import_module(module), function)
-    if module == "segmo.training.cli":
-        command([name, *rest])  # LightningCLI needs the sub-command itself
-    else:
-        command(rest)
+    # LightningCLI needs the sub-command itself.
+    args = [name, *rest] if module == "segmo.training.cli" else rest
+    run(f"segmo {name}", command, args, debug=debug)
+
+
+def run(prog: str, command, argv: list[str], debug: bool = False) -> None:
+    """Call ``command(argv)``, turning expected failures into one line and exit status 2."""
+    from segmo.errors import SegmoError
+
+    try:
+        command(argv)
+    except (SegmoError, OSError) as error:
+        if debug:
+            raise
+        message = str(error) if isinstance(error, SegmoError) else _os_message(error)
+        print(f"{prog}: {message}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print(f"{prog}: interrupted", file=sys.stderr)
+        sys.exit(130)
+
+
+def _os_message(error: OSError) -> str:
+    """An OS error as one line that names its file(s): 'PATH: No space left on device'."""
+    files = [f for f in (error.filename, error.filename2) if f is not None]
+    reason = error.strerror or str(error)
+    message = f"{' -> '.join(map(str, files))}: {reason}" if files else reason
+    return " ".join(message.split())
 
 
 if __name__ == "__main__":

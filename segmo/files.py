@@ -1,0 +1,168 @@
+"""Writing files that a crash cannot leave half-written, and one writer per data folder.
+
+Every file segmo writes into a dataset or model folder goes through `atomic_open` /
+`write_atomic`: the data goes to a temporary file beside the target, is flushed to disk,
+and replaces the target in one `os.replace`. A reader therefore sees the old file or the
+new one, never a part; a killed writer leaves at most a ``.<name>.<pid>.<n>.tmp`` file,
+which `remove_temporaries` clears under the folder's lock. Files get the permissions of a
+plain `open` (0666 minus the umask), not `mkstemp`'s 0600.
+
+`FolderLock` makes the "one writer per data folder" rule an enforced one: `segment-texts`,
+`encode-texts` and `synth` hold ``DIR/.segmo-writer.lock`` while they write. A second
+writer fails at once with `FolderBusyError` naming the holder's PID and command, and
+nothing is lost. The lock is an OS file lock (``flock``), so the kernel releases it when
+its process dies, kill -9 included: a stale lock recovers by itself.
+
+    with FolderLock(data, "segmo encode-texts"):
+        write_atomic(data / "index.json", text)
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+from segmo.errors import FolderBusyError
+
+LOCK_FILE = ".segmo-writer.lock"
+_counter = itertools.count()
+
+
+def _temporary_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.{next(_counter)}.tmp")
+
+
+@contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "w", encoding: str | None = "utf-8"
+                ) -> Iterator[IO[Any]]:
+    """Open a temporary file for writing that replaces `path` when the block ends without
+    an exception (and is removed when it raises). `mode` is "w" or "wb"."""
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_open: mode must be 'w' or 'wb', got {mode!r}")
+    path = Path(path)
+    tmp = _temporary_path(path)
+    # os.open with 0o666 lets the umask decide the permissions, as a plain open() does.
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with open(fd, mode, encoding=None if "b" in mode else encoding) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
+    """Write `data` (text as UTF-8, or bytes) to `path` atomically; returns the path."""
+    with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as f:
+        f.write(data)
+    return Path(path)
+
+
+def remove_temporaries(folder: str | os.PathLike) -> int:
+    """Delete the temporary files killed writers left in `folder`; returns how many.
+
+    Call it only while holding the folder's `FolderLock`: another writer's temporaries
+    are live files."""
+    removed = 0
+    for leftover in Path(folder).glob(".*.tmp"):
+        leftover.unlink(missing_ok=True)
+        removed += 1
+    return removed
+
+
+class FolderLock:
+    """Exclusive writer lock on a data folder (``DIR/.segmo-writer.lock``).
+
+    Re-entrant within a process (the demo's steps, or a writer calling another, share
+    one lock), exclusive between processes. Use as a context manager; `acquire` raises
+    `FolderBusyError` when another process holds the lock.
+    """
+
+    _held: dict[str, list] = {}  # resolved folder -> [open lock file, depth], this process
+
+    def __init__(self, folder: str | os.PathLike, command: str) -> None:
+        self.folder = Path(folder)
+        self.command = command
+
+    @property
+    def path(self) -> Path:
+        return self.folder / LOCK_FILE
+
+    def acquire(self) -> None:
+        key = str(self.folder.resolve())
+        if key in self._held:
+            self._held[key][1] += 1
+            return
+        self.folder.mkdir(parents=True, exist_ok=True)
+        # No O_TRUNC: a process that fails to get the lock must not erase the holder's note.
+        handle = open(os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666), "r+", encoding="utf-8")
+        if not _try_lock(handle):
+            holder = _read_holder(handle)
+            handle.close()
+            raise FolderBusyError(f"{self.folder} is being written by {holder}; wait for it to "
+                                  "finish or stop it (one writer per data folder)")
+        handle.seek(0)
+        handle.truncate()
+        handle.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                 "command": self.command,
+                                 "since": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n")
+        handle.flush()
+        self._held[key] = [handle, 1]
+
+    def release(self) -> None:
+        key = str(self.folder.resolve())
+        entry = self._held.get(key)
+        if entry is None:
+            return
+        entry[1] -= 1
+        if entry[1] == 0:
+            del self._held[key]
+            entry[0].close()  # closing the file releases the OS lock
+
+    def __enter__(self) -> FolderLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _try_lock(handle: IO[str]) -> bool:
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        try:
+            msvcrt.locking(handle.fileno(), msvcrt.LK_NBLCK, 1)
+        except OSError:
+            return False
+        return True
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
+def _read_holder(handle: IO[str]) -> str:
+    """The holder's note as "PID 123 (segmo encode-texts, since ...)", as far as readable."""
+    try:
+        handle.seek(0)
+        note = json.loads(handle.read() or "{}")
+    except (OSError, ValueError):
+        note = {}
+    if "pid" not in note:
+        return "another process"
+    host = f" on {note['host']}" if note.get("host") not in (None, socket.gethostname()) else ""
+    return f"PID {note['pid']}{host} ({note.get('command', '?')}, since {note.get('since', '?')})"
