@@ -38,6 +38,21 @@ def load_tool(name: str):
     return module
 
 
+def cli_failure(argv: list[str], capsys) -> str:
+    """Run `segmo ARGV` in-process, expecting the one-line failure every command gives on
+    bad input (exit status 2, no traceback); returns that line."""
+    from segmo.cli import main
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2, f"exit {exit_info.value.code}: {err}"
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines and "Traceback" not in err, err
+    return lines[-1]
+
+
 def hash_vector(text: str, dim: int) -> torch.Tensor:
     generator = torch.Generator().manual_seed(zlib.crc32(text.encode()))
     return torch.nn.functional.normalize(torch.randn(dim, generator=generator), dim=0)

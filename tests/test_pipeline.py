@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import hash_encoder
+from conftest import cli_failure, hash_encoder
 
 from segmo.models.alignment import AlignmentConfig
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
@@ -310,7 +310,7 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--model", "/nonexistent/model"], "segmo.json"),
+    (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),
     (["--formats", "npy,mp3"], "--formats"),
 ])
@@ -318,9 +318,8 @@ def test_cli_generate_errors(bundle, tmp_path, hash_text_encoder, capsys, argv, 
     base = {"--model": str(bundle), "--text": "a person walks", "--out": str(tmp_path)}
     for flag, value in zip(argv[::2], argv[1::2]):
         base[flag] = value
-    with pytest.raises(SystemExit):
-        generate_main([x for kv in base.items() for x in kv])
-    assert message in capsys.readouterr().err
+    line = cli_failure(["generate", *[x for kv in base.items() for x in kv]], capsys)
+    assert line.startswith("segmo generate: ") and message in line
 
 
 def test_cli_ground_prints_spans(bundle, generated, tmp_path, hash_text_encoder, capsys):
@@ -332,10 +331,9 @@ def test_cli_ground_prints_spans(bundle, generated, tmp_path, hash_text_encoder,
     assert "a person walks forward" in printed and "a person waves" in printed
     assert printed.count("frames ") == 2 and (tmp_path / "map.png").stat().st_size > 0
     np.save(tmp_path / "joints.npy", generated.motion_joints(0))
-    with pytest.raises(SystemExit):
-        ground_main(["--model", str(bundle), "--text", "x", "--motion",
-                     str(tmp_path / "joints.npy")])
-    assert "joints" in capsys.readouterr().err
+    line = cli_failure(["ground", "--model", str(bundle), "--text", "x", "--motion",
+                        str(tmp_path / "joints.npy")], capsys)
+    assert "joints" in line
 
 
 def test_generation_output_save_rejects_unknown_format(generated, tmp_path):
@@ -350,11 +348,9 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
                  "--guidance", "2.5", "--out", str(out)])
     payload = json.loads((out / "segmo.json").read_text())
     assert payload["guidance_scale"] == 2.5 and not (out / "residual").exists()
-    with pytest.raises(SystemExit):
-        bundle_main(["--tokenizer", str(stages["tokenizer"]), "--mask",
-                     str(stages["tokenizer"]), "--out", str(tmp_path / "c")])
-    assert "holds a 'rvq' model" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        bundle_main(["--tokenizer", str(tmp_path / "none"), "--mask", str(stages["mask"]),
-                     "--out", str(tmp_path / "d")])
-    assert "not a segmo model directory" in capsys.readouterr().err
+    line = cli_failure(["bundle", "--tokenizer", str(stages["tokenizer"]), "--mask",
+                        str(stages["tokenizer"]), "--out", str(tmp_path / "c")], capsys)
+    assert "holds a 'rvq' model" in line
+    line = cli_failure(["bundle", "--tokenizer", str(tmp_path / "none"), "--mask",
+                        str(stages["mask"]), "--out", str(tmp_path / "d")], capsys)
+    assert "--tokenizer" in line and "no such directory" in line

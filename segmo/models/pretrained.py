@@ -16,24 +16,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save
+
+from segmo.errors import SegmoError
+from segmo.files import atomic_open, write_atomic
 
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
 
 _REGISTRY: dict[str, type] = {}
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 class Pretrained:
@@ -51,41 +47,93 @@ class Pretrained:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{WEIGHTS_FILE}.")
-        os.close(fd)
-        save_file(state, tmp)
-        os.replace(tmp, directory / WEIGHTS_FILE)
+        with atomic_open(directory / WEIGHTS_FILE, "wb") as f:
+            f.write(save(state))
         payload = {
             "kind": self.kind,
             "config": dataclasses.asdict(self.config),
             "meta": {**getattr(self, "meta", {}), **(meta or {})},
         }
-        _atomic_write_text(directory / CONFIG_FILE, json.dumps(payload, indent=2) + "\n")
+        write_atomic(directory / CONFIG_FILE, json.dumps(payload, indent=2) + "\n")
         return directory
 
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu"):
+        """Rebuild the model of `directory`; SegmoError names the file of any problem (a
+        config that does not build this model, weights that are unreadable, do not fit the
+        config or hold NaN/inf)."""
+        path = Path(directory) / CONFIG_FILE
         payload = read_config(directory)
         if payload["kind"] != cls.kind:
-            raise ValueError(
-                f"{Path(directory) / CONFIG_FILE}: holds a {payload['kind']!r} model, "
-                f"not a {cls.kind!r} model"
-            )
-        model = cls(cls.config_class(**payload["config"]))
+            raise SegmoError(f"{path}: holds a {payload['kind']!r} model, not a {cls.kind!r} model")
+        if not isinstance(payload["config"], dict):
+            raise SegmoError(f"{path}: 'config' must be an object of {cls.config_class.__name__} "
+                             "fields")
+        fields = {f.name for f in dataclasses.fields(cls.config_class)}
+        unknown = sorted(set(payload["config"]) - fields)
+        if unknown:
+            raise SegmoError(f"{path}: unknown {cls.kind} config field(s) {unknown} (written by a "
+                             "newer segmo, or edited by hand?)")
+        try:
+            model = cls(cls.config_class(**payload["config"]))
+        except (TypeError, ValueError, RuntimeError) as error:
+            raise SegmoError(f"{path}: the config does not build a {cls.kind!r} model: "
+                             f"{error}") from None
         model.meta = payload.get("meta", {})
-        state = load_file(str(Path(directory) / WEIGHTS_FILE), device=map_location)
-        model.load_state_dict(state)
+        model.load_state_dict(read_weights(directory, model, map_location))
         return model.to(map_location).eval()
+
+
+def read_weights(directory: str | os.PathLike, model: torch.nn.Module,
+                 map_location: str = "cpu") -> dict[str, torch.Tensor]:
+    """The tensors of ``DIR/model.safetensors``, checked against `model`'s state dict."""
+    path = Path(directory) / WEIGHTS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the model directory has no weights file")
+    try:
+        state = load_file(str(path), device=map_location)
+    except (SafetensorError, OSError, ValueError) as error:
+        raise SegmoError(f"{path}: not a readable safetensors file ({error})") from None
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    shapes = [k for k in expected if k in state and state[k].shape != expected[k].shape]
+    if missing or unexpected or shapes:
+        first = (f"{shapes[0]} is {tuple(state[shapes[0]].shape)}, the config makes "
+                 f"{tuple(expected[shapes[0]].shape)}" if shapes else
+                 f"e.g. {(missing or unexpected)[0]!r}")
+        raise SegmoError(f"{path}: the weights do not fit {Path(directory) / CONFIG_FILE}: "
+                         f"{len(missing)} missing, {len(unexpected)} unexpected, {len(shapes)} of "
+                         f"another shape ({first})")
+    broken = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if broken:
+        raise SegmoError(f"{path}: {len(broken)} tensor(s) hold NaN or inf (first: {broken[0]!r}); "
+                         "the model comes from a diverged run")
+    return state
+
+
+def read_json(path: str | os.PathLike) -> dict:
+    """A JSON object from `path`; SegmoError naming the file and line when it is not one."""
+    path = Path(path)
+    try:
+        payload = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as error:
+        raise SegmoError(f"{path}: not UTF-8 text ({error.reason})") from None
+    except json.JSONDecodeError as error:
+        raise SegmoError(f"{path}:{error.lineno}: not valid JSON ({error.msg})") from None
+    if not isinstance(payload, dict):
+        raise SegmoError(f"{path}: expected a JSON object, got {type(payload).__name__}")
+    return payload
 
 
 def read_config(directory: str | os.PathLike) -> dict:
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not a segmo model directory (no {CONFIG_FILE})")
-    payload = json.loads(path.read_text())
+    payload = read_json(path)
     for key in ("kind", "config"):
         if key not in payload:
-            raise ValueError(f"{path}: missing key {key!r}")
+            raise SegmoError(f"{path}: missing key {key!r}")
     return payload
 
 
@@ -96,5 +144,5 @@ def load_pretrained(directory: str | os.PathLike, map_location: str = "cpu") -> 
         # Model classes register themselves on import.
         import segmo.models.registry  # noqa: F401
     if kind not in _REGISTRY:
-        raise ValueError(f"{Path(directory) / CONFIG_FILE}: unknown model kind {kind!r}")
+        raise SegmoError(f"{Path(directory) / CONFIG_FILE}: unknown model kind {kind!r}")
     return _REGISTRY[kind].from_pretrained(directory, map_location=map_location)

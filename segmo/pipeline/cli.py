@@ -13,16 +13,43 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
 from segmo.pipeline.outputs import FORMATS
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):
     from segmo.pipeline.segmo import SegMo
 
+    if not Path(directory).is_dir():
+        parser.error(f"--model {directory}: no such directory (a bundle made by `segmo bundle`)")
     try:
         return SegMo.from_pretrained(directory)
     except (FileNotFoundError, ValueError) as error:
-        parser.error(f"--model {directory}: {error}")
+        raise SegmoError(f"--model {directory}: {error}") from error
+
+
+def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str) -> None:
+    """Refuse an output path that cannot become a directory before any work is done."""
+    path = Path(value)
+    if path.exists() and not path.is_dir():
+        parser.error(f"{flag} {value}: exists and is not a directory")
+
+
+def load_array(parser: argparse.ArgumentParser, flag: str, value: str):
+    """A .npy file as a numeric array, or one line naming the flag and the file."""
+    import numpy as np
+
+    if Path(value).is_dir():
+        parser.error(f"{flag} {value}: is a directory, not a .npy file")
+    if not Path(value).is_file():
+        parser.error(f"{flag} {value}: no such file")
+    try:
+        array = np.load(value, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as error:
+        parser.error(f"{flag} {value}: not a .npy array ({error})")
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        parser.error(f"{flag} {value}: holds {array.dtype} values, not numbers")
+    return array
 
 
 def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
@@ -38,20 +65,21 @@ def generate_main(argv: list[str] | None = None) -> None:
 
     from segmo.generation.allocator import keep_freed_memory
 
-    parser = argparse.ArgumentParser(prog="segmo generate",
+    parser = ArgumentParser(prog="segmo generate",
                                      description="generate motions from text with a SegMo bundle")
     parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
     parser.add_argument("--text", action="append", required=True,
                         help="prompt; repeat for several motions")
-    parser.add_argument("--length", type=int, action="append", default=None,
+    parser.add_argument("--length", type=positive_int, action="append", default=None,
                         help="frames (multiple of 4); once for all prompts or once per prompt; "
                              "default: sampled by the length estimator")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--guidance", type=float, default=None,
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--guidance", type=finite_float, default=None,
                         help="classifier-free guidance scale of the base tokens (bundle default)")
-    parser.add_argument("--residual-guidance", type=float, default=None)
-    parser.add_argument("--steps", type=int, default=10, help="masked-decoding steps")
-    parser.add_argument("--temperature", type=float, default=1.0)
+    parser.add_argument("--residual-guidance", type=finite_float, default=None)
+    parser.add_argument("--steps", type=positive_int, default=10, help="masked-decoding steps")
+    parser.add_argument("--temperature", type=finite_float, default=1.0,
+                        help="sampling temperature (0 = greedy)")
     parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", required=True, help="output directory")
@@ -65,24 +93,27 @@ def generate_main(argv: list[str] | None = None) -> None:
                      "give it once or once per --text")
     if lengths is not None and len(lengths) == 1:
         lengths = lengths * len(args.text)
-    model = _load(parser, args.model).to(args.device)
+    if args.temperature < 0:
+        parser.error(f"argument --temperature: expected a number >= 0, got {args.temperature:g}")
+    _check_output_dir(parser, "--out", args.out)
+    model = _load(parser, args.model)
+    try:
+        model = model.to(args.device)
+    except SegmoError as error:
+        raise SegmoError(f"--device: {error}") from None
     generator = torch.Generator(device=args.device).manual_seed(args.seed)
     keep_freed_memory()
-    try:
-        out = model.generate(args.text, lengths, guidance_scale=args.guidance,
-                             residual_guidance_scale=args.residual_guidance, steps=args.steps,
-                             temperature=args.temperature, generator=generator,
-                             precision=args.precision)
-    except (ValueError, OSError) as error:
-        parser.error(str(error))
+    out = model.generate(args.text, lengths, guidance_scale=args.guidance,
+                         residual_guidance_scale=args.residual_guidance, steps=args.steps,
+                         temperature=args.temperature, generator=generator,
+                         precision=args.precision)
     for path in out.save(args.out, formats):
         print(path)
 
 
 def ground_main(argv: list[str] | None = None) -> None:
-    import numpy as np
 
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="segmo ground", description="find where each segment of a text happens in a motion")
     parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
     parser.add_argument("--text", required=True, help="query text (split into segments)")
@@ -90,26 +121,25 @@ def ground_main(argv: list[str] | None = None) -> None:
                         help="the query's segments separated by '#' (default: rule segmenter)")
     parser.add_argument("--motion", required=True,
                         help="raw motion features .npy (t, d), e.g. new_joint_vecs/<id>.npy")
-    parser.add_argument("--window", type=int, default=5, help="window size in tokens (4 frames)")
-    parser.add_argument("--stride", type=int, default=1, help="window stride in tokens")
+    parser.add_argument("--window", type=positive_int, default=5,
+                        help="window size in tokens (4 frames)")
+    parser.add_argument("--stride", type=positive_int, default=1, help="window stride in tokens")
     parser.add_argument("--out", default=None, help="save the similarity map (e.g. map.png)")
     args = parser.parse_args(argv)
-    if not Path(args.motion).is_file():
-        parser.error(f"--motion {args.motion}: no such file")
-    try:
-        motion = np.load(args.motion)
-    except (ValueError, OSError) as error:
-        parser.error(f"--motion {args.motion}: not a .npy array ({error})")
+    motion = load_array(parser, "--motion", args.motion)
     if motion.ndim == 3:
         parser.error(f"--motion {args.motion}: holds joints {motion.shape}; pass the raw "
                      "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
+    if args.out:
+        _check_output_dir(parser, "--out", str(Path(args.out).parent))
     model = _load(parser, args.model)
     segments = None if args.segments is None else [s.strip() for s in args.segments.split("#")]
     try:
-        out = model.ground(args.text, motion, window=args.window, stride=args.stride,
-                           segments=segments)
-    except (ValueError, OSError) as error:
-        parser.error(str(error))
+        model.normalize_motion(motion)  # the checks of a motion, here naming its file
+    except SegmoError as error:
+        raise SegmoError(f"--motion {args.motion}: {error}") from None
+    out = model.ground(args.text, motion, window=args.window, stride=args.stride,
+                       segments=segments)
     print(out)
     if args.out:
         import matplotlib
@@ -124,7 +154,7 @@ def ground_main(argv: list[str] | None = None) -> None:
 
 
 def bundle_main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="segmo bundle",
         description="assemble exported stage directories into one SegMo bundle directory")
     parser.add_argument("--tokenizer", required=True, help="exported RVQ-VAE directory")
@@ -132,19 +162,23 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--residual", default=None, help="exported residual transformer")
     parser.add_argument("--length", default=None, help="exported length estimator")
     parser.add_argument("--segmenter", default="rule", help="text-segmenter backend at inference")
-    parser.add_argument("--guidance", type=float, default=None,
+    parser.add_argument("--guidance", type=finite_float, default=None,
                         help="default CFG scale of the base tokens (default 4, KIT 2)")
-    parser.add_argument("--residual-guidance", type=float, default=None,
+    parser.add_argument("--residual-guidance", type=finite_float, default=None,
                         help="default CFG scale of the residual tokens (default 5)")
     parser.add_argument("--out", required=True, help="bundle directory to write")
     args = parser.parse_args(argv)
     from segmo.pipeline.segmo import SegMo
 
-    try:
-        model = SegMo.from_stages(args.tokenizer, args.mask, args.residual, args.length,
-                                  segmenter=args.segmenter)
-    except (FileNotFoundError, ValueError) as error:
-        parser.error(str(error))
+    _check_output_dir(parser, "--out", args.out)
+    for flag in ("tokenizer", "mask", "residual", "length"):
+        value = getattr(args, flag)
+        if value is not None and not Path(value).is_dir():
+            parser.error(f"--{flag} {value}: no such directory (a model made by `segmo export`)")
+    if args.segmenter not in ("rule", "openai", "transformers"):
+        parser.error(f"--segmenter {args.segmenter!r}: choose rule, openai or transformers")
+    model = SegMo.from_stages(args.tokenizer, args.mask, args.residual, args.length,
+                              segmenter=args.segmenter)
     if args.guidance is not None:
         model.config.guidance_scale = args.guidance
     if args.residual_guidance is not None:

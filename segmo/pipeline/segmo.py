@@ -23,7 +23,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +33,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.errors import SegmoError
+from segmo.files import write_atomic
 from segmo.generation.generate import (
     UNIT_LENGTH,
     Precision,
@@ -41,9 +45,10 @@ from segmo.generation.generate import (
 from segmo.generation.sampling import Sampler
 from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
-from segmo.models.pretrained import load_pretrained, read_config
+from segmo.models.pretrained import load_pretrained, read_config, read_json
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.rvq import RVQVAE
+from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
@@ -67,11 +72,72 @@ class SegMoConfig:
     format: int = BUNDLE_FORMAT
 
 
+def check_texts(texts: Any, what: str = "text") -> list[str]:
+    """A list of strings that each hold a word, or SegmoError naming the first that does not
+    ("text 2", or with what="text 0, segment": "text 0, segment 1")."""
+    if isinstance(texts, str) or not isinstance(texts, (list, tuple)):
+        raise SegmoError(f"SegMo: expected a list of strings ({what}s), got {texts!r:.80}")
+    for i, text in enumerate(texts):
+        if not isinstance(text, str):
+            raise SegmoError(f"SegMo: {what} {i} is a {type(text).__name__}, not a string")
+        if not any(c.isalnum() for c in text):
+            raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) holds no words; describe a motion")
+    return list(texts)
+
+
+def check_sampling(guidance_scale: float, residual_guidance_scale: float, steps: int,
+                   temperature: float, top_k_ratio: float, sampler: str) -> None:
+    """SegmoError naming the first option a generation cannot use (NaN guidance, 0 steps...)."""
+    for name, value in (("guidance_scale", guidance_scale),
+                        ("residual_guidance_scale", residual_guidance_scale),
+                        ("temperature", temperature), ("top_k_ratio", top_k_ratio)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                or not math.isfinite(value):
+            raise SegmoError(f"SegMo: {name} must be a finite number, got {value!r}")
+    if temperature < 0:
+        raise SegmoError(f"SegMo: temperature must be >= 0 (0 = greedy), got {temperature!r}")
+    if not 0 < top_k_ratio <= 1:
+        raise SegmoError(f"SegMo: top_k_ratio must be in (0, 1], got {top_k_ratio!r}")
+    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
+        raise SegmoError(f"SegMo: steps must be a whole number >= 1, got {steps!r}")
+    if sampler not in ("categorical", "gumbel"):
+        raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got {sampler!r}")
+
+
+def _warn_truncated(encoder: Any, texts: list[str]) -> None:
+    """Say so when a text is longer than the encoder reads: it encodes the start only, as
+    `segmo encode-texts` did for the training captions, so the rest cannot steer the motion."""
+    tokenizer, limit = getattr(encoder, "tokenizer", None), getattr(encoder, "max_length", None)
+    if tokenizer is None or not limit:
+        return
+    for text in texts:
+        if len(text) < limit:  # a token spans at least one character
+            continue
+        count = len(tokenizer(text, truncation=False, verbose=False)["input_ids"])
+        if count > limit:
+            warnings.warn(f"SegMo: the text {text[:60]!r}... has {count} tokens; the text encoder "
+                          f"reads the first {limit}", stacklevel=3)
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """`device` as a torch.device this build can use, or SegmoError saying why not."""
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise SegmoError(f"SegMo: device {device!r} is not a torch device ({error})") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SegmoError(f"SegMo: device {str(device)!r} asked for, but this torch build sees "
+                         "no CUDA GPU; use --device cpu")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise SegmoError(f"SegMo: device {str(device)!r} asked for, but MPS is not available")
+    return device
+
+
 def _load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
     directory = Path(directory)
     found = read_config(directory)["kind"]  # FileNotFoundError names the directory
     if found != kind:
-        raise ValueError(f"{directory}: holds a {found!r} model, expected a {kind!r} model")
+        raise SegmoError(f"{directory}: holds a {found!r} model, expected a {kind!r} model")
     return load_pretrained(directory)
 
 
@@ -88,25 +154,25 @@ class SegMo:
                  length: LengthEstimator | None = None, config: SegMoConfig | None = None,
                  *, text_encoder: Any = None, text_segmenter: Any = None) -> None:
         if mask.config.codebook_size != tokenizer.codebook_size:
-            raise ValueError(f"SegMo: mask transformer codebook_size={mask.config.codebook_size}"
+            raise SegmoError(f"SegMo: mask transformer codebook_size={mask.config.codebook_size}"
                              f" but the tokenizer has {tokenizer.codebook_size}")
         if residual is not None:
             if residual.config.num_quantizers > tokenizer.num_quantizers:
-                raise ValueError(f"SegMo: residual num_quantizers={residual.config.num_quantizers}"
+                raise SegmoError(f"SegMo: residual num_quantizers={residual.config.num_quantizers}"
                                  f" > tokenizer num_quantizers={tokenizer.num_quantizers}")
             for field in ("codebook_size", "text_dim", "max_segments"):
                 a, b = getattr(mask.config, field), getattr(residual.config, field)
                 if a != b:
-                    raise ValueError(f"SegMo: mask and residual transformers disagree on "
+                    raise SegmoError(f"SegMo: mask and residual transformers disagree on "
                                      f"{field}: {a} vs {b}")
         if length is not None and length.config.text_dim != mask.config.text_dim:
-            raise ValueError(f"SegMo: length estimator text_dim={length.config.text_dim}, mask "
+            raise SegmoError(f"SegMo: length estimator text_dim={length.config.text_dim}, mask "
                              f"transformer text_dim={mask.config.text_dim}")
         meta = getattr(tokenizer, "meta", {}) or {}
         if config is None:
             name = (getattr(mask, "meta", {}) or {}).get("text_encoder")
             if name is None and text_encoder is None:
-                raise ValueError("SegMo: the mask transformer's meta names no text_encoder; "
+                raise SegmoError("SegMo: the mask transformer's meta names no text_encoder; "
                                  "pass config=SegMoConfig(text_encoder=...) or text_encoder=")
             skeleton = meta.get("skeleton", "t2m")
             config = SegMoConfig(
@@ -122,7 +188,7 @@ class SegMo:
             module.requires_grad_(False)
         self.skeleton: SkeletonSpec = get_skeleton(config.skeleton)
         if self.skeleton.feature_dim != tokenizer.config.feature_dim:
-            raise ValueError(f"SegMo: skeleton {config.skeleton!r} has {self.skeleton.feature_dim}"
+            raise SegmoError(f"SegMo: skeleton {config.skeleton!r} has {self.skeleton.feature_dim}"
                              f"-d features, the tokenizer {tokenizer.config.feature_dim}")
         self._text_encoder = text_encoder
         self._text_segmenter = text_segmenter
@@ -140,12 +206,21 @@ class SegMo:
             hint = (" (it is a single model directory; assemble a bundle with `segmo bundle`)"
                     if (directory / "config.json").is_file() else "")
             raise FileNotFoundError(f"{path}: not a SegMo bundle (no {BUNDLE_FILE}){hint}")
-        payload = json.loads(path.read_text())
+        device = resolve_device(device)
+        payload = read_json(path)
         if payload.get("format") != BUNDLE_FORMAT:
-            raise ValueError(f"{path}: format {payload.get('format')!r} is not supported "
+            raise SegmoError(f"{path}: format {payload.get('format')!r} is not supported "
                              f"(expected {BUNDLE_FORMAT})")
         known = {f.name for f in dataclasses.fields(SegMoConfig)}
         config = SegMoConfig(**{k: v for k, v in payload.items() if k in known})
+        if not isinstance(config.text_encoder, str):
+            raise SegmoError(f"{path}: 'text_encoder' must name the text encoder, got "
+                             f"{config.text_encoder!r}")
+        for name in ("guidance_scale", "residual_guidance_scale"):
+            value = getattr(config, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                    or not math.isfinite(value):
+                raise SegmoError(f"{path}: {name!r} must be a finite number, got {value!r}")
         stages = {name: _load_stage(directory / name, kind) if (directory / name).is_dir()
                   else None for name, kind in STAGES.items()}
         for name in ("tokenizer", "mask"):
@@ -165,7 +240,7 @@ class SegMo:
         names = {n: (getattr(m, "meta", {}) or {}).get("text_encoder")
                  for n, m in stages.items() if m is not None and n != "tokenizer"}
         if len({v for v in names.values() if v is not None}) > 1:
-            raise ValueError(f"SegMo.from_stages: the stages were trained with different text "
+            raise SegmoError(f"SegMo.from_stages: the stages were trained with different text "
                              f"encoders: {names}")
         model = cls(**stages, **kwargs)
         model.config.text_segmenter = segmenter
@@ -179,8 +254,8 @@ class SegMo:
             module = getattr(self, name)
             if module is not None:
                 module.save_pretrained(directory / name)
-        path = directory / BUNDLE_FILE
-        path.write_text(json.dumps(dataclasses.asdict(self.config), indent=2) + "\n")
+        write_atomic(directory / BUNDLE_FILE,
+                     json.dumps(dataclasses.asdict(self.config), indent=2) + "\n")
         return directory
 
     def modules(self) -> list[torch.nn.Module]:
@@ -188,6 +263,7 @@ class SegMo:
                 if m is not None]
 
     def to(self, device: str | torch.device) -> SegMo:
+        device = resolve_device(device)
         for module in self.modules():
             module.to(device)
         return self
@@ -227,7 +303,7 @@ class SegMo:
             try:
                 self._text_encoder = get_text_encoder(self.text_encoder_name)
             except (OSError, ValueError, ImportError) as error:
-                raise type(error)(
+                raise SegmoError(
                     f"SegMo: cannot build text encoder {self.text_encoder_name!r} named in the "
                     f"bundle ({error}); inject one with `model.text_encoder = encoder`") from error
         return self._text_encoder
@@ -256,9 +332,10 @@ class SegMo:
             raise TypeError("SegMo.encode_texts(texts): texts must be a list of strings")
         missing = list(dict.fromkeys(t for t in texts if t not in self._sentence_cache))
         if missing:
+            _warn_truncated(self.text_encoder, missing)
             sentence = self.text_encoder.encode(missing).sentence.float().cpu()
             if sentence.shape[-1] != self.mask.config.text_dim:
-                raise ValueError(f"SegMo: text encoder {self.text_encoder_name!r} gives "
+                raise SegmoError(f"SegMo: text encoder {self.text_encoder_name!r} gives "
                                  f"{sentence.shape[-1]}-d vectors, the models take "
                                  f"text_dim={self.mask.config.text_dim}")
             self._sentence_cache.update(zip(missing, sentence))
@@ -276,13 +353,18 @@ class SegMo:
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[list[str]]]:
         """texts (b) [+ segments] → sentence (b, text_dim), segment vectors (b, a, text_dim),
         segment_mask (b, a) bool, and the segments used (a = most segments of the batch)."""
-        segments = self.segment_texts(texts) if segments is None else [list(s) for s in segments]
-        if len(segments) != len(texts):
-            raise ValueError(f"SegMo: {len(texts)} texts but {len(segments)} segment lists")
+        texts = check_texts(texts)
+        if segments is None:
+            segments = self.segment_texts(texts)
+        else:
+            if isinstance(segments, str) or len(segments) != len(texts):
+                raise SegmoError(f"SegMo: segments must be one list of strings per text "
+                                 f"({len(texts)}), got {segments!r:.80}")
+            segments = [check_texts(s, f"text {i}, segment") for i, s in enumerate(segments)]
         for text, segs in zip(texts, segments):
             if not 1 <= len(segs) <= self.max_segments:
-                raise ValueError(f"SegMo: {text!r} has {len(segs)} segments; the model takes "
-                                 f"1..{self.max_segments}")
+                raise SegmoError(f"SegMo: {text!r:.80} has {len(segs)} segments; the model "
+                                 f"takes 1..{self.max_segments}")
         a = max(len(s) for s in segments)
         flat = self.encode_texts([t for s in segments for t in s])
         vectors = torch.zeros(len(texts), a, flat.shape[-1], device=self.device)
@@ -298,14 +380,22 @@ class SegMo:
 
     def check_lengths(self, lengths: Any, b: int) -> torch.Tensor:
         """User lengths (int, list or tensor of frames) → (b,) long; raise on bad values."""
-        if not isinstance(lengths, torch.Tensor) and np.ndim(lengths) == 0:
-            lengths = [int(lengths)] * b
-        lengths = torch.as_tensor(lengths).long().reshape(-1)
+        if isinstance(lengths, (torch.Tensor, np.ndarray)):
+            lengths = lengths.tolist()
+        values = [lengths] * b if np.ndim(lengths) == 0 else np.ravel(
+            np.asarray(lengths, dtype=object)).tolist()
+        # 40.7 frames is a mistake to report, not to round; so are True, "40" and NaN.
+        whole = [not isinstance(v, bool) and (isinstance(v, numbers.Integral) or isinstance(
+            v, numbers.Real) and math.isfinite(v) and float(v).is_integer()) for v in values]
+        if not all(whole):
+            raise SegmoError(f"SegMo: lengths must be whole numbers of frames, got "
+                             f"{values[whole.index(False)]!r}")
+        lengths = torch.tensor([int(v) for v in values], dtype=torch.long)
         if lengths.numel() != b:
-            raise ValueError(f"SegMo: {lengths.numel()} lengths for {b} texts")
+            raise SegmoError(f"SegMo: {lengths.numel()} lengths for {b} texts")
         bad = (lengths % UNIT_LENGTH != 0) | (lengths < UNIT_LENGTH) | (lengths > self.max_frames)
         if bool(bad.any()):
-            raise ValueError(f"SegMo: lengths must be multiples of {UNIT_LENGTH} frames in "
+            raise SegmoError(f"SegMo: lengths must be multiples of {UNIT_LENGTH} frames in "
                              f"[{UNIT_LENGTH}, {self.max_frames}] ({self.max_frames / self.fps:.1f}"
                              f" s at {self.fps:g} fps); got {lengths[bad].tolist()}")
         return lengths.to(self.device)
@@ -313,17 +403,22 @@ class SegMo:
     def normalize_motion(self, motion: Any) -> tuple[torch.Tensor, int]:
         """Raw features (t, d) (numpy or torch) → z-scored (1, t', d) on the model's device
         with t' = t rounded down to a multiple of 4 (the tokenizer's unit), and t."""
-        x = torch.as_tensor(np.asarray(motion) if not isinstance(motion, torch.Tensor)
-                            else motion).float()
+        try:
+            x = torch.as_tensor(np.asarray(motion, dtype=np.float32)
+                                if not isinstance(motion, torch.Tensor) else motion).float()
+        except (TypeError, ValueError) as error:
+            raise SegmoError(f"SegMo: a motion must be a numeric (t, d) array ({error})") from None
         d = self.tokenizer.config.feature_dim
         if x.ndim != 2 or x.shape[1] != d:
-            raise ValueError(f"SegMo: a motion must be raw features (t, {d}) for skeleton "
+            raise SegmoError(f"SegMo: a motion must be raw features (t, {d}) for skeleton "
                              f"{self.skeleton.name!r}, got shape {tuple(x.shape)}")
         t = x.shape[0]
         usable = t - t % UNIT_LENGTH
         if usable < UNIT_LENGTH or usable > self.max_frames:
-            raise ValueError(f"SegMo: a motion must have {UNIT_LENGTH}..{self.max_frames + 3} "
+            raise SegmoError(f"SegMo: a motion must have {UNIT_LENGTH}..{self.max_frames + 3} "
                              f"frames, got {t}")
+        check_motion_values(x.cpu().numpy(), self.tokenizer.mean.cpu().numpy(),
+                            self.tokenizer.std.cpu().numpy(), "SegMo: the motion")
         x = x[:usable].to(self.device)
         return self.tokenizer.normalize(x)[None], t
 
@@ -353,7 +448,7 @@ class SegMo:
                        ) -> torch.Tensor:
         """(b,) frame lengths drawn from the bundled length estimator."""
         if self.length is None:
-            raise ValueError("SegMo: no lengths given and the bundle has no length estimator; "
+            raise SegmoError("SegMo: no lengths given and the bundle has no length estimator; "
                              "pass lengths=[frames, ...]")
         with torch.inference_mode():
             lengths = self.length.sample(self.encode_texts(texts), generator=generator)
@@ -372,22 +467,24 @@ class SegMo:
         if isinstance(texts, str):
             texts = [texts]
         if not texts:
-            raise ValueError("SegMo.generate: texts is empty")
+            raise SegmoError("SegMo.generate: texts is empty")
+        guidance_scale = self._scale(guidance_scale, "guidance_scale")
+        residual_guidance_scale = self._scale(residual_guidance_scale, "residual_guidance_scale")
+        check_sampling(guidance_scale, residual_guidance_scale, steps, temperature, top_k_ratio,
+                       sampler)
         sentence, vectors, segment_mask, segments = self.text_condition(texts, segments)
         if lengths is None:
             lengths = self.sample_lengths(texts, generator)
         lengths = self.check_lengths(lengths, len(texts))
         tokens = generate_tokens(
             self.mask, self.residual, sentence, vectors, segment_mask, lengths, steps=steps,
-            guidance_scale=self._scale(guidance_scale, "guidance_scale"),
-            residual_guidance_scale=self._scale(residual_guidance_scale,
-                                                "residual_guidance_scale"),
+            guidance_scale=guidance_scale, residual_guidance_scale=residual_guidance_scale,
             top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
             generator=generator, precision=precision)
         return self.decode(tokens, lengths, texts, segments, precision)
 
     def _scale(self, value: float | None, name: str) -> float:
-        return float(getattr(self.config, name) if value is None else value)
+        return getattr(self.config, name) if value is None else value
 
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
              segments: list[str] | None = None, guidance_scale: float | None = None,
@@ -410,10 +507,18 @@ class SegMo:
             lengths = torch.tensor([tokens.shape[1] * UNIT_LENGTH], device=self.device)
         q = self.residual.config.num_quantizers if self.residual is not None else 1
         tokens = tokens[..., :q]
+        if not (isinstance(span, (tuple, list)) and len(span) == 2
+                and all(isinstance(v, numbers.Integral) and not isinstance(v, bool)
+                        for v in span)):
+            raise SegmoError(f"SegMo.edit: span must be (start, end) whole frames, got {span!r}")
         start, end = int(span[0]), int(span[1])
         if not 0 <= start < end <= int(lengths.min()):
-            raise ValueError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
+            raise SegmoError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
                              f"{int(lengths.min())} frames, got {(start, end)}")
+        guidance_scale = self._scale(guidance_scale, "guidance_scale")
+        residual_guidance_scale = self._scale(residual_guidance_scale, "residual_guidance_scale")
+        check_sampling(guidance_scale, residual_guidance_scale, steps, temperature, top_k_ratio,
+                       sampler)
         token_span = (start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH))
         b = tokens.shape[0]
         texts = [text] * b
@@ -421,11 +526,9 @@ class SegMo:
             texts, None if segments is None else [segments] * b)
         edited = edit_tokens(
             self.mask, self.residual, tokens, token_span, sentence, vectors, segment_mask,
-            steps=steps, guidance_scale=self._scale(guidance_scale, "guidance_scale"),
-            residual_guidance_scale=self._scale(residual_guidance_scale,
-                                                "residual_guidance_scale"),
-            top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
-            generator=generator, precision=precision)
+            steps=steps, guidance_scale=guidance_scale,
+            residual_guidance_scale=residual_guidance_scale, top_k_ratio=top_k_ratio,
+            temperature=temperature, sampler=sampler, generator=generator, precision=precision)
         return self.decode(edited, lengths, texts, used, precision)
 
     # -- grounding and retrieval (segmo.pipeline.grounding) ----------------------------------
@@ -472,7 +575,7 @@ def edit_drift(original: Any, edited: Any, span: tuple[int, int]) -> dict[int, f
     a = torch.as_tensor(np.asarray(original, dtype=np.float32))
     b = torch.as_tensor(np.asarray(edited, dtype=np.float32))
     if a.shape != b.shape or a.ndim != 2:
-        raise ValueError(f"edit_drift: original {tuple(a.shape)} and edited {tuple(b.shape)} "
+        raise SegmoError(f"edit_drift: original {tuple(a.shape)} and edited {tuple(b.shape)} "
                          "must both be (t, d)")
     start, end = span
     change = (a - b).abs().mean(dim=1)
