@@ -61,8 +61,18 @@ def main(argv: list[str] | None = None) -> None:
 
 def run(prog: str, command, argv: list[str], debug: bool = False) -> None:
     """Call ``command(argv)``, turning expected failures into one line and exit status 2."""
+    import warnings
+
     from segmo.errors import SegmoError
 
+    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+        # A warning is news for the user, not a pointer into segmo's source.
+        text = " ".join(str(message).split())
+        print(f"{prog}: {category.__name__}: {text}", file=file or sys.stderr)
+
+    shown = warnings.showwarning
+    if not debug:
+        warnings.showwarning = one_line
     try:
         command(argv)
     except (SegmoError, OSError) as error:
@@ -76,6 +86,8 @@ def run(prog: str, command, argv: list[str], debug: bool = False) -> None:
             raise
         print(f"{prog}: interrupted", file=sys.stderr)
         sys.exit(130)
+    finally:
+        warnings.showwarning = shown
 
 
 def _os_message(error: OSError) -> str:

@@ -14,7 +14,6 @@ CLI: `segmo render FILE.npy --out OUT.gif [--title T] [--skeleton t2m] [--fps N]
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import textwrap
 from collections.abc import Sequence
@@ -23,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from segmo.errors import ArgumentParser, SegmoError, finite_float, positive_int
+from segmo.files import atomic_open
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
@@ -31,6 +32,8 @@ __all__ = ["as_joints", "plot_motion", "save_animation", "main"]
 LEFT, RIGHT, CENTRE = "#1f5fbf", "#d62728", "#333333"
 FLOOR_HALF_SIZE = 1.0  # metres of floor shown around the root (at least)
 GRID_STEP = 0.5  # metres between floor grid lines
+TITLE_LINES = 3  # a longer caption is cut: matplotlib lays out every line on every frame
+MAX_METRES = 1e4  # a joint further from the origin is a corrupt file, not a motion
 
 
 def as_joints(
@@ -54,13 +57,20 @@ def as_joints(
             motion = motion * np.asarray(std, dtype=np.float64) + np.asarray(mean, dtype=np.float64)
         joints = features_to_joints(motion, spec)
     else:
-        raise ValueError(
+        raise SegmoError(
             f"expected joints (t, {spec.num_joints}, 3) or features (t, {spec.feature_dim}) for "
             f"skeleton {spec.name!r}, got shape {motion.shape}"
         )
     if len(joints) == 0:
-        raise ValueError("cannot render a motion with 0 frames")
-    return joints * spec.unit
+        raise SegmoError("cannot render a motion with 0 frames")
+    joints = joints * spec.unit
+    bad = ~np.isfinite(joints) | (np.abs(joints) > MAX_METRES)
+    if bad.any():
+        frame = int(np.argwhere(bad)[0][0])
+        raise SegmoError(f"{int(bad.any(axis=(1, 2)).sum())} frame(s) hold NaN/inf or joints "
+                         f"beyond {MAX_METRES:g} m (a corrupt file, not a motion); the first is "
+                         f"frame {frame}")
+    return joints
 
 
 def _to_plot(points: np.ndarray) -> np.ndarray:
@@ -140,7 +150,9 @@ def _figure(figsize: tuple[float, float], dpi: int):
 
 
 def _wrap(title: str | None, width: int = 50) -> str | None:
-    return None if title is None else textwrap.fill(title, width)
+    if title is None:
+        return None
+    return textwrap.fill(title, width, max_lines=TITLE_LINES, placeholder=" …")
 
 
 def plot_motion(
@@ -199,11 +211,13 @@ def save_animation(
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".gif", ".mp4"):
-        raise ValueError(f"save_animation: unsupported output {path.name!r}; use .gif or .mp4")
+        raise SegmoError(f"save_animation: unsupported output {path.name!r}; use .gif or .mp4")
     if suffix == ".mp4" and shutil.which("ffmpeg") is None:
-        raise RuntimeError("save_animation: writing .mp4 needs ffmpeg on PATH; write a .gif instead")
+        raise SegmoError("save_animation: writing .mp4 needs ffmpeg on PATH; write a .gif instead")
     if stride < 1:
-        raise ValueError(f"save_animation: stride must be >= 1, got {stride}")
+        raise SegmoError(f"save_animation: stride must be >= 1, got {stride}")
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise SegmoError(f"save_animation: fps must be a positive number, got {fps}")
     joints = as_joints(motion, spec, mean, std)
     rate = (fps or spec.fps) / stride
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -222,8 +236,9 @@ def save_animation(
             fig.canvas.draw()
             rgb = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
             images.append(rgb.quantize(colors=64, method=Image.Quantize.FASTOCTREE))
-        images[0].save(path, save_all=True, append_images=images[1:], loop=0,
-                       duration=int(round(1000 / rate)), disposal=2)
+        with atomic_open(path, "wb") as f:  # a killed render leaves no half GIF
+            images[0].save(f, format="GIF", save_all=True, append_images=images[1:], loop=0,
+                           duration=int(round(1000 / rate)), disposal=2)
     else:
         from matplotlib.animation import FFMpegWriter
 
@@ -236,30 +251,44 @@ def save_animation(
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="segmo render", description="Render a motion (.npy joints or features) to GIF/MP4."
     )
     parser.add_argument("file", type=Path, help="(t, j, 3) joints or (t, d) features, .npy")
     parser.add_argument("--out", type=Path, required=True, help="output .gif or .mp4")
     parser.add_argument("--title", default=None, help="caption shown above the figure")
     parser.add_argument("--skeleton", default="t2m", choices=["t2m", "kit"])
-    parser.add_argument("--fps", type=float, default=None, help="default: the skeleton's fps")
-    parser.add_argument("--stride", type=int, default=1, help="render every k-th frame")
+    parser.add_argument("--fps", type=finite_float, default=None,
+                        help="default: the skeleton's fps")
+    parser.add_argument("--stride", type=positive_int, default=1, help="render every k-th frame")
     parser.add_argument("--mean", type=Path, default=None, help="Mean.npy, for z-scored features")
     parser.add_argument("--std", type=Path, default=None, help="Std.npy, for z-scored features")
     args = parser.parse_args(argv)
-    for name in ("file", "mean", "std"):
-        value = getattr(args, name)
-        if value is not None and not value.is_file():
-            parser.error(f"{name} {str(value)!r} does not exist")
     if (args.mean is None) != (args.std is None):
         parser.error("--mean and --std go together")
-    motion = np.load(args.file)
-    mean = None if args.mean is None else np.load(args.mean)
-    std = None if args.std is None else np.load(args.std)
+    if args.fps is not None and args.fps <= 0:
+        parser.error(f"argument --fps: expected a positive number, got {args.fps:g}")
+    if args.out.suffix.lower() not in (".gif", ".mp4"):
+        parser.error(f"--out {args.out}: the name must end in .gif or .mp4")
+    motion = _load_npy(parser, "FILE", args.file)
+    mean = None if args.mean is None else _load_npy(parser, "--mean", args.mean)
+    std = None if args.std is None else _load_npy(parser, "--std", args.std)
     try:
         out = save_animation(motion, args.out, args.skeleton, args.title, args.fps, mean, std,
                              stride=args.stride)
-    except (ValueError, RuntimeError) as error:
-        parser.error(f"{args.file}: {error}")
+    except (SegmoError, ValueError) as error:
+        raise SegmoError(f"{args.file}: {error}") from None
     print(f"wrote {out}")
+
+
+def _load_npy(parser: ArgumentParser, name: str, path: Path) -> np.ndarray:
+    """A numeric .npy array, or one line naming the argument and the file."""
+    if not path.is_file():
+        parser.error(f"{name} {str(path)!r}: no such file")
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as error:
+        parser.error(f"{name} {path}: not a .npy array ({error})")
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        parser.error(f"{name} {path}: holds {array.dtype} values, not numbers")
+    return array

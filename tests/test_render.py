@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cli_failure
 from PIL import Image
 
 from segmo.motion import T2M
@@ -60,7 +61,7 @@ def test_input_errors(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="unsupported output"):
         save_animation(np.zeros((3, 22, 3)), tmp_path / "x.avi")
     monkeypatch.setattr("segmo.render.shutil.which", lambda name: None)
-    with pytest.raises(RuntimeError, match="ffmpeg"):
+    with pytest.raises(ValueError, match="ffmpeg"):
         save_animation(np.zeros((3, 22, 3)), tmp_path / "x.mp4")
 
 
@@ -70,10 +71,17 @@ def test_cli(tmp_path, capsys):
     np.save(tmp_path / "m.npy", features)
     main([str(tmp_path / "m.npy"), "--out", str(tmp_path / "m.gif"), "--title", "still", "--fps", "10"])
     assert _frames(tmp_path / "m.gif") >= 1 and "wrote" in capsys.readouterr().out
-    with pytest.raises(SystemExit):
-        main([str(tmp_path / "missing.npy"), "--out", str(tmp_path / "x.gif")])
-    assert "does not exist" in capsys.readouterr().err
+    line = cli_failure(["render", str(tmp_path / "missing.npy"), "--out", str(tmp_path / "x.gif")],
+                       capsys)
+    assert "missing.npy" in line and "no such file" in line
     np.save(tmp_path / "bad.npy", np.zeros((6, 7)))
-    with pytest.raises(SystemExit):
-        main([str(tmp_path / "bad.npy"), "--out", str(tmp_path / "x.gif")])
-    assert "got shape (6, 7)" in capsys.readouterr().err
+    line = cli_failure(["render", str(tmp_path / "bad.npy"), "--out", str(tmp_path / "x.gif")],
+                       capsys)
+    assert "bad.npy" in line and "got shape (6, 7)" in line
+    assert not (tmp_path / "x.gif").exists() and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_long_titles_are_cut_to_three_lines():
+    from segmo.render import _wrap
+
+    assert _wrap("walk " * 10_000, 40).count("\n") == 2

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cli_failure
 
 from segmo.motion.skeleton import T2M
 from segmo.synth import ACTIONS, build_corpus, sample_motion
@@ -180,15 +183,57 @@ def test_cli_refuses_a_foreign_folder(tmp_path, capsys):
     out = tmp_path / "data"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    with pytest.raises(SystemExit) as exit_info:
-        main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
-    assert exit_info.value.code != 0 and "not empty" in capsys.readouterr().err
+    line = cli_failure(["synth", "--out", str(out), "--num-motions", "3", "--workers", "1"],
+                       capsys)
+    assert "not empty" in line and str(out) in line
     assert (out / "notes.txt").exists()
     main(["--out", str(out), "--num-motions", "3", "--workers", "1", "--overwrite"])
     assert not (out / "notes.txt").exists() and (out / "corpus.json").exists()
     main(["--out", str(out), "--num-motions", "4", "--workers", "1"])  # a previous corpus: replaced
     assert json.loads((out / "corpus.json").read_text())["num_motions"] == 4
     assert not list(tmp_path.glob("data.tmp-*")) and not list(tmp_path.glob("data.old-*"))
+
+
+def test_a_rebuild_keeps_what_the_user_added(tmp_path, capsys):
+    out = tmp_path / "data"
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
+    (out / "text_features").mkdir()
+    (out / "text_features" / "index.json").write_text("{}")
+    stamp = (out / "corpus.json").stat().st_mtime_ns
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])  # the same corpus: kept
+    assert (out / "corpus.json").stat().st_mtime_ns == stamp
+    line = cli_failure(["synth", "--out", str(out), "--num-motions", "5", "--workers", "1"],
+                       capsys)
+    assert "text_features" in line and "--overwrite" in line
+    assert (out / "text_features" / "index.json").exists()
+    assert json.loads((out / "corpus.json").read_text())["num_motions"] == 3
+
+
+def test_a_second_writer_is_refused_and_a_killed_one_recovered(tmp_path, capsys):
+    out = tmp_path / "data"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from segmo.files import FolderLock; "
+         "FolderLock(sys.argv[1], 'segmo synth').acquire(); print('held', flush=True); "
+         "time.sleep(60)", str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        line = cli_failure(["synth", "--out", str(out), "--num-motions", "3", "--workers", "1"],
+                           capsys)
+        assert f"PID {holder.pid}" in line and "segmo synth" in line
+        assert not (out / "corpus.json").exists()
+    finally:
+        holder.kill()  # SIGKILL: the kernel releases the lock
+        holder.wait()
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
+    assert (out / "corpus.json").exists()
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["--num-motions", "0"], "--num-motions"), (["--num-motions", "x"], "--num-motions"),
+    (["--seed", "-1"], "--seed"), (["--workers", "0"], "--workers")])
+def test_cli_names_the_bad_argument(tmp_path, capsys, argv, flag):
+    line = cli_failure(["synth", "--out", str(tmp_path / "d"), *argv], capsys)
+    assert f"argument {flag}" in line
 
 
 def test_neutral_pose_stands_on_the_floor_in_the_rest_pose():

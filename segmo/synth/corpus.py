@@ -5,12 +5,14 @@
 Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
 not depend on how many workers build them; the normalisation statistics are merged in
 index order for the same reason. The corpus is built in `OUT.tmp-<pid>` and renamed into
-place when complete.
+place when complete, while `OUT/.segmo-writer.lock` keeps other writers out. A folder
+that already holds this corpus (same version, seed and size) is left as it is; one that
+holds another corpus is rebuilt only when nothing else lives in it (text segments, text
+features, runs: what a rebuild would delete) or with `--overwrite`.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing
 import os
@@ -19,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
+from segmo.files import LOCK_FILE, FolderLock
 from segmo.synth.actions import ACTIONS
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions, pos_tag
 from segmo.synth.sequence import sample_motion
@@ -29,6 +33,10 @@ SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
 # relative to the root) would otherwise divide by zero when z-scoring.
 STD_FLOOR = 1e-4
 _SPLIT_STREAM = 7_411  # extra seed word so the split shuffle differs from motion 0's stream
+# What a corpus folder holds when `build_corpus` wrote it; anything else is the user's.
+CORPUS_ENTRIES = frozenset({"new_joint_vecs", "new_joints", "texts", "segments", "train.txt",
+                            "val.txt", "test.txt", "Mean.npy", "Std.npy", "corpus.json",
+                            LOCK_FILE})
 
 
 def split_assignment(num_motions: int, seed: int) -> list[str]:
@@ -86,25 +94,54 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _is_corpus(path: Path) -> bool:
-    return (path / "corpus.json").is_file()
+def _corpus_of(path: Path) -> dict | None:
+    """The corpus.json of `path`, or None when it holds none (or an unreadable one)."""
+    try:
+        return json.loads((path / "corpus.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
 
 
 def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int = 1,
                  overwrite: bool = False, progress: bool = True) -> Path:
     """Write a corpus of `num_motions` motions to `out`; returns the path.
 
-    Refuses a non-empty `out` that is not a previous corpus unless `overwrite`.
+    Leaves a folder that already holds this very corpus untouched. Refuses, unless
+    `overwrite`, a non-empty `out` that is not a corpus, and a corpus folder holding
+    anything a rebuild would delete (text_segments/, text_features/, ...).
     """
-    from tqdm import tqdm
-
     out = Path(out)
     if num_motions < 1:
-        raise ValueError(f"build_corpus: num_motions must be >= 1, got {num_motions}")
-    if out.exists() and any(out.iterdir()) and not _is_corpus(out) and not overwrite:
-        raise FileExistsError(
-            f"build_corpus: {out} is not empty and holds no corpus.json; pass overwrite=True "
-            "(--overwrite) to replace it")
+        raise SegmoError(f"build_corpus: num_motions must be >= 1, got {num_motions}")
+    if workers < 1:
+        raise SegmoError(f"build_corpus: workers must be >= 1, got {workers}")
+    if out.exists() and not out.is_dir():
+        raise SegmoError(f"build_corpus: {out} exists and is not a folder")
+    with FolderLock(out, "segmo synth"):
+        # Left by a killed build; only synth writes them, and it holds the lock.
+        for pattern in (f"{out.name}.tmp-*", f"{out.name}.old-*"):
+            for leftover in out.parent.glob(pattern):
+                shutil.rmtree(leftover, ignore_errors=True)
+        existing = _corpus_of(out)
+        wanted = {"version": VERSION, "seed": seed, "num_motions": num_motions}
+        if existing is not None and all(existing.get(k) == v for k, v in wanted.items()):
+            return out  # deterministic: rebuilding would write the same bytes
+        extra = sorted(p.name for p in out.iterdir() if p.name not in CORPUS_ENTRIES)
+        if existing is None and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
+            raise SegmoError(f"build_corpus: {out} is not empty and holds no corpus.json; pass "
+                             "overwrite=True (--overwrite) to replace it")
+        if existing is not None and extra and not overwrite:
+            raise SegmoError(
+                f"build_corpus: {out} holds another corpus (version {existing.get('version')}, "
+                f"seed {existing.get('seed')}, {existing.get('num_motions')} motions) and "
+                f"{', '.join(extra)}, which a rebuild would delete; pass overwrite=True "
+                "(--overwrite) or choose another folder")
+        return _build(out, num_motions, seed, workers, progress)
+
+
+def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool) -> Path:
+    from tqdm import tqdm
+
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
@@ -133,13 +170,10 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if out.exists():
-        old = out.parent / f"{out.name}.old-{os.getpid()}"
-        out.rename(old)
-        tmp.rename(out)
-        shutil.rmtree(old)
-    else:
-        tmp.rename(out)
+    old = out.parent / f"{out.name}.old-{os.getpid()}"
+    out.rename(old)  # exists: the lock file lives in it
+    tmp.rename(out)
+    shutil.rmtree(old)
     return out
 
 
@@ -161,8 +195,8 @@ def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int
         mean = mean + delta * c / total
         m2 = m2 + r["m2"] + delta**2 * count * c / total
         count = total
-    if mean is None:  # a corpus too small to have a train motion: use everything
-        raise ValueError("build_corpus: the train split is empty; use more motions")
+    if mean is None:  # a corpus too small to have a train motion
+        raise SegmoError("build_corpus: the train split is empty; use more motions")
     std = np.maximum(np.sqrt(m2 / count), STD_FLOOR)
     np.save(root / "Mean.npy", mean.astype(np.float32))
     np.save(root / "Std.npy", std.astype(np.float32))
@@ -189,19 +223,16 @@ def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="segmo synth", description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(prog="segmo synth", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument("--num-motions", type=int, default=2000)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--num-motions", type=positive_int, default=2000)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--workers", type=positive_int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace a non-empty folder that is not a previous corpus")
+                        help="replace a folder that holds something else than this corpus")
     args = parser.parse_args(argv)
-    try:
-        path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite)
-    except (FileExistsError, ValueError) as err:
-        parser.exit(2, f"segmo synth: {err}\n")
-    print(f"wrote {args.num_motions} motions to {path}")
+    path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite)
+    print(f"{args.num_motions} motions in {path}")
 
 
 if __name__ == "__main__":
