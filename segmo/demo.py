@@ -18,11 +18,12 @@ already exists, so an interrupted demo resumes where it stopped. Outputs:
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from segmo.errors import ArgumentParser, non_negative_int
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -190,12 +191,14 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="segmo demo", description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(prog="segmo demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
     parser.add_argument("--budget", choices=sorted(BUDGETS), default="full",
                         help="full: ~20 min on 2 CPU cores; quick: a smoke run for the tests")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     args = parser.parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: exists and is not a folder")
     start = time.perf_counter()
     timings = run(args.out, BUDGETS[args.budget], args.seed)
     total = time.perf_counter() - start

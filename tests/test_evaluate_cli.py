@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import build_tokenizer, hash_encoder
+from conftest import build_tokenizer, cli_failure, hash_encoder
 
 from segmo.evaluation import report
 from segmo.evaluation.cli import main
@@ -158,16 +158,20 @@ def test_real_only(setup, tmp_path: Path) -> None:
 
 
 def test_errors_name_the_flag(setup, tmp_path: Path, capsys) -> None:
-    with pytest.raises(SystemExit):
-        main(["--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]), "--out", str(tmp_path)])
-    assert "--model is required" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["--real-only", "--data", str(tmp_path / "nope"), "--evaluator", str(setup["evaluator"]),
-              "--out", str(tmp_path)])
-    assert "--data" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["--compare", str(tmp_path / "missing"), "--out", str(tmp_path)])
-    assert "no metrics.json" in capsys.readouterr().err
+    base = ["evaluate", "--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]),
+            "--out", str(tmp_path)]
+    assert "--model is required" in cli_failure(base, capsys)
+    line = cli_failure(["evaluate", "--real-only", "--data", str(tmp_path / "nope"), "--evaluator",
+                        str(setup["evaluator"]), "--out", str(tmp_path)], capsys)
+    assert "--data" in line
+    line = cli_failure(["evaluate", "--compare", str(tmp_path / "missing"), "--out", str(tmp_path)],
+                       capsys)
+    assert "no metrics.json" in line
+    line = cli_failure([*base, "--real-only", "--evaluator", str(setup["segmo"] / "mask")], capsys)
+    assert "--evaluator" in line and "'mask'" in line
+    for flag, value in (("--repeats", "0"), ("--batch-size", "1"), ("--seed", "-2"),
+                        ("--grounding-window", "4,x"), ("--split", "nosuch")):
+        assert flag in cli_failure([*base, "--real-only", flag, value], capsys)
 
 
 def test_report_tables() -> None:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.evaluation import report
 from segmo.evaluation.metrics import (
     evaluate_generation,
@@ -59,6 +60,7 @@ from segmo.evaluation.sections import (
     segmo_retrieval,
 )
 from segmo.generation.allocator import keep_freed_memory
+from segmo.models.pretrained import read_json
 
 # ------------------------------------------------------------------------- generation
 
@@ -131,9 +133,12 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     if cfg.model is None and model is None and not cfg.real_only:
-        raise ValueError("segmo evaluate: --model is required unless --real-only")
+        raise SegmoError("segmo evaluate: --model is required unless --real-only")
     start = time.perf_counter()
     evaluator = load_pretrained(cfg.evaluator).to(cfg.device).eval()
+    if getattr(evaluator, "kind", None) != "evaluator":
+        raise SegmoError(f"--evaluator {cfg.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
+                         "model, not a T2M evaluator (train one with configs/evaluator/)")
     if cfg.real_only:
         model = None
     elif model is None:
@@ -241,7 +246,7 @@ def compare(paths: list[str], out: str | Path) -> str:
         path = Path(p) / "metrics.json" if Path(p).is_dir() else Path(p)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no metrics.json (run `segmo evaluate` first)")
-        metrics = json.loads(path.read_text())
+        metrics = read_json(path)
         runs.append((metrics.get("config", {}).get("name") or path.parent.name, metrics))
     table = report.compare_table(runs)
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -250,7 +255,7 @@ def compare(paths: list[str], out: str | Path) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="segmo evaluate", description=__doc__.split("\n\n")[0],
+    p = ArgumentParser(prog="segmo evaluate", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", help="SegMo bundle directory (`segmo bundle`)")
     p.add_argument("--data", help="dataset root (HumanML3D layout)")
@@ -258,26 +263,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--name", help="row name in the tables (default: the model directory's name)")
     p.add_argument("--split", default="test")
-    p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--mm-prompts", type=int, default=100, help="MultiModality prompts; 0 disables")
-    p.add_argument("--mm-repeats", type=int, default=30, help="generations per prompt (> 10)")
-    p.add_argument("--mm-runs", type=int, default=1, help="MultiModality repetitions")
+    p.add_argument("--repeats", type=positive_int, default=20)
+    p.add_argument("--batch-size", type=positive_int, default=32)
+    p.add_argument("--mm-prompts", type=non_negative_int, default=100, help="MultiModality prompts; 0 disables")
+    p.add_argument("--mm-repeats", type=positive_int, default=30, help="generations per prompt (> 10)")
+    p.add_argument("--mm-runs", type=non_negative_int, default=1, help="MultiModality repetitions")
     p.add_argument("--action-classifier", help="action-classifier directory, or 'train' to fit one")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-motions", type=int, help="keep the first N motions of the split")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--max-motions", type=positive_int, help="keep the first N motions of the split")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, help="torch CPU threads (1 avoids stalls on a busy machine)")
+    p.add_argument("--threads", type=positive_int, help="torch CPU threads (1 avoids stalls on a busy machine)")
     p.add_argument("--text-segments", help="use DATA/text_segments/NAME instead of the bundle's segmenter")
-    p.add_argument("--steps", type=int, default=10, help="mask decoding steps")
+    p.add_argument("--steps", type=positive_int, default=10, help="mask decoding steps")
     p.add_argument("--grounding-window", default="auto",
                    help="sliding-window sizes in tokens, e.g. 5 or 4,8,16; auto = 0.5-2x the mean segment")
-    p.add_argument("--retrieval-motions", type=int, default=100,
+    p.add_argument("--retrieval-motions", type=non_negative_int, default=100,
                    help="motions of SegMo's full retrieval protocol (N^2 passes); 0 = all")
     p.add_argument("--skip", default="", help=f"comma-separated sections to leave out: {','.join(SECTIONS)}")
     p.add_argument("--no-progress", dest="progress", action="store_false")
-    p.add_argument("--similarity-maps", type=int, default=4, help="grounding maps to plot")
+    p.add_argument("--similarity-maps", type=non_negative_int, default=4, help="grounding maps to plot")
     p.add_argument("--real-only", action="store_true", help="evaluate the real motions only (no model)")
     p.add_argument("--compare", nargs="+", metavar="DIR", help="tabulate existing evaluations instead")
     return p
@@ -287,10 +292,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.compare:
-        try:
-            print(compare(args.compare, args.out))
-        except (FileNotFoundError, ValueError) as error:
-            parser.error(str(error))
+        print(compare(args.compare, args.out))
         return
     for flag in ("data", "evaluator"):
         if getattr(args, flag) is None:
@@ -301,8 +303,24 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--mm-repeats={args.mm_repeats} must exceed 10 (the pairs MultiModality draws)")
     for flag in ("model", "data", "evaluator"):
         value = getattr(args, flag)
-        if value is not None and not Path(value).exists():
+        if value is not None and not Path(value).is_dir():
             parser.error(f"--{flag} {value}: no such directory")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        parser.error(f"--out {args.out}: exists and is not a directory")
+    if args.batch_size < 2:
+        parser.error(f"argument --batch-size: R-precision needs at least 2 rows, got {args.batch_size}")
+    split_file = Path(args.data) / f"{args.split}.txt"
+    if not split_file.is_file():
+        parser.error(f"--split {args.split}: {split_file} does not exist")
+    if args.text_segments and not (Path(args.data) / "text_segments" / args.text_segments).is_dir():
+        parser.error(f"--text-segments {args.text_segments}: no folder "
+                     f"{Path(args.data) / 'text_segments' / args.text_segments}")
+    if args.action_classifier not in (None, "train") and not Path(args.action_classifier).is_dir():
+        parser.error(f"--action-classifier {args.action_classifier}: no such directory (or 'train')")
+    window = args.grounding_window
+    if window != "auto" and not all(w.strip().isdigit() and int(w) >= 1 for w in window.split(",")):
+        parser.error(f"argument --grounding-window: 'auto' or window sizes >= 1 such as 5 or "
+                     f"4,8,16, got {window!r}")
     skip = tuple(x for x in args.skip.split(",") if x)
     unknown = set(skip) - set(SECTIONS)
     if unknown:
