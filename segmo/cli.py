@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:
-        sys.exit(f"segmo: unknown command {name!r}\n\n{_usage()}")
+        print(f"segmo: unknown command {name!r} (see `segmo --help`)", file=sys.stderr)
+        sys.exit(2)
     module, function, _ = COMMANDS[name]
     command = getattr(importlib.import_module(module), function)
     # LightningCLI needs the sub-command itself.

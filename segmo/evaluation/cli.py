@@ -131,7 +131,6 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     from segmo.models.pretrained import load_pretrained
 
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     if cfg.model is None and model is None and not cfg.real_only:
         raise SegmoError("segmo evaluate: --model is required unless --real-only")
     start = time.perf_counter()
@@ -145,6 +144,7 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
         from segmo.pipeline import SegMo
 
         model = SegMo.from_pretrained(cfg.model, device=cfg.device)
+    out.mkdir(parents=True, exist_ok=True)
     skeleton = model.skeleton.name if model is not None else (
         "kit" if evaluator.config.feature_dim == 251 else "t2m")
     cfg.name = cfg.name or ("Real" if model is None else Path(cfg.model or "model").name)

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from segmo.errors import SegmoError
 from segmo.evaluation.grounding import best_span, grounding_metrics, sliding_windows
 from segmo.generation.generate import UNIT_LENGTH
 from segmo.models.alignment import AlignmentHead
@@ -41,7 +42,7 @@ BATCH = 32  # pairs per forward pass in retrieval
 def alignment_head(model: SegMo) -> AlignmentHead:
     head = model.mask.alignment
     if head is None:
-        raise ValueError("SegMo: this mask transformer was trained without segment alignment "
+        raise SegmoError("SegMo: this mask transformer was trained without segment alignment "
                          "(alignment: none), so it has no shared text/motion space; grounding, "
                          "retrieval and embed_pairs need a model trained with alignment")
     return head
@@ -65,26 +66,26 @@ def batch_motions(model: SegMo, motions: Any, lengths: Any = None, normalized: b
         frames = (torch.full((x.shape[0],), x.shape[1]) if lengths is None
                   else torch.as_tensor(lengths).long().reshape(-1).cpu())
         if len(frames) != x.shape[0]:
-            raise ValueError(f"embed_pairs: {len(frames)} lengths for {x.shape[0]} motions")
+            raise SegmoError(f"embed_pairs: {len(frames)} lengths for {x.shape[0]} motions")
         motions = [x[i, : int(n)] for i, n in enumerate(frames)]
     elif lengths is not None:
-        raise ValueError("embed_pairs: lengths are only used with a (b, t, d) motion tensor")
+        raise SegmoError("embed_pairs: lengths are only used with a (b, t, d) motion tensor")
     rows = []
     for motion in motions:
         if normalized:
             x = _as_tensor(motion)
             if x.ndim != 2 or x.shape[1] != model.tokenizer.config.feature_dim:
-                raise ValueError(f"embed_pairs: a motion must be (t, "
+                raise SegmoError(f"embed_pairs: a motion must be (t, "
                                  f"{model.tokenizer.config.feature_dim}), got {tuple(x.shape)}")
             usable = x.shape[0] - x.shape[0] % UNIT_LENGTH
             if not UNIT_LENGTH <= usable <= model.max_frames:
-                raise ValueError(f"embed_pairs: a motion must have {UNIT_LENGTH}.."
+                raise SegmoError(f"embed_pairs: a motion must have {UNIT_LENGTH}.."
                                  f"{model.max_frames + 3} frames, got {x.shape[0]}")
             rows.append(x[:usable].to(model.device))
         else:
             rows.append(model.normalize_motion(motion)[0][0])
     if not rows:
-        raise ValueError("embed_pairs: no motion given")
+        raise SegmoError("embed_pairs: no motion given")
     frames = torch.tensor([len(r) for r in rows], device=model.device)
     z = torch.zeros(len(rows), int(frames.max()), rows[0].shape[1], device=model.device)
     for i, r in enumerate(rows):
@@ -98,7 +99,7 @@ def _forward(model: SegMo, z: torch.Tensor, frames: torch.Tensor, texts: list[st
     per-token tokenizer latents (b, n, c) for the cpd/kmeans segmenters)."""
     sentence, vectors, segment_mask, _ = model.text_condition(texts, segments)
     if len(texts) != z.shape[0]:
-        raise ValueError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
+        raise SegmoError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
     with torch.inference_mode():
         latents = model.tokenizer.encoder(z.transpose(1, 2)).transpose(1, 2)
         base = model.tokenizer.encode(z)[..., 0]
@@ -136,7 +137,7 @@ def embed_pairs(model: SegMo, texts: list[str], motions: Any, spans: Any = None,
         if region is not None:
             start = torch.full_like(n_valid, region[0])
             if bool((n_valid < region[1]).any()) or not 0 <= region[0] < region[1]:
-                raise ValueError(f"embed_pairs: region {region} tokens is outside a motion of "
+                raise SegmoError(f"embed_pairs: region {region} tokens is outside a motion of "
                                  f"{n_valid.tolist()} tokens")
             latents, n_valid = latents[:, region[0]: region[1]], torch.full_like(
                 n_valid, region[1] - region[0])
@@ -148,10 +149,10 @@ def embed_pairs(model: SegMo, texts: list[str], motions: Any, spans: Any = None,
     else:
         spans = torch.as_tensor(spans, device=z.device).long()
         if spans.shape != (b, a, 2):
-            raise ValueError(f"embed_pairs: explicit spans must be (b={b}, a={a}, 2) token "
+            raise SegmoError(f"embed_pairs: explicit spans must be (b={b}, a={a}, 2) token "
                              f"spans, got {tuple(spans.shape)}")
         if bool((spans[..., 1] > n_valid[:, None]).any()):
-            raise ValueError("embed_pairs: a span ends past its motion's token count")
+            raise SegmoError("embed_pairs: a span ends past its motion's token count")
     spans = spans.to(z.device)
     with torch.inference_mode():
         text = head.embed_text(out.segment_features)
@@ -192,6 +193,8 @@ def ground(model: SegMo, text: str, motion: Any, window: int | Sequence[int] = 5
 
 
 def _top(scores: torch.Tensor, top_k: int) -> list[tuple[int, float]]:
+    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+        raise SegmoError(f"SegMo: top_k must be a whole number >= 1, got {top_k!r}")
     order = scores.argsort(descending=True, stable=True)[:top_k]
     return [(int(i), float(scores[i])) for i in order]
 
@@ -205,12 +208,12 @@ def retrieve_texts(model: SegMo, motion: Any, candidates: list[str],
     of the motion (or of the span); its score is the mean paired cosine.
     """
     if not candidates:
-        raise ValueError("retrieve_texts: no candidate texts")
+        raise SegmoError("retrieve_texts: no candidate texts")
     region = None
     if span is not None:
         start, end = int(span[0]), int(span[1])
         if not 0 <= start < end:
-            raise ValueError(f"retrieve_texts: span must satisfy 0 ≤ start < end, got {span}")
+            raise SegmoError(f"retrieve_texts: span must satisfy 0 ≤ start < end, got {span}")
         region = (start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH))
     scores = []
     for i in range(0, len(candidates), BATCH):
@@ -224,7 +227,7 @@ def retrieve_motions(model: SegMo, text: str, motions: list, top_k: int = 5
                      ) -> list[tuple[int, float]]:
     """Rank motions (raw features (t_i, d)) for a text → [(index, score)], best first."""
     if len(motions) == 0:
-        raise ValueError("retrieve_motions: no motions")
+        raise SegmoError("retrieve_motions: no motions")
     segments = model.segment_texts([text])
     scores = []
     for i in range(0, len(motions), BATCH):
@@ -257,7 +260,7 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
                                linewidth=2))
     if truth is not None:
         if len(truth) != len(output.segments):
-            raise ValueError(f"plot_similarity_map: {len(truth)} true spans for "
+            raise SegmoError(f"plot_similarity_map: {len(truth)} true spans for "
                              f"{len(output.segments)} segments")
         frames = output.windows * UNIT_LENGTH
         for row, (start, end) in enumerate(truth):
@@ -321,7 +324,7 @@ def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
             uniform += [(UNIT_LENGTH * s, UNIT_LENGTH * e) for s, e in segment_batch(
                 None, torch.tensor([len(segs)]), torch.tensor([n]))[0].tolist()]
     if not pred:
-        raise ValueError(f"grounding_accuracy: no caption with ≥ 2 segments in {root} ({split})")
+        raise SegmoError(f"grounding_accuracy: no caption with ≥ 2 segments in {root} ({split})")
     metrics = grounding_metrics(pred, truth, thresholds=(0.3, threshold, 0.7))
     metrics["rate"] = metrics[f"R@1,IoU={threshold:g}"]
     metrics["segments"] = float(len(pred))

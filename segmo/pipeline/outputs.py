@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec
 
 FORMATS = ("npy", "gif", "bvh")
@@ -62,7 +63,7 @@ class GenerationOutput:
         """
         unknown = set(formats) - set(FORMATS)
         if unknown:
-            raise ValueError(f"GenerationOutput.save: unknown format(s) {sorted(unknown)}; "
+            raise SegmoError(f"GenerationOutput.save: unknown format(s) {sorted(unknown)}; "
                              f"choose from {FORMATS}")
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,447 @@
+"""Hostile inputs to every command and to the notebook API: one clear line, nothing lost.
+
+Each CLI case runs ``segmo ARGV`` in-process and asserts exit status 2, no traceback, and
+a last line that names the file (and line) or the argument that is wrong. Each API case
+asserts the exception type and that its message names what is wrong. The cases are the
+table in docs/hostile-inputs.md; a test keeps the two in step.
+
+Placeholders in a CLI case's argv are filled from the `world` fixture: {bundle} (a tiny
+random SegMo bundle), {corpus} (a tiny built-in corpus), {tmp} (a scratch folder) and the
+corrupt files `_corrupt_files` writes there.
+
+Regenerate the table with the messages of this run:
+    SEGMO_HOSTILE_TABLE=docs/hostile-inputs.md python -m pytest tests/test_hostile_inputs.py
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import cli_failure, hash_encoder
+from test_pipeline import TEXT_DIM, build_stages
+
+from segmo.errors import SegmoError
+from segmo.pipeline import SegMo
+
+REPO = Path(__file__).resolve().parents[1]
+TABLE = REPO / "docs" / "hostile-inputs.md"
+MESSAGES: dict[str, str] = {}  # case id -> the line it printed (or the exception), this run
+
+
+@dataclass(frozen=True)
+class Cli:
+    """`segmo ARGV` must fail with one line containing `names`."""
+
+    id: str
+    argv: str  # split on spaces after the placeholders are filled
+    names: str
+    what: str  # the hostile input, for the table
+
+    @property
+    def command(self) -> str:
+        return self.argv.split()[0]
+
+
+GEN = "generate --model {bundle} --out {tmp}/gen"
+GROUND = "ground --model {bundle} --text a-person-walks"
+CLI_CASES = [
+    # -- segmo (the dispatcher)
+    Cli("unknown-command", "generat --model {bundle}", "unknown command 'generat'",
+        "a misspelt command"),
+    # -- segmo generate
+    Cli("generate-empty-text", GEN + " --text", "text 0", "an empty prompt (`--text \"\"`)"),
+    Cli("generate-wordless-text", GEN + " --text ...", "text 0", "a prompt without words"),
+    Cli("generate-guidance-nan", GEN + " --text walk --guidance nan", "--guidance",
+        "`--guidance nan`"),
+    Cli("generate-guidance-inf", GEN + " --text walk --guidance inf", "--guidance",
+        "`--guidance inf`"),
+    Cli("generate-temperature-negative", GEN + " --text walk --temperature -1", "--temperature",
+        "a negative temperature"),
+    Cli("generate-steps-zero", GEN + " --text walk --steps 0", "--steps", "0 decoding steps"),
+    Cli("generate-length-fraction", GEN + " --text walk --length 40.7", "--length",
+        "`--length 40.7` (was truncated to 40)"),
+    Cli("generate-length-not-multiple", GEN + " --text walk --length 30", "multiples of 4",
+        "a length that is not a multiple of 4 frames"),
+    Cli("generate-length-too-long", GEN + " --text walk --length 10000", "multiples of 4",
+        "a length beyond the model's 196 frames"),
+    Cli("generate-length-count", GEN + " --text walk --text run --length 40 --length 40 "
+        "--length 40", "--length", "three lengths for two prompts"),
+    Cli("generate-device-cuda", GEN + " --text walk --device cuda:7", "--device",
+        "a CUDA device on a machine without one"),
+    Cli("generate-device-bogus", GEN + " --text walk --device toaster", "--device",
+        "a device name torch does not know"),
+    Cli("generate-formats", GEN + " --text walk --formats gif,fbx", "--formats",
+        "an unknown output format"),
+    Cli("generate-out-is-file", "generate --model {bundle} --text walk --out {file}",
+        "--out", "`--out` naming an existing file"),
+    Cli("generate-model-missing", "generate --model {tmp}/nope --text walk --out {tmp}/g",
+        "--model", "a model folder that does not exist"),
+    Cli("generate-model-is-stage", "generate --model {bundle}/mask --text walk --out {tmp}/g",
+        "segmo.json", "a single stage instead of a bundle"),
+    Cli("generate-bundle-json", "generate --model {bad_bundle_json} --text walk --out {tmp}/g",
+        "segmo.json:2", "invalid JSON in segmo.json"),
+    Cli("generate-bundle-format", "generate --model {bad_format} --text walk --out {tmp}/g",
+        "format 99", "a segmo.json of an unknown format"),
+    Cli("generate-bundle-guidance", "generate --model {bad_guidance} --text walk --out {tmp}/g",
+        "guidance_scale", "a segmo.json whose guidance scale is a string"),
+    Cli("generate-config-json", "generate --model {bad_config_json} --text walk --out {tmp}/g",
+        "mask/config.json:1", "invalid JSON in a stage's config.json"),
+    Cli("generate-config-field", "generate --model {extra_field} --text walk --out {tmp}/g",
+        "'wings'", "an unknown field in a stage's config.json"),
+    Cli("generate-config-type", "generate --model {bad_type} --text walk --out {tmp}/g",
+        "mask/config.json", "a config field of the wrong type"),
+    Cli("generate-weights-garbage", "generate --model {bad_weights} --text walk --out {tmp}/g",
+        "model.safetensors", "a weights file that is not safetensors"),
+    Cli("generate-weights-shape", "generate --model {bad_shape} --text walk --out {tmp}/g",
+        "do not fit", "weights that do not fit the config"),
+    Cli("generate-weights-nan", "generate --model {nan_weights} --text walk --out {tmp}/g",
+        "NaN or inf", "weights holding NaN (a diverged run)"),
+    Cli("generate-stage-missing", "generate --model {no_mask} --text walk --out {tmp}/g",
+        "mask", "a bundle without its mask stage"),
+    # -- segmo ground
+    Cli("ground-motion-nan", GROUND + " --motion {nan_motion}", "nan_motion.npy",
+        "a motion with a NaN frame"),
+    Cli("ground-motion-huge", GROUND + " --motion {huge_motion}", "huge_motion.npy",
+        "a finite but absurd motion (1e30)"),
+    Cli("ground-motion-pickle", GROUND + " --motion {pickle}", "pickle.npy",
+        "a .npy holding a pickled object"),
+    Cli("ground-motion-text", GROUND + " --motion {text_file}", "notes.txt",
+        "a text file as motion"),
+    Cli("ground-motion-dir", GROUND + " --motion {tmp}", "is a directory", "a folder as motion"),
+    Cli("ground-motion-joints", GROUND + " --motion {joints}", "joints", "joints instead of features"),
+    Cli("ground-motion-dim", GROUND + " --motion {wrong_dim}", "(170, 100)",
+        "features of the wrong width"),
+    Cli("ground-motion-short", GROUND + " --motion {short_motion}", "frames",
+        "a 2-frame motion"),
+    Cli("ground-motion-long", GROUND + " --motion {long_motion}", "frames",
+        "a motion longer than the model takes"),
+    Cli("ground-motion-strings", GROUND + " --motion {strings}", "strings.npy",
+        "an array of strings"),
+    Cli("ground-window-zero", GROUND + " --motion {motion} --window 0", "--window",
+        "a window of 0 tokens"),
+    Cli("ground-stride-zero", GROUND + " --motion {motion} --stride 0", "--stride",
+        "a stride of 0 tokens"),
+    Cli("ground-segments-empty", GROUND + " --motion {motion} --segments ##", "segment 0",
+        "empty text segments (`--segments ##`)"),
+    Cli("ground-segments-many", GROUND + " --motion {motion} --segments a#b#c#d#e#f",
+        "6 segments", "more segments than the model takes"),
+    # -- segmo bundle
+    Cli("bundle-wrong-kind", "bundle --tokenizer {bundle}/mask --mask {bundle}/mask --out {tmp}/b",
+        "'rvq'", "a mask stage as tokenizer"),
+    Cli("bundle-missing-stage", "bundle --tokenizer {bundle}/tokenizer --mask {tmp}/nope "
+        "--out {tmp}/b", "--mask", "a stage folder that does not exist"),
+    Cli("bundle-guidance-nan", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
+        "--guidance nan --out {tmp}/b", "--guidance", "`--guidance nan`"),
+    Cli("bundle-out-is-file", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
+        "--out {file}", "--out", "`--out` naming an existing file"),
+    Cli("bundle-segmenter", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
+        "--segmenter llama --out {tmp}/b", "--segmenter", "an unknown text segmenter"),
+    Cli("bundle-stage-json", "bundle --tokenizer {bundle}/tokenizer --mask {bad_config_json}/mask "
+        "--out {tmp}/b", "config.json:1", "a stage whose config.json is invalid JSON"),
+    # -- segmo render
+    Cli("render-nan", "render {nan_motion} --out {tmp}/r.gif", "nan_motion.npy",
+        "a motion with a NaN frame"),
+    Cli("render-huge", "render {huge_motion} --out {tmp}/r.gif", "huge_motion.npy",
+        "a finite but absurd motion (1e30)"),
+    Cli("render-pickle", "render {pickle} --out {tmp}/r.gif", "pickle.npy",
+        "a .npy holding a pickled object"),
+    Cli("render-empty", "render {empty_motion} --out {tmp}/r.gif", "0 frames",
+        "a motion with 0 frames"),
+    Cli("render-shape", "render {wrong_dim} --out {tmp}/r.gif", "(170, 100)",
+        "an array of the wrong shape"),
+    Cli("render-suffix", "render {motion} --out {tmp}/r.txt", "--out", "an output that is no GIF/MP4"),
+    Cli("render-fps-zero", "render {motion} --out {tmp}/r.gif --fps 0", "--fps", "`--fps 0`"),
+    Cli("render-fps-nan", "render {motion} --out {tmp}/r.gif --fps nan", "--fps", "`--fps nan`"),
+    Cli("render-stride-zero", "render {motion} --out {tmp}/r.gif --stride 0", "--stride",
+        "`--stride 0`"),
+    Cli("render-missing", "render {tmp}/nope.npy --out {tmp}/r.gif", "nope.npy",
+        "a file that does not exist"),
+    Cli("render-mean-alone", "render {motion} --out {tmp}/r.gif --mean {motion}", "--mean",
+        "`--mean` without `--std`"),
+    # -- segmo synth
+    Cli("synth-zero-motions", "synth --out {tmp}/s --num-motions 0", "--num-motions",
+        "0 motions"),
+    Cli("synth-seed-negative", "synth --out {tmp}/s --seed -1", "--seed", "a negative seed"),
+    Cli("synth-workers-zero", "synth --out {tmp}/s --workers 0", "--workers", "0 workers"),
+    Cli("synth-out-is-file", "synth --out {file} --num-motions 3", "notes.txt",
+        "`--out` naming an existing file"),
+    Cli("synth-foreign-folder", "synth --out {foreign} --num-motions 3", "not empty",
+        "a folder holding someone else's files"),
+    Cli("synth-derived-data", "synth --out {corpus} --num-motions 7", "text_features",
+        "a rebuild that would delete text features built in the folder"),
+    # -- segmo evaluate
+    Cli("evaluate-model-required", "evaluate --data {corpus} --evaluator {tmp} --out {tmp}/e",
+        "--model", "no `--model` and no `--real-only`"),
+    Cli("evaluate-data-missing", "evaluate --real-only --data {tmp}/nope --evaluator {tmp} "
+        "--out {tmp}/e", "--data", "a dataset folder that does not exist"),
+    Cli("evaluate-repeats-zero", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --repeats 0", "--repeats", "0 repeats"),
+    Cli("evaluate-batch-one", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --batch-size 1", "--batch-size", "batches of 1 (R-precision needs 2)"),
+    Cli("evaluate-split", "evaluate --real-only --data {corpus} --evaluator {tmp} --out {tmp}/e "
+        "--split dev", "--split", "a split without a split file"),
+    Cli("evaluate-window", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --grounding-window 4,x", "--grounding-window", "a bad grounding window"),
+    Cli("evaluate-evaluator-kind", "evaluate --real-only --data {corpus} --evaluator "
+        "{bundle}/mask --out {tmp}/e", "--evaluator", "a mask stage as evaluator"),
+    Cli("evaluate-compare-missing", "evaluate --compare {tmp}/nope --out {tmp}/e",
+        "metrics.json", "`--compare` of a folder without metrics.json"),
+    Cli("evaluate-compare-json", "evaluate --compare {bad_metrics} --out {tmp}/e",
+        "metrics.json:1", "`--compare` of an invalid metrics.json"),
+    # -- segmo demo
+    Cli("demo-out-is-file", "demo --out {file}", "--out", "`--out` naming an existing file"),
+    Cli("demo-budget", "demo --out {tmp}/d --budget huge", "--budget", "an unknown budget"),
+    Cli("demo-seed", "demo --out {tmp}/d --seed -3", "--seed", "a negative seed"),
+]
+
+
+@dataclass(frozen=True)
+class Api:
+    """`call(model, world)` must raise `error` with `names` in its message."""
+
+    id: str
+    call: object
+    error: type
+    names: str
+    what: str
+
+
+def _motion(world):
+    return np.load(world["motion"])
+
+
+API_CASES = [
+    Api("api-lengths-fraction", lambda m, w: m.generate(["walk"], [40.7]), SegmoError, "40.7",
+        "`generate(lengths=[40.7])` (was truncated to 40)"),
+    Api("api-lengths-bool", lambda m, w: m.generate(["walk"], [True]), SegmoError, "True",
+        "`generate(lengths=[True])`"),
+    Api("api-lengths-nan", lambda m, w: m.generate(["walk"], float("nan")), SegmoError, "nan",
+        "`generate(lengths=nan)`"),
+    Api("api-lengths-count", lambda m, w: m.generate(["walk", "run"], [40, 40, 40]), SegmoError,
+        "3 lengths for 2 texts", "three lengths for two texts"),
+    Api("api-text-none", lambda m, w: m.generate([None], [40]), SegmoError, "text 0",
+        "a prompt that is None"),
+    Api("api-text-empty-list", lambda m, w: m.generate([], [40]), SegmoError, "empty",
+        "no prompts"),
+    Api("api-guidance-nan", lambda m, w: m.generate(["walk"], [40], guidance_scale=float("nan")),
+        SegmoError, "guidance_scale", "`guidance_scale=nan`"),
+    Api("api-steps-fraction", lambda m, w: m.generate(["walk"], [40], steps=2.5), SegmoError,
+        "steps", "`steps=2.5`"),
+    Api("api-top-k-zero", lambda m, w: m.generate(["walk"], [40], top_k_ratio=0.0), SegmoError,
+        "top_k_ratio", "`top_k_ratio=0`"),
+    Api("api-sampler", lambda m, w: m.generate(["walk"], [40], sampler="beam"), SegmoError,
+        "sampler", "an unknown sampler"),
+    Api("api-segments-shape", lambda m, w: m.generate(["walk", "run"], [40], segments=[["walk"]]),
+        SegmoError, "segments", "one segment list for two prompts"),
+    Api("api-edit-span-order", lambda m, w: m.edit(_motion(w), (40, 8), "run"), SegmoError,
+        "span", "`edit(span=(40, 8))`"),
+    Api("api-edit-span-fraction", lambda m, w: m.edit(_motion(w), (0.5, 8), "run"), SegmoError,
+        "span", "`edit(span=(0.5, 8))`"),
+    Api("api-ground-nan", lambda m, w: m.ground("walk", np.load(w["nan_motion"])), SegmoError,
+        "frame 5", "`ground` on a motion with a NaN frame"),
+    Api("api-ground-strings", lambda m, w: m.ground("walk", [["a"] * 263] * 8), SegmoError,
+        "numeric", "`ground` on a list of strings"),
+    Api("api-retrieve-empty", lambda m, w: m.retrieve_texts(_motion(w), []), SegmoError,
+        "candidate", "`retrieve_texts` with no candidates"),
+    Api("api-retrieve-top-k", lambda m, w: m.retrieve_texts(_motion(w), ["walk"], top_k=0),
+        SegmoError, "top_k", "`retrieve_texts(top_k=0)`"),
+    Api("api-from-pretrained-missing", lambda m, w: SegMo.from_pretrained(w["tmp"] / "nope"),
+        FileNotFoundError, "segmo.json", "`from_pretrained` of a missing folder"),
+    Api("api-from-pretrained-device", lambda m, w: SegMo.from_pretrained(w["bundle"],
+                                                                         device="cuda:3"),
+        SegmoError, "cuda:3", "`from_pretrained(device='cuda:3')` without a GPU"),
+    Api("api-render-nan", lambda m, w: __import__("segmo.render").render.save_animation(
+        np.load(w["nan_motion"]), w["tmp"] / "x.gif"), SegmoError, "NaN",
+        "`save_animation` of a NaN motion"),
+]
+
+
+# ------------------------------------------------------------------------------- fixtures
+
+
+def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
+    """Every corrupt input the cases name, written once."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    features = np.load(REPO.parent / "shared" / "fixtures" / "humanml3d" / "012314_features.npy") \
+        if (REPO.parent / "shared" / "fixtures").is_dir() else \
+        np.zeros((170, 263), dtype=np.float32)
+    files = {"motion": tmp / "motion.npy", "file": tmp / "notes.txt"}
+    np.save(files["motion"], features[:48])
+    files["file"].write_text("not a motion\n")
+    files["text_file"] = files["file"]
+    arrays = {"nan_motion": features[:48].copy(), "huge_motion": features[:48] * 1e30,
+              "joints": np.zeros((48, 22, 3), np.float32), "wrong_dim": features[:, :100],
+              "short_motion": features[:2], "long_motion": np.concatenate([features] * 2),
+              "empty_motion": features[:0], "strings": np.array([["a"] * 263] * 8)}
+    arrays["nan_motion"][5, 3] = np.nan
+    for name, array in arrays.items():
+        files[name] = tmp / f"{name}.npy"
+        np.save(files[name], array)
+    files["pickle"] = tmp / "pickle.npy"
+    np.save(files["pickle"], np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    files["foreign"] = tmp / "foreign"
+    files["foreign"].mkdir()
+    (files["foreign"] / "thesis.tex").write_text("mine")
+    files["bad_metrics"] = tmp / "metrics.json"
+    files["bad_metrics"].write_text("{oops")
+
+    def variant(name: str, edit) -> None:
+        files[name] = tmp / name
+        shutil.copytree(bundle, files[name])
+        edit(files[name])
+
+    def edit_json(path: Path, change) -> None:
+        payload = json.loads(path.read_text())
+        change(payload)
+        path.write_text(json.dumps(payload))
+
+    variant("bad_bundle_json", lambda d: (d / "segmo.json").write_text('{"format": 1,\n'))
+    variant("bad_format", lambda d: edit_json(d / "segmo.json", lambda p: p.update(format=99)))
+    variant("bad_guidance", lambda d: edit_json(d / "segmo.json",
+                                                lambda p: p.update(guidance_scale="high")))
+    variant("bad_config_json", lambda d: (d / "mask" / "config.json").write_text("{kind"))
+    variant("extra_field", lambda d: edit_json(d / "mask" / "config.json",
+                                               lambda p: p["config"].update(wings=2)))
+    variant("bad_type", lambda d: edit_json(d / "mask" / "config.json",
+                                            lambda p: p["config"].update(dim="big")))
+    variant("bad_shape", lambda d: edit_json(d / "mask" / "config.json",
+                                             lambda p: p["config"].update(dim=64)))
+    variant("bad_weights", lambda d: (d / "mask" / "model.safetensors").write_bytes(b"\0" * 64))
+
+    def poison(d: Path) -> None:
+        path = d / "mask" / "model.safetensors"
+        state = load_file(str(path))
+        state[next(iter(state))].fill_(float("nan"))
+        save_file(state, str(path))
+
+    variant("nan_weights", poison)
+    variant("no_mask", lambda d: shutil.rmtree(d / "mask"))
+    return files
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory, tokenizer_dir) -> dict[str, Path]:
+    from segmo.synth.corpus import build_corpus
+
+    root = tmp_path_factory.mktemp("hostile")
+    dirs = build_stages(root / "stages", tokenizer_dir["t2m"])
+    bundle = SegMo.from_stages(dirs["tokenizer"], dirs["mask"], dirs["residual"], dirs["length"],
+                               text_encoder=hash_encoder("hash", TEXT_DIM))
+    bundle.save_pretrained(root / "bundle")
+    corpus = build_corpus(root / "corpus", 6, seed=0, progress=False)
+    (corpus / "text_features").mkdir()  # something a rebuild of the corpus would delete
+    tmp = root / "tmp"
+    tmp.mkdir()
+    return {"bundle": root / "bundle", "corpus": corpus, "tmp": tmp,
+            **_corrupt_files(tmp, root / "bundle")}
+
+
+@pytest.fixture(autouse=True)
+def hash_text_encoder(monkeypatch):
+    import segmo.text.encoders
+
+    monkeypatch.setattr(segmo.text.encoders, "get_text_encoder",
+                        lambda name, device="cpu": hash_encoder(name, TEXT_DIM))
+
+
+@pytest.fixture(scope="module")
+def model(world) -> SegMo:
+    return SegMo.from_pretrained(world["bundle"], text_encoder=hash_encoder("hash", TEXT_DIM))
+
+
+# ---------------------------------------------------------------------------------- tests
+
+
+def _argv(case: Cli, world: dict[str, Path]) -> list[str]:
+    filled = re.sub(r"\{(\w+)\}", lambda m: str(world[m.group(1)]), case.argv)
+    # "a-person-walks" keeps a multi-word prompt one token of the case string.
+    return [part.replace("a-person-walks", "a person walks") for part in filled.split(" ")]
+
+
+@pytest.mark.parametrize("case", CLI_CASES, ids=lambda c: c.id)
+def test_cli_refuses_with_one_line(case: Cli, world, capsys):
+    argv = _argv(case, world)
+    if case.id == "generate-empty-text":
+        argv.append("")
+    before = sorted(p.name for p in world["tmp"].iterdir())
+    line = cli_failure(argv, capsys)
+    MESSAGES[case.id] = line.replace(str(world["tmp"].parent), "…")
+    assert line.startswith(f"segmo {case.command}: ") or case.id == "unknown-command", line
+    assert case.names in line, line
+    assert len(line) < 600, "one line, not a dump"
+    # Nothing the user had is gone, and a refused command leaves no half-written output.
+    assert sorted(p.name for p in world["tmp"].iterdir()) == before
+    assert (world["foreign"] / "thesis.tex").exists() and (world["corpus"] / "text_features").exists()
+
+
+@pytest.mark.parametrize("case", API_CASES, ids=lambda c: c.id)
+def test_api_raises_a_clear_error(case: Api, model, world):
+    with pytest.raises(case.error) as info:
+        case.call(model, world)
+    message = str(info.value)
+    MESSAGES[case.id] = f"{type(info.value).__name__}: {message}".replace(
+        str(world["tmp"].parent), "…")
+    assert case.names in message and "\n" not in message, message
+
+
+def test_the_documented_table_lists_every_case():
+    text = TABLE.read_text(encoding="utf-8")
+    documented = set(re.findall(r"^\| `([a-z0-9-]+)` \|", text, flags=re.MULTILINE))
+    assert documented == {c.id for c in CLI_CASES} | {c.id for c in API_CASES}
+
+
+def test_there_are_enough_cases_across_every_command():
+    commands = {c.command for c in CLI_CASES}
+    assert len(CLI_CASES) + len(API_CASES) >= 60
+    assert {"generate", "ground", "bundle", "render", "synth", "evaluate", "demo"} <= commands
+
+
+def test_debug_shows_the_traceback(world, capsys):
+    from segmo.cli import main
+
+    with pytest.raises(SegmoError):
+        main(["--debug", *_argv(CLI_CASES[3], world)])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def write_table():
+    yield
+    target = os.environ.get("SEGMO_HOSTILE_TABLE")
+    if target:
+        Path(target).write_text(HEADER + table() + "\n", encoding="utf-8")
+
+
+HEADER = """# Hostile inputs
+
+What each command and the notebook API do with input nobody should give them. Every case
+is a test in `tests/test_hostile_inputs.py`: a command exits with status 2 and prints one
+line (`segmo --debug COMMAND ...` shows the traceback instead), an API call raises the
+error named; nothing the user had is lost and nothing half-written is left. The last
+column is the line printed in the run that wrote this table (`…` is the test's scratch
+folder).
+
+"""
+
+
+def table() -> str:
+    rows = ["| case | command | hostile input | what it does now |", "| --- | --- | --- | --- |"]
+    for c in CLI_CASES:
+        rows.append(f"| `{c.id}` | `segmo {c.command}` | {c.what} | "
+                    f"{_cell(MESSAGES.get(c.id, c.names))} |")
+    for c in API_CASES:
+        rows.append(f"| `{c.id}` | notebook API | {c.what} | "
+                    f"{_cell(MESSAGES.get(c.id, c.error.__name__ + ': ' + c.names))} |")
+    return "\n".join(rows)
+
+
+def _cell(text: str) -> str:
+    return "`" + text.replace("|", "\\|").replace("`", "'") + "`"
