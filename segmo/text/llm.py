@@ -1,14 +1,19 @@
-"""LLM text-segment extraction: prompt, answer parsing/validation, and two backends.
+"""LLM text-segment extraction: prompt, the retry/fallback loop, and two backends.
 
 Both backends ask a chat model for ``{"segments": [...]}`` with the prompt in
-``prompts/`` (system rules from spec §7 + few-shot examples), check every answer with
-`validate_segments`, re-ask up to ``max_retries`` times with the reason of the rejection,
-and otherwise fall back to `RuleSegmenter` with a logged warning; `fallbacks` counts
-those captions.
+``prompts/`` (system rules from spec §7 + few-shot examples), check every answer against
+its caption with `segmo.text.validate.validate_segments` (content words from the caption,
+no empty or duplicated segment, no action lost, execution order), re-ask up to
+``max_retries`` times with the reason of the rejection, and otherwise fall back to
+`RuleSegmenter`. `segment_with_fallbacks` says which captions fell back and why, so that
+`segment-texts` records them on disk and retries them on the next run.
 
 - `OpenAISegmenter`: any OpenAI-compatible ``/v1/chat/completions`` server (vLLM,
-  llama.cpp, Ollama, OpenAI), stdlib HTTP only, requests in a thread pool, exponential
-  back-off on timeouts, 429 and 5xx.
+  llama.cpp, Ollama, OpenAI) through the official `openai` client: kept-alive
+  connections, a timeout per request, retries of timeouts, 408/409/429 and 5xx with
+  exponential back-off that honours ``Retry-After``. A 401/403/404 (wrong key, URL or
+  model) raises `SegmoError` at once; when ``max_failures_in_a_row`` requests fail one
+  after another the server is taken to be down and `LLMUnavailableError` stops the run.
 - `TransformersSegmenter`: a local causal LM through `AutoModelForCausalLM`, greedy.
 
 Example (a vLLM server with Qwen3-8B)::
@@ -21,29 +26,33 @@ Example (a vLLM server with Qwen3-8B)::
 from __future__ import annotations
 
 import hashlib
-import http.client
 import json
 import logging
+import math
 import os
 import re
-import time
-import urllib.error
-import urllib.request
+import threading
+import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter, lemma
+from segmo.errors import SegmoError
+from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
+from segmo.text.validate import parse_answer, validate_segments
+
+__all__ = ["LLMSegmenter", "LLMUnavailableError", "OpenAISegmenter", "Prompt", "TransformersSegmenter",
+           "get_segmenter", "load_prompt", "parse_answer", "validate_segments"]
 
 log = logging.getLogger(__name__)
 
 PROMPT_DIR = Path(__file__).resolve().parents[2] / "prompts"
-# Words an answer may add to the caption's own: a restored subject and light glue.
-_ALLOWED_EXTRA = set("""a an the person man woman human someone somebody he she they it his her
-their is are and then subject figure""".split())
-_THINK_RE = re.compile(r"<think>.*?(</think>|$)", re.DOTALL | re.IGNORECASE)
-_WORD_RE = re.compile(r"[A-Za-z]+|[0-9]+")
+UNREADABLE = "<unreadable response"  # how a backend hands a broken answer to the re-ask loop
+
+
+class LLMUnavailableError(SegmoError):
+    """The server failed so many requests in a row that asking on would only fall back."""
 
 
 # ---------------------------------------------------------------- prompt
@@ -76,59 +85,14 @@ def load_prompt(directory: str | Path | None = None) -> Prompt:
     system_path, examples_path = directory / "segment_system.md", directory / "segment_examples.json"
     for path in (system_path, examples_path):
         if not path.is_file():
-            raise FileNotFoundError(f"load_prompt: missing prompt file {path}")
+            raise SegmoError(f"missing prompt file {path}")
     try:
         raw = json.loads(examples_path.read_text(encoding="utf-8"))
         examples = tuple((e["caption"], tuple(e["segments"])) for e in raw)
     except (json.JSONDecodeError, KeyError, TypeError) as err:
-        raise ValueError(f"load_prompt: {examples_path} must be a JSON list of "
-                         f"{{'caption', 'segments'}} objects ({err})") from err
+        raise SegmoError(f"{examples_path} must be a JSON list of {{'caption', 'segments'}} "
+                         f"objects ({err})") from err
     return Prompt(system_path.read_text(encoding="utf-8").strip(), examples)
-
-
-# ---------------------------------------------------------------- answers
-def parse_answer(text: str) -> list[str] | None:
-    """Segments from a model answer, or None if there is no ``{"segments": [str, ...]}`` in it.
-
-    Tolerates ``<think>...</think>`` blocks (Qwen3), code fences and text around the JSON.
-    """
-    text = _THINK_RE.sub("", text)
-    text = re.sub(r"```(?:json)?", "", text)
-    decoder = json.JSONDecoder()
-    for match in re.finditer(r"\{", text):
-        try:
-            obj, _ = decoder.raw_decode(text, match.start())
-        except json.JSONDecodeError:
-            continue
-        if isinstance(obj, dict) and isinstance(obj.get("segments"), list):
-            segments = obj["segments"]
-            if all(isinstance(s, str) for s in segments):
-                return [s.replace("#", " ").strip().rstrip(".!?;,").strip() for s in segments]
-    return None
-
-
-def validate_segments(caption: str, segments: list[str] | None, max_segments: int = MAX_SEGMENTS,
-                      length_margin: int = 40) -> str | None:
-    """Why `segments` is not an acceptable answer for `caption`, or None if it is.
-
-    Accepted: 1..max_segments non-empty segments, each at most ``len(caption) +
-    length_margin`` characters and made only of the caption's words up to inflection
-    (see `segmo.text.rules.lemma`), plus a restored subject.
-    """
-    if segments is None:
-        return 'no JSON object {"segments": [...]} found'
-    if not 1 <= len(segments) <= max_segments:
-        return f"expected 1 to {max_segments} segments, got {len(segments)}"
-    allowed = {lemma(w) for w in _WORD_RE.findall(caption)} | _ALLOWED_EXTRA
-    for s in segments:
-        if not s.strip():
-            return "empty segment"
-        if len(s) > len(caption) + length_margin:
-            return f"segment longer than the caption: {s!r}"
-        foreign = [w for w in _WORD_RE.findall(s) if lemma(w) not in allowed and w.lower() not in allowed]
-        if foreign:
-            return f"segment {s!r} uses words not in the caption: {foreign}"
-    return None
 
 
 def _slug(model: str) -> str:
@@ -155,7 +119,7 @@ class LLMSegmenter:
     def __init__(self, prompt: Prompt | None = None, max_retries: int = 3,
                  max_segments: int = MAX_SEGMENTS, length_margin: int = 40) -> None:
         if max_retries < 0:
-            raise ValueError(f"{type(self).__name__}: max_retries must be >= 0, got {max_retries}")
+            raise SegmoError(f"{type(self).__name__}: max_retries must be >= 0, got {max_retries}")
         self.prompt = prompt if prompt is not None else load_prompt()
         self.max_retries = max_retries
         self.max_segments = max_segments
@@ -172,6 +136,13 @@ class LLMSegmenter:
         raise NotImplementedError
 
     def segment(self, texts: list[str]) -> list[list[str]]:
+        return self.segment_with_fallbacks(texts)[0]
+
+    def segment_with_fallbacks(self, texts: list[str]) -> tuple[list[list[str]], dict[int, str]]:
+        """Segments of every text, and {index: reason} of the texts that fell back to rules.
+
+        A text without content is answered by the rules without asking (not a fallback).
+        """
         results: list[list[str] | None] = [None] * len(texts)
         conversations = {i: self.prompt.messages(t) for i, t in enumerate(texts) if t.strip()}
         for i, t in enumerate(texts):
@@ -192,6 +163,8 @@ class LLMSegmenter:
                     continue  # transport errors were already retried with back-off
                 segments = parse_answer(answer)
                 reason = validate_segments(texts[i], segments, self.max_segments, self.length_margin)
+                if segments is None and answer.startswith(UNREADABLE):
+                    reason = answer[1:-1]
                 if reason is None:
                     results[i] = segments
                     continue
@@ -203,75 +176,124 @@ class LLMSegmenter:
                                                 'answer with JSON only: {"segments": [...]}'},
                 ]
             pending = still
+        fell_back = {}
         for i, segments in enumerate(results):
             if segments is None:
+                fell_back[i] = reasons.get(i, "no answer")
                 self.stats.fallbacks += 1
-                self.stats.reasons = (self.stats.reasons + [reasons.get(i, "")])[-20:]
-                log.warning("%s: falling back to rules for %r (%s)", self.name, texts[i], reasons.get(i))
+                self.stats.reasons = (self.stats.reasons + [fell_back[i]])[-20:]
+                log.warning("%s: falling back to rules for %r (%s)", self.name, texts[i], fell_back[i])
                 results[i] = self.fallback.segment_one(texts[i])
         self.stats.captions += len(texts)
-        return results  # type: ignore[return-value]
+        return results, fell_back  # type: ignore[return-value]
 
 
-# ---------------------------------------------------------------- OpenAI-compatible HTTP
+# ---------------------------------------------------------------- OpenAI-compatible server
+def check_base_url(url: str) -> str:
+    """`url` if it is an http(s) URL with a host (and a valid port); SegmoError otherwise."""
+    try:
+        parts = urllib.parse.urlsplit(url)
+        parts.port  # noqa: B018 -- raises ValueError for a port that is not a number
+    except ValueError as err:
+        raise SegmoError(f"base URL {url!r} is not a valid URL ({err})") from err
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise SegmoError(f"base URL {url!r} must look like http://HOST:PORT/v1")
+    return url
+
+
 class OpenAISegmenter(LLMSegmenter):
-    """Chat-completions client for any OpenAI-compatible server.
+    """Chat-completions client for any OpenAI-compatible server (the `openai` package).
 
-    `base_url` includes the API version (``http://host:8000/v1``); the key is read from
-    the environment variable `api_key_env` and may be absent for local servers.
-    Timeouts, connection errors, 429 and 5xx are retried `max_retries` times after
-    ``backoff * 2**attempt`` seconds; other HTTP errors (401, 404, ...) raise at once,
-    since they mean a wrong configuration rather than a bad caption.
+    `base_url` includes the API version (``http://host:8000/v1``); None reads
+    ``OPENAI_BASE_URL``. The key is read from the environment variable `api_key_env`
+    and may be absent for local servers. `timeout` (seconds) bounds each request;
+    timeouts, connection errors, 408/409/429 and 5xx are retried `max_retries` times by
+    the client, after the server's ``Retry-After`` when it sends one (up to two minutes)
+    and otherwise with exponential back-off from 0.5 s. A request still failing then
+    makes its caption fall back to the rules; 401/403/404 raise `SegmoError`, since they
+    mean a wrong configuration rather than a bad caption. After `max_failures_in_a_row`
+    failed requests (default ``max(16, 2 * concurrency)``) with no success in between,
+    the rest is not asked and `LLMUnavailableError` is raised.
     """
 
-    def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY",
+    def __init__(self, base_url: str | None, model: str, api_key_env: str = "OPENAI_API_KEY",
                  concurrency: int = 8, timeout: float = 60.0, max_retries: int = 3,
-                 backoff: float = 1.0, temperature: float = 0.0, max_tokens: int = 512,
+                 temperature: float = 0.0, max_tokens: int = 512,
                  extra_body: dict[str, Any] | None = None, prompt: Prompt | None = None,
-                 max_segments: int = MAX_SEGMENTS) -> None:
+                 max_segments: int = MAX_SEGMENTS, max_failures_in_a_row: int | None = None) -> None:
         super().__init__(prompt, max_retries, max_segments)
-        if not base_url.startswith(("http://", "https://")):
-            raise ValueError(f"OpenAISegmenter: base_url must start with http:// or https://, got {base_url!r}")
+        import openai  # import on use: `segmo --help` and the rule backend stay fast
+
+        base_url = base_url or os.environ.get("OPENAI_BASE_URL")
+        if not base_url:
+            raise SegmoError("OpenAISegmenter: no base URL (pass base_url / --base-url, or set "
+                             "OPENAI_BASE_URL)")
         if concurrency < 1:
-            raise ValueError(f"OpenAISegmenter: concurrency must be >= 1, got {concurrency}")
-        self.url = base_url.rstrip("/") + "/chat/completions"
+            raise SegmoError(f"OpenAISegmenter: concurrency must be >= 1, got {concurrency}")
+        if not (timeout > 0 and math.isfinite(timeout)):
+            raise SegmoError(f"OpenAISegmenter: timeout must be a positive number of seconds, got {timeout}")
+        self.base_url = check_base_url(base_url).rstrip("/")
         self.model = model
-        self.api_key = os.environ.get(api_key_env, "")
-        self.concurrency, self.timeout, self.backoff = concurrency, timeout, backoff
-        self.body = {"model": model, "temperature": temperature, "max_tokens": max_tokens, **(extra_body or {})}
+        self.api_key_env = api_key_env
+        self.concurrency, self.timeout = concurrency, timeout
+        self.client = openai.OpenAI(base_url=self.base_url, api_key=os.environ.get(api_key_env) or "none",
+                                    timeout=timeout, max_retries=max_retries)
+        self.options = {"temperature": temperature, "max_tokens": max_tokens}
+        self.extra_body = extra_body
         self.name = f"openai-{_slug(model)}"
+        self.max_failures_in_a_row = max_failures_in_a_row or max(16, 2 * concurrency)
+        self._lock = threading.Lock()
+        self._failures_in_a_row = 0
+        self._last_failure = ""
+
+    def _failed(self, reason: str) -> RuntimeError:
+        with self._lock:
+            self._failures_in_a_row += 1
+            self._last_failure = reason
+        return RuntimeError(reason)
 
     def _request(self, messages: list[dict[str, str]]) -> str | Exception:
-        """The answer text, or the last transport error once the retries are spent."""
-        data = json.dumps({**self.body, "messages": messages}).encode("utf-8")
-        headers = {"Content-Type": "application/json"}
-        if self.api_key:
-            headers["Authorization"] = f"Bearer {self.api_key}"
-        error: Exception = RuntimeError("no request made")
-        for attempt in range(self.max_retries + 1):
-            try:
-                req = urllib.request.Request(self.url, data=data, headers=headers, method="POST")
-                with urllib.request.urlopen(req, timeout=self.timeout) as response:
-                    payload = json.loads(response.read().decode("utf-8"))
-                return payload["choices"][0]["message"]["content"] or ""
-            except urllib.error.HTTPError as err:
-                if err.code != 429 and err.code < 500:
-                    raise RuntimeError(f"OpenAISegmenter: {self.url} answered HTTP {err.code}: "
-                                       f"{err.read()[:200]!r}") from err
-                error = err
-            except (urllib.error.URLError, TimeoutError, ConnectionError, http.client.HTTPException) as err:
-                error = err
-            except (json.JSONDecodeError, KeyError, IndexError, TypeError) as err:
-                return f"<unreadable response: {err}>"  # validated (and re-asked) upstream
-            if attempt < self.max_retries:
-                time.sleep(self.backoff * 2**attempt)
-        return error  # handed to the rule fallback by the caller
+        """The answer text, or the error that remained once the client's retries were spent."""
+        import openai
+
+        if self._failures_in_a_row >= self.max_failures_in_a_row:
+            return RuntimeError("not asked: the server is down")
+        try:
+            completion = self.client.chat.completions.create(
+                model=self.model, messages=messages, extra_body=self.extra_body, **self.options)
+        except (openai.AuthenticationError, openai.PermissionDeniedError, openai.NotFoundError) as err:
+            raise SegmoError(f"{self.base_url} answered HTTP {err.status_code} for model "
+                             f"{self.model!r} ({str(err.message)[:200]}); check --base-url, --model "
+                             f"and the API key in ${self.api_key_env}") from err
+        except openai.APIStatusError as err:
+            return self._failed(f"HTTP {err.status_code} ({str(err.message)[:120]}) after "
+                                f"{self.max_retries} retries")
+        except openai.APITimeoutError:
+            return self._failed(f"no answer within {self.timeout:g} s, {self.max_retries} retries")
+        except openai.APIConnectionError as err:
+            return self._failed(f"cannot reach {self.base_url} ({err.__cause__ or err}), "
+                                f"{self.max_retries} retries")
+        except (openai.APIResponseValidationError, ValueError, TypeError, KeyError) as err:
+            # a broken body (invalid JSON) from a live server: validated, so re-asked, upstream
+            return f"{UNREADABLE} ({type(err).__name__}: {str(err)[:120]})>"
+        with self._lock:
+            self._failures_in_a_row = 0
+        choices = getattr(completion, "choices", None) or []
+        message = getattr(choices[0], "message", None) if choices else None
+        return getattr(message, "content", None) or ""  # an empty answer is re-asked upstream
 
     def _complete_many(self, conversations: list[list[dict[str, str]]]) -> list[str | Exception]:
         if len(conversations) == 1:
-            return [self._request(conversations[0])]
-        with ThreadPoolExecutor(max_workers=self.concurrency) as pool:
-            return list(pool.map(self._request, conversations))
+            answers = [self._request(conversations[0])]
+        else:
+            with ThreadPoolExecutor(max_workers=self.concurrency) as pool:
+                answers = list(pool.map(self._request, conversations))
+        if self._failures_in_a_row >= self.max_failures_in_a_row:
+            raise LLMUnavailableError(
+                f"{self.base_url}: {self._failures_in_a_row} requests in a row failed (last: "
+                f"{self._last_failure}); stopped asking. The files written so far are kept: re-run "
+                "when the server answers")
+        return answers
 
 
 # ---------------------------------------------------------------- local transformers model
@@ -285,13 +307,13 @@ class TransformersSegmenter(LLMSegmenter):
         from transformers import AutoModelForCausalLM, AutoTokenizer  # heavy, import on use
 
         if batch_size < 1:
-            raise ValueError(f"TransformersSegmenter: batch_size must be >= 1, got {batch_size}")
+            raise SegmoError(f"TransformersSegmenter: batch_size must be >= 1, got {batch_size}")
         self.tokenizer = AutoTokenizer.from_pretrained(model_name_or_path)
         self.tokenizer.padding_side = "left"  # generation continues the right end
         if self.tokenizer.pad_token is None:
             self.tokenizer.pad_token = self.tokenizer.eos_token
         if getattr(self.tokenizer, "chat_template", None) is None:
-            raise ValueError(f"TransformersSegmenter: {model_name_or_path} has no chat template")
+            raise SegmoError(f"TransformersSegmenter: {model_name_or_path} has no chat template")
         self.model = AutoModelForCausalLM.from_pretrained(model_name_or_path).to(device).eval()
         self.device, self.max_new_tokens, self.batch_size = device, max_new_tokens, batch_size
         self.enable_thinking = enable_thinking
@@ -329,10 +351,10 @@ def get_segmenter(backend: str, **options: Any) -> TextSegmenter:
     if backend == "rule":
         extra = set(options) - {"max_segments"}
         if extra:
-            raise ValueError(f"get_segmenter: the rule backend takes no option(s) {sorted(extra)}")
+            raise SegmoError(f"get_segmenter: the rule backend takes no option(s) {sorted(extra)}")
         return RuleSegmenter(**options)
     if backend == "openai":
         return OpenAISegmenter(**options)
     if backend == "transformers":
         return TransformersSegmenter(**options)
-    raise ValueError(f"get_segmenter: unknown backend {backend!r} (choose rule, openai, transformers)")
+    raise SegmoError(f"get_segmenter: unknown backend {backend!r} (choose rule, openai, transformers)")

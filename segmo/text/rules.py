@@ -396,6 +396,25 @@ class RuleSegmenter:
         return _strip(f"{prefix} {body[:1].lower()}{body[1:]}")
 
 
+def action_clauses(caption: str) -> list[str]:
+    """The caption's actions as its own clause texts, in execution order.
+
+    These are the clauses `RuleSegmenter` turns into segments, before it rewrites them
+    (restored subjects, tense), with an elided verb put back ("then forward again" ->
+    "walks forward again"): ``"a man runs after walking"`` gives ``["walking", "a man
+    runs"]``. The LLM validator checks an answer's order against them. A single action
+    gives one clause.
+    """
+    toks = _tokenize(caption)
+    if not toks:
+        return []
+    clauses = _split(toks)
+    main_clause = clauses[1] if clauses[0].join.startswith("lead-") and len(clauses) > 1 else clauses[0]
+    units = _order(_merge(caption, toks, clauses, _verb_kinds(toks, main_clause.verb)))
+    return [" ".join(filter(None, (u.copied_verb, caption[toks[u.start].start : toks[u.end - 1].end])))
+            for u in units if u.start < u.end]
+
+
 def lemma(word: str) -> str:
     """A crude lemma for comparing words across inflections ("ran" -> "run", "steps" -> "step").
 

@@ -1,0 +1,120 @@
+"""A fake OpenAI-compatible chat-completions server on 127.0.0.1, run in a thread of the test.
+
+It answers every caption with the rule segmenter's split (a valid answer), except for the
+captions given a fault in ``faults`` (caption -> fault name, see `FakeOpenAI.FAULTS`). A
+fault whose name ends in ``-once`` happens on the caption's first request only. Every
+request is recorded (caption, arrival time), so tests can check retries and waits.
+
+    with FakeOpenAI(faults={"a man runs": "500"}) as server:
+        OpenAISegmenter(server.url, "tiny", timeout=0.5).segment(["a man runs"])
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import defaultdict
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+from segmo.text.rules import RuleSegmenter
+
+RETRY_AFTER = 1.2  # seconds a 429 asks for; more than the client's own first back-off (0.5 s)
+HANG = 2.0  # seconds a "hang" waits before answering; tests use a shorter client timeout
+
+
+def _envelope(content: str) -> str:
+    return json.dumps({"id": "x", "object": "chat.completion", "created": 0, "model": "tiny",
+                       "choices": [{"index": 0, "finish_reason": "stop",
+                                    "message": {"role": "assistant", "content": content}}]})
+
+
+class FakeOpenAI:
+    FAULTS = ("500", "429", "hang", "badjson", "invalidjson", "prose", "itisit", "copies",
+              "dropped", "reversed", "401")
+
+    def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None) -> None:
+        self.faults = dict(faults or {})
+        self.calls: dict[str, int] = defaultdict(int)
+        self.times: dict[str, list[float]] = defaultdict(list)
+        self.total = 0
+        self.block_at = block_at  # the request with this number (1-based) waits for `release`
+        self.blocked = threading.Event()
+        self.release = threading.Event()
+        self._lock = threading.Lock()
+        self._rules = RuleSegmenter()
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"  # keep-alive, as real servers do
+
+            def log_message(self, *args):
+                pass
+
+            def do_POST(self):
+                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+                code, headers, text = server.respond(self.path, body)
+                try:
+                    self.send_response(code)
+                    for key, value in {"Content-Type": "application/json", **headers}.items():
+                        self.send_header(key, value)
+                    self.send_header("Content-Length", str(len(text.encode())))
+                    self.end_headers()
+                    self.wfile.write(text.encode())
+                except OSError:
+                    pass  # the client gave up (timeout) or was killed
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
+
+    # ------------------------------------------------------------------ behaviour
+    def respond(self, path: str, body: dict) -> tuple[int, dict[str, str], str]:
+        if path != "/v1/chat/completions":
+            return 404, {}, '{"error": {"message": "no such route"}}'
+        caption = next(m["content"] for m in reversed(body["messages"])
+                       if m["role"] == "user" and not m["content"].startswith("Invalid answer"))
+        with self._lock:
+            self.total += 1
+            number = self.total
+            self.calls[caption] += 1
+            self.times[caption].append(time.monotonic())
+            attempt = self.calls[caption]
+        if self.block_at is not None and number >= self.block_at:
+            self.blocked.set()
+            self.release.wait(60)
+        fault = self.faults.get(caption, "")
+        if fault.endswith("-once"):
+            fault = fault[: -len("-once")] if attempt == 1 else ""
+        segments = self._rules.segment_one(caption)
+        if fault == "401":
+            return 401, {}, '{"error": {"message": "bad key"}}'
+        if fault == "500":
+            return 500, {}, '{"error": {"message": "internal error"}}'
+        if fault == "429":
+            return 429, {"Retry-After": str(RETRY_AFTER)}, '{"error": {"message": "slow down"}}'
+        if fault == "hang":
+            time.sleep(HANG)
+        if fault == "badjson":
+            return 200, {}, '{"choices": [ not json'
+        content = {
+            "invalidjson": '{"segments": ["' + caption,
+            "prose": f"Sure! The person first does this and then that: {caption}.",
+            "itisit": json.dumps({"segments": ["it is it"]}),
+            "copies": json.dumps({"segments": [segments[0]] * 5}),
+            "dropped": json.dumps({"segments": segments[:1]}),
+            "reversed": json.dumps({"segments": segments[::-1]}),
+        }.get(fault, "```json\n" + json.dumps({"segments": segments}) + "\n```")
+        return 200, {}, _envelope(content)
+
+    # ------------------------------------------------------------------ lifetime
+    def __enter__(self) -> FakeOpenAI:
+        self.thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02},
+                                       daemon=True)
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release.set()
+        self.httpd.shutdown()
+        self.httpd.server_close()
