@@ -1,4 +1,5 @@
-"""`segmo segment-texts`: outputs on a tiny dataset folder, resumability, errors."""
+"""`segmo segment-texts`: outputs on a tiny dataset folder, resumability, freshness by
+content (manifest.jsonl), captions without words, and the dataset reader's side of both."""
 
 from __future__ import annotations
 
@@ -6,9 +7,14 @@ import json
 import shutil
 
 import pytest
+from conftest import build_text_dataset
 
 from segmo.cli import main as segmo_main
-from segmo.text.extract import format_line, read_captions, segment_folder
+from segmo.data.humanml3d import MotionDataset
+from segmo.errors import SegmoError
+from segmo.text.captions import captions_hash, read_caption_lines
+from segmo.text.extract import format_line, segment_folder
+from segmo.text.manifest import SegmentManifest
 from segmo.text.rules import RuleSegmenter
 
 TEXTS = {
@@ -102,9 +108,9 @@ def test_errors_name_the_file_and_line(tmp_path):
     root = _dataset(tmp_path / "data")
     bad = root / "texts" / "000002.txt"
     bad.write_bytes(b"a man waves#x#0#0\na man \xff jumps#x#0#0\n")
-    with pytest.raises(ValueError, match=r"000002\.txt:2: not UTF-8"):
+    with pytest.raises(SegmoError, match=r"000002\.txt:2: not UTF-8 text .* at byte 7 of the line"):
         segment_folder(root, RuleSegmenter(), progress=False)
-    with pytest.raises(FileNotFoundError, match="no texts/ folder"):
+    with pytest.raises(SegmoError, match="nowhere: no such folder"):
         segment_folder(tmp_path / "nowhere", RuleSegmenter(), progress=False)
 
 
@@ -132,6 +138,141 @@ def test_cli_argument_errors(tmp_path, capsys):
 def test_helpers(tmp_path):
     assert format_line(["a # b", "c\nd  e"]) == "a b#c d e"
     path = tmp_path / "x.txt"
-    path.write_text("a man walks#a/DET#0#0\n\nno tags here\n")
-    assert read_captions(path) == ["a man walks", "", "no tags here"]
+    path.write_text("a man  walks#a/DET#0#0\n\n  \nno tags here\n.#x#0#0\n")
+    lines = read_caption_lines(path)
+    assert [(c.lineno, c.caption) for c in lines] == [(1, "a man walks"), (4, "no tags here"), (5, ".")]
     shutil.rmtree(tmp_path)
+
+
+# ---------------------------------------------------------------- freshness by content
+def test_a_caption_edited_in_place_is_resegmented(tmp_path, capsys):
+    root = _dataset(tmp_path / "data")
+    segment_folder(root, RuleSegmenter(), progress=False)
+    before = _outputs(root)
+    text = root / "texts" / "000004.txt"  # same number of lines, one caption changed
+    text.write_text("a man runs after walking#x#0.0#0.0\na person kneels then prays#x#0.0#0.0\n")
+    summary = segment_folder(root, RuleSegmenter(), progress=False)
+    assert summary["processed_files"] == 1 and summary["skipped_files"] == 4
+    after = _outputs(root)
+    assert after["000004.txt"] == "a man walks#a man runs\na person kneels#a person prays\n"
+    assert {k: v for k, v in after.items() if k != "000004.txt"} == \
+        {k: v for k, v in before.items() if k != "000004.txt"}
+    record = SegmentManifest(root / "text_segments" / "rule").get("000004")
+    assert record["captions"] == captions_hash(["a man runs after walking", "a person kneels then prays"])
+    assert record["lines"] == 2 and record["fallbacks"] == []
+
+
+def test_a_huge_caption_edited_in_place_is_segmented(tmp_path):
+    root = _dataset(tmp_path / "data")
+    segment_folder(root, RuleSegmenter(), progress=False)
+    words = ("a person walks forward then turns around and waves with the left hand " * 715).split()[:10_000]
+    (root / "texts" / "000002.txt").write_text(" ".join(words) + "#x#0#0\n")
+    assert segment_folder(root, RuleSegmenter(), progress=False)["processed_files"] == 1
+    line = _outputs(root)["000002.txt"]
+    assert line.count("\n") == 1 and 1 <= len(line.split("#")) <= 5
+    assert line.startswith("a person walks forward#a person turns around")
+
+
+def test_manifest_records_and_compaction(tmp_path):
+    root = _dataset(tmp_path / "data")
+    folder = root / "text_segments" / "rule"
+    segment_folder(root, RuleSegmenter(), progress=False)
+    (root / "texts" / "000002.txt").write_text("a man jumps#x#0#0\n")
+    segment_folder(root, RuleSegmenter(), progress=False)
+    lines = (folder / "manifest.jsonl").read_text().splitlines()
+    assert [json.loads(x)["id"] for x in lines] == sorted(TEXTS)  # one record per id, compacted
+
+
+def test_a_torn_last_record_is_ignored_and_cut_off(tmp_path):
+    root = _dataset(tmp_path / "data")
+    folder = root / "text_segments" / "rule"
+    segment_folder(root, RuleSegmenter(), progress=False)
+    manifest = folder / "manifest.jsonl"
+    records = manifest.read_text().splitlines()
+    last = json.loads(records[-1])["id"]
+    # as a kill -9 leaves it: the last record never finished
+    manifest.write_text("\n".join(records[:-1]) + "\n" + records[-1][:25])
+    assert SegmentManifest(folder).get(last) is None and SegmentManifest(folder).get("000001")
+    summary = segment_folder(root, RuleSegmenter(), progress=False)
+    assert summary["processed_files"] == 1  # the unrecorded file is redone
+    assert manifest.read_text().splitlines() == records
+
+
+def test_a_corrupt_record_names_the_manifest_line(tmp_path):
+    root = _dataset(tmp_path / "data")
+    folder = root / "text_segments" / "rule"
+    segment_folder(root, RuleSegmenter(), progress=False)
+    manifest = folder / "manifest.jsonl"
+    records = manifest.read_text().splitlines()
+    manifest.write_text("\n".join([records[0], "{oops", *records[2:]]) + "\n")
+    with pytest.raises(SegmoError, match=r"manifest\.jsonl:2: not a segment record"):
+        segment_folder(root, RuleSegmenter(), progress=False)
+
+
+def test_files_without_a_record_are_redone(tmp_path):
+    root = _dataset(tmp_path / "data")
+    folder = root / "text_segments" / "rule"
+    folder.mkdir(parents=True)
+    (folder / "000002.txt").write_text("someone's old segments\n")  # copied in by hand
+    segment_folder(root, RuleSegmenter(), progress=False)
+    assert _outputs(root)["000002.txt"] == "a man waves#a man sits down\n"
+
+
+def test_a_caption_without_words_is_reported_not_blank(tmp_path, capsys, caplog):
+    root = _dataset(tmp_path / "data")
+    (root / "texts" / "000002.txt").write_text("a man waves then sits#x#0#0\n.#x#0#0\n!!!#x#0#0\n")
+    segmo_main(["segment-texts", "--data", str(root), "--quiet"])
+    captured = capsys.readouterr()
+    assert _outputs(root)["000002.txt"] == "a man waves#a man sits\n.\n!!!\n"  # no blank line
+    assert "2 caption(s) without words, not segmented: texts/000002.txt:2, texts/000002.txt:3" \
+        in captured.out
+    assert "000002.txt:2: caption '.' has no words; not segmented" in caplog.text
+    summary = json.loads((root / "text_segments" / "rule" / "summary.json").read_text())
+    assert summary["no_words"] == ["texts/000002.txt:2", "texts/000002.txt:3"]
+    assert summary["captions"] == 9  # those with words
+    record = SegmentManifest(root / "text_segments" / "rule").get("000002")
+    assert record["no_words"] == [{"line": 2, "index": 1}, {"line": 3, "index": 2}]
+
+
+# ---------------------------------------------------------------- the dataset reader's side
+@pytest.fixture
+def motion_data(tmp_path):
+    return build_text_dataset(tmp_path / "data", motions=6, encoders={})
+
+
+def test_reader_refuses_a_stale_segment_file(motion_data):
+    train = (motion_data / "train.txt").read_text().split()
+    text = motion_data / "texts" / f"{train[0]}.txt"
+    lines = text.read_text().splitlines()
+    text.write_text("a person crawls then stands up#x#0.0#0.0\n" + "\n".join(lines[1:]) + "\n")
+    stale = motion_data / "text_segments" / "rule" / f"{train[0]}.txt"
+    with pytest.raises(SegmoError, match=rf"{stale} is stale: its captions were edited .*re-run "
+                                         r"`segmo segment-texts --data"):
+        MotionDataset(motion_data, "train", text_segments="rule")
+    segment_folder(motion_data, RuleSegmenter(), progress=False)  # the fix the message names
+    ds = MotionDataset(motion_data, "train", text_segments="rule")
+    assert ds[0]["segments"] == ["a person crawls", "a person stands up"]
+
+
+def test_reader_skips_a_caption_without_words_as_a_bad_line(motion_data):
+    train = (motion_data / "train.txt").read_text().split()
+    text = motion_data / "texts" / f"{train[0]}.txt"
+    lines = text.read_text().splitlines()
+    text.write_text(lines[0] + "\n.#x#0.0#0.0\n" + "\n".join(lines[1:]) + "\n")
+    segment_folder(motion_data, RuleSegmenter(), progress=False)
+    with pytest.warns(UserWarning, match=r"bad_line: .*\.txt:2: caption without words: '\.'"):
+        ds = MotionDataset(motion_data, "train", text_segments="rule")
+    assert ds.summary["bad_line"] == 1
+    mine = [ds.entries[i] for i in range(len(ds)) if ds.entries[i].motion_id == train[0]]
+    assert [e.caption_index for e in mine] == [0, 2]  # line 3's caption keeps its segments
+    assert mine[1].segments == tuple(RuleSegmenter().segment_one(mine[1].caption))
+
+
+def test_reader_keeps_the_line_count_check_without_a_manifest(motion_data):
+    folder = motion_data / "text_segments" / "rule"
+    (folder / "manifest.jsonl").unlink()  # a hand-made folder, as the reference code writes
+    assert len(MotionDataset(motion_data, "train", text_segments="rule")) > 0
+    train = (motion_data / "train.txt").read_text().split()
+    (folder / f"{train[0]}.txt").write_text("a person walks\n")
+    with pytest.raises(SegmoError, match=r"has 1 lines but .* has 2"):
+        MotionDataset(motion_data, "train", text_segments="rule")

@@ -43,7 +43,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, get_worker_info
 
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.text.captions import caption_of, has_words, read_caption_lines
+from segmo.text.manifest import load_manifest
 
 log = logging.getLogger(__name__)
 
@@ -117,8 +120,8 @@ def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> 
         raise ValueError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
                          f"'#'-separated fields: {line.strip()[:80]!r}")
     caption = parts[0].strip()
-    if not caption:
-        raise ValueError(f"{where}: empty caption")
+    if not has_words(caption):  # "", ".", "!!!": segment-texts reports these too
+        raise ValueError(f"{where}: caption without words: {caption!r}")
     try:
         start, end = float(parts[2]), float(parts[3])
     except ValueError:
@@ -131,8 +134,10 @@ def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> 
 
 
 def _lines(path: Path) -> list[tuple[int, str]]:
-    """Non-blank lines with their 1-based numbers; line i of a caption file ↔ index i here."""
-    return [(n, s) for n, s in enumerate(path.read_text().splitlines(), 1) if s.strip()]
+    """Non-blank lines with their 1-based numbers; line i of a caption file ↔ index i here.
+
+    The one definition segment-texts uses too (`segmo.text.captions.read_caption_lines`)."""
+    return [(c.lineno, c.text) for c in read_caption_lines(path)]
 
 
 def read_npy_shape(path: Path) -> tuple[int, ...]:
@@ -393,24 +398,32 @@ class MotionDataset(Dataset):
     def _read_segments(self, seg_dir: Path | None, mid: str, text_path: Path,
                        lines: list[tuple[int, str]], report: LoadReport
                        ) -> list[tuple[str, ...]] | None:
-        """Per caption line, its text segments; [] when no segment folder was asked for."""
+        """Per caption line, its text segments; [] when no segment folder was asked for.
+
+        A folder written by `segment-texts` has a ``manifest.jsonl`` recording the captions
+        each file was made from: a file made from other captions (edited in place since)
+        raises. Without a manifest (made by hand) only the line counts are compared."""
         if seg_dir is None:
             return []
         path = seg_dir / f"{mid}.txt"
         if not path.is_file():
             report.skip("missing_segments", f"{path}: text-segment file not found")
             return None
+        stale = load_manifest(seg_dir).stale_reason(mid, [caption_of(line) for _, line in lines])
+        if stale is not None:
+            raise SegmoError(f"{path} is stale: {stale} ({text_path}); re-run `segmo segment-texts "
+                             f"--data {self.root}` with the backend that made {seg_dir.name}/")
         seg_lines = _lines(path)
         if len(seg_lines) != len(lines):
-            raise ValueError(f"{path} has {len(seg_lines)} lines but {text_path} has "
+            raise SegmoError(f"{path} has {len(seg_lines)} lines but {text_path} has "
                              f"{len(lines)}; line i of one must match line i of the other")
         out = []
         for lineno, line in seg_lines:
             segs = tuple(s.strip() for s in line.split("#") if s.strip())
             if not segs:
-                raise ValueError(f"{path}:{lineno}: no text segment on the line")
+                raise SegmoError(f"{path}:{lineno}: no text segment on the line")
             if len(segs) > self.max_segments:
-                raise ValueError(f"{path}:{lineno}: {len(segs)} text segments, more than "
+                raise SegmoError(f"{path}:{lineno}: {len(segs)} text segments, more than "
                                  f"max_segments={self.max_segments}")
             out.append(segs)
         return out

@@ -1,16 +1,27 @@
 """`segmo segment-texts`: offline text-segment extraction over a dataset folder.
 
 For every ``DIR/texts/<id>.txt`` this writes ``DIR/text_segments/<name>/<id>.txt``: line i
-holds the segments of caption i (the part of line i before the first '#'), joined by
-'#'. ``<name>`` is the segmenter's name ("rule", "openai-qwen3-8b", ...).
+holds the segments of caption line i (`segmo.text.captions`: the non-blank lines, the
+part before the first '#'), joined by '#'. ``<name>`` is the segmenter's name ("rule",
+"openai-qwen3-8b", ...). A caption without a word (``.``, ``!!!``) is not segmented: it is
+reported (file:line, in the log and in summary.json) and its line holds the caption
+itself (or ``.``) as a placeholder, never a blank line; the dataset reader skips it.
 
-Each output file is written atomically (temporary file + ``os.replace``), so a file that
-exists is complete: a killed run restarts where it stopped, skipping finished files,
-losing at most the captions of the batch in flight and duplicating nothing. A file is
-redone if its line count no longer matches its texts file, or with ``--overwrite``.
-``meta.json`` records the backend, model and prompt hash (a rerun with another model or
-prompt into the same folder is refused without ``--overwrite``); ``summary.json`` the
-counts of the whole folder after the run.
+One writer per dataset folder: the run holds ``DIR/.segmo-writer.lock`` (`FolderLock`),
+so a second `segment-texts` or `encode-texts` on the folder stops at once with the PID
+of the first. Each output file is written atomically and its record (the hash of the
+captions it was made from, its rule fallbacks) is appended to ``manifest.jsonl``
+(`segmo.text.manifest`) right after. A rerun therefore redoes exactly the files that are
+missing, stale (a caption edited in place), unrecorded (a killed run), or that hold
+captions which fell back to the rules (only those captions are asked again), and a
+killed run resumes to the same output as an uninterrupted one. ``--overwrite`` redoes
+everything. ``meta.json`` records the backend, model and prompt hash (a rerun with
+another model or prompt into the same folder is refused without ``--overwrite``);
+``summary.json`` the counts of the whole folder after the run.
+
+LLM outages are loud: when more than ``--max-fallback-share`` (default 0) of the
+folder's captions hold rule fallbacks after the run, the command writes everything and
+then exits with status 2, naming the counts and the record.
 
 Example::
 
@@ -23,33 +34,38 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import math
 import os
 import time
 from collections import Counter
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
 
-from segmo.text.llm import get_segmenter
+from segmo.errors import ArgumentParser, SegmoError
+from segmo.files import FolderLock, remove_temporaries, write_atomic
+from segmo.text.captions import (
+    SEPARATOR,
+    CaptionLine,
+    captions_hash,
+    check_data_folder,
+    has_words,
+    read_caption_lines,
+    read_text,
+)
+from segmo.text.llm import check_base_url, get_segmenter
+from segmo.text.manifest import SegmentManifest
 from segmo.text.rules import TextSegmenter
 
-SEPARATOR = "#"
+log = logging.getLogger(__name__)
 
 
-def read_captions(path: Path) -> list[str]:
-    """Captions of a HumanML3D texts file, one per line (``caption#tokens#from#to``).
-
-    Raises ValueError naming the file and line if it is not UTF-8 text.
-    """
-    data = path.read_bytes()
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as err:
-        line = data[: err.start].count(b"\n") + 1
-        raise ValueError(f"{path}:{line}: not UTF-8 text ({err.reason})") from err
-    return [line.split(SEPARATOR, 1)[0].strip() for line in text.splitlines()]
+class FallbackShareError(SegmoError):
+    """More captions fell back to the rules than ``max_fallback_share`` allows."""
 
 
 def format_line(segments: list[str]) -> str:
@@ -58,17 +74,9 @@ def format_line(segments: list[str]) -> str:
     return SEPARATOR.join(clean)
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _line_count(path: Path) -> int:
-    return len(path.read_text(encoding="utf-8").splitlines())
+def placeholder(caption: str) -> str:
+    """The line written for a caption without words: the caption itself, or '.' if empty."""
+    return format_line([caption]) or "."
 
 
 def describe(segmenter: TextSegmenter, backend: str) -> dict[str, Any]:
@@ -84,13 +92,39 @@ def describe(segmenter: TextSegmenter, backend: str) -> dict[str, Any]:
     }
 
 
-def _batches(ids: list[str], texts_dir: Path, batch_captions: int) -> Iterator[list[tuple[str, list[str]]]]:
-    batch: list[tuple[str, list[str]]] = []
+@dataclass
+class _Job:
+    """One segment file to (re)write: which of its caption lines to ask the segmenter."""
+
+    motion_id: str
+    lines: list[CaptionLine]
+    ask: list[int]  # indices into `lines`
+    keep: list[str]  # the current output lines (a retry of fallbacks keeps the others)
+
+
+def _plan(files: list[Path], out_dir: Path, manifest: SegmentManifest, overwrite: bool) -> list[_Job]:
+    jobs = []
+    for path in files:
+        lines = read_caption_lines(path)
+        out = out_dir / path.name
+        record = manifest.get(path.stem)
+        current = read_text(out).splitlines() if out.is_file() and not overwrite else None
+        fresh = (current is not None and len(current) == len(lines)
+                 and manifest.stale_reason(path.stem, [c.caption for c in lines]) is None
+                 and record is not None)
+        if not fresh:
+            jobs.append(_Job(path.stem, lines, list(range(len(lines))), []))
+        elif record.get("fallbacks"):  # fresh, but some captions fell back: ask only those
+            jobs.append(_Job(path.stem, lines, sorted(f["index"] for f in record["fallbacks"]), current))
+    return jobs
+
+
+def _batches(jobs: list[_Job], batch_captions: int) -> Iterator[list[_Job]]:
+    batch: list[_Job] = []
     size = 0
-    for motion_id in ids:
-        captions = read_captions(texts_dir / f"{motion_id}.txt")
-        batch.append((motion_id, captions))
-        size += len(captions)
+    for job in jobs:
+        batch.append(job)
+        size += len(job.ask)
         if size >= batch_captions:
             yield batch
             batch, size = [], 0
@@ -98,99 +132,205 @@ def _batches(ids: list[str], texts_dir: Path, batch_captions: int) -> Iterator[l
         yield batch
 
 
+def _segment(segmenter: TextSegmenter, captions: list[str]) -> tuple[list[list[str]], dict[int, str]]:
+    if hasattr(segmenter, "segment_with_fallbacks"):
+        results, fell_back = segmenter.segment_with_fallbacks(captions)
+    else:
+        results, fell_back = segmenter.segment(captions), {}
+    if len(results) != len(captions):
+        raise RuntimeError(f"segment-texts: {segmenter.name} returned {len(results)} results "
+                           f"for {len(captions)} captions")
+    return results, fell_back
+
+
+def _write(job: _Job, results: dict[int, list[str]], fell_back: dict[int, str], texts_path: Path,
+           out_dir: Path, manifest: SegmentManifest) -> None:
+    """Write one segment file atomically, then append its record."""
+    lines, no_words = list(job.keep) or [""] * len(job.lines), []
+    for i, cap in enumerate(job.lines):
+        if not has_words(cap.caption):
+            lines[i] = placeholder(cap.caption)
+            no_words.append({"line": cap.lineno, "index": i})
+            log.warning("%s:%d: caption %r has no words; not segmented (its segment line is a "
+                        "placeholder, and the dataset reader skips it)", texts_path, cap.lineno, cap.caption)
+        elif i in results:
+            lines[i] = format_line(results[i])
+    old = manifest.get(job.motion_id) if job.keep else None
+    kept = [f for f in (old or {}).get("fallbacks", []) if f["index"] not in results]
+    fallbacks = sorted(kept + [{"line": job.lines[i].lineno, "index": i, "reason": r}
+                               for i, r in fell_back.items()], key=lambda f: f["index"])
+    write_atomic(out_dir / f"{job.motion_id}.txt", "".join(line + "\n" for line in lines))
+    manifest.append({"id": job.motion_id, "captions": captions_hash([c.caption for c in job.lines]),
+                     "lines": len(lines), "fallbacks": fallbacks, "no_words": no_words})
+
+
 def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "rule", *,
-                   overwrite: bool = False, batch_captions: int = 256, progress: bool = True) -> dict[str, Any]:
-    """Segment every ``texts/<id>.txt`` of `data`; returns the summary (also saved as summary.json)."""
-    data = Path(data)
-    texts_dir = data / "texts"
-    if not texts_dir.is_dir():
-        raise FileNotFoundError(f"segment-texts: no texts/ folder in {data}")
-    out_dir = data / "text_segments" / segmenter.name
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for stale in out_dir.glob(".*.tmp"):  # left by a killed run
-        stale.unlink()
-    meta = describe(segmenter, backend)
-    meta_path = out_dir / "meta.json"
-    if meta_path.is_file() and not overwrite:
-        old = json.loads(meta_path.read_text(encoding="utf-8"))
-        changed = [k for k in ("backend", "model", "prompt_hash") if old.get(k) != meta[k]]
-        if changed:
-            raise ValueError(f"segment-texts: {out_dir} was made with other {changed} "
-                             f"({old}); use --overwrite or another folder")
-    _write_atomic(meta_path, json.dumps(meta, indent=2) + "\n")
+                   overwrite: bool = False, batch_captions: int = 256,
+                   max_fallback_share: float | None = 0.0, progress: bool = True) -> dict[str, Any]:
+    """Segment every ``texts/<id>.txt`` of `data`; returns the summary (also saved as summary.json).
 
-    ids = sorted(p.stem for p in texts_dir.glob("*.txt"))
-    todo = []
-    for motion_id in ids:
-        out = out_dir / f"{motion_id}.txt"
-        if overwrite or not out.is_file() or _line_count(out) != len(read_captions(texts_dir / f"{motion_id}.txt")):
-            todo.append(motion_id)
-    fallbacks_before = getattr(segmenter, "fallbacks", 0)
-    t0 = time.perf_counter()
-    with tqdm(total=len(todo), desc=f"segment-texts [{segmenter.name}]", unit="file", disable=not progress) as bar:
-        for batch in _batches(todo, texts_dir, batch_captions):
-            flat = [c for _, captions in batch for c in captions]
-            results = segmenter.segment(flat)
-            if len(results) != len(flat):
-                raise RuntimeError(f"segment-texts: {segmenter.name} returned {len(results)} results "
-                                   f"for {len(flat)} captions")
-            k = 0
-            for motion_id, captions in batch:
-                lines = [format_line(r) for r in results[k : k + len(captions)]]
-                k += len(captions)
-                _write_atomic(out_dir / f"{motion_id}.txt", "".join(line + "\n" for line in lines))
-                bar.update(1)
-    elapsed = time.perf_counter() - t0
+    Holds the folder's writer lock for the whole run (`FolderBusyError` if another writer
+    has it). Raises `FallbackShareError` after writing everything when more than
+    `max_fallback_share` of the folder's captions hold rule fallbacks (None: never).
+    """
+    if batch_captions < 1:
+        raise SegmoError(f"batch_captions must be >= 1, got {batch_captions}")
+    if max_fallback_share is not None and not 0 <= max_fallback_share <= 1:
+        raise SegmoError(f"max_fallback_share must be between 0 and 1, got {max_fallback_share}")
+    data, files = check_data_folder(data)
+    with FolderLock(data, "segmo segment-texts"):
+        out_dir = data / "text_segments" / segmenter.name
+        out_dir.mkdir(parents=True, exist_ok=True)
+        remove_temporaries(out_dir)  # left by a killed run; ours are not live: we hold the lock
+        meta = describe(segmenter, backend)
+        meta_path = out_dir / "meta.json"
+        if meta_path.is_file() and not overwrite:
+            try:
+                old = json.loads(read_text(meta_path))
+                if not isinstance(old, dict):
+                    raise ValueError("not a JSON object")
+            except ValueError as err:
+                raise SegmoError(f"{meta_path}: not valid JSON ({err}); delete it or use --overwrite") from err
+            changed = [k for k in ("backend", "model", "prompt_hash") if old.get(k) != meta[k]]
+            if changed:
+                raise SegmoError(f"{out_dir} was made with other {', '.join(changed)} ({old}); "
+                                 "use --overwrite or another folder")
+        write_atomic(meta_path, json.dumps(meta, indent=2) + "\n")
+        manifest = SegmentManifest(out_dir)
 
+        jobs = _plan(files, out_dir, manifest, overwrite)
+        t0 = time.perf_counter()
+        fallbacks_now = 0
+        with tqdm(total=len(jobs), desc=f"segment-texts [{segmenter.name}]", unit="file",
+                  disable=not progress) as bar:
+            for batch in _batches(jobs, batch_captions):
+                asked = [(job, i) for job in batch for i in job.ask if has_words(job.lines[i].caption)]
+                results, fell_back = _segment(segmenter, [job.lines[i].caption for job, i in asked])
+                fallbacks_now += len(fell_back)
+                for job in batch:
+                    mine = {k: i for k, (owner, i) in enumerate(asked) if owner is job}
+                    _write(job, {i: results[k] for k, i in mine.items()},
+                           {i: fell_back[k] for k, i in mine.items() if k in fell_back},
+                           data / "texts" / f"{job.motion_id}.txt", out_dir, manifest)
+                    bar.update(1)
+        elapsed = time.perf_counter() - t0
+        ids = [p.stem for p in files]
+        manifest.compact({p.stem for p in out_dir.glob("*.txt")})
+        summary = _summary(meta, ids, out_dir, manifest, len(jobs), fallbacks_now, elapsed)
+        write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    captions, fallen = summary["captions"], summary["fallback_captions"]
+    if max_fallback_share is not None and fallen > max_fallback_share * max(captions, 1):
+        raise FallbackShareError(
+            f"{fallen} of {captions} captions ({100 * fallen / max(captions, 1):.1f}%) hold rule "
+            f"fallbacks because the LLM failed (allowed: {100 * max_fallback_share:g}%, "
+            f"--max-fallback-share {max_fallback_share:g}); each is recorded with its reason under "
+            f"\"fallbacks\" in {manifest.path}; re-run to retry them")
+    return summary
+
+
+def _summary(meta: dict, ids: list[str], out_dir: Path, manifest: SegmentManifest, processed: int,
+             fallbacks_now: int, elapsed: float) -> dict[str, Any]:
     histogram: Counter[int] = Counter()
+    no_words, fallen = [], 0
     for motion_id in ids:
-        for line in (out_dir / f"{motion_id}.txt").read_text(encoding="utf-8").splitlines():
-            histogram[len(line.split(SEPARATOR))] += 1
+        record = manifest.get(motion_id) or {}
+        skip = {n["index"] for n in record.get("no_words", [])}
+        no_words += [f"texts/{motion_id}.txt:{n['line']}" for n in record.get("no_words", [])]
+        fallen += len(record.get("fallbacks", []))
+        lines = read_text(out_dir / f"{motion_id}.txt").splitlines()
+        histogram.update(len(line.split(SEPARATOR)) for i, line in enumerate(lines) if i not in skip)
     captions = sum(histogram.values())
-    summary = {
+    return {
         **meta,
         "motions": len(ids),
         "captions": captions,
         "segment_histogram": {str(k): histogram[k] for k in sorted(histogram)},
         "mean_segments": round(sum(k * v for k, v in histogram.items()) / max(captions, 1), 4),
-        "processed_files": len(todo),
-        "skipped_files": len(ids) - len(todo),
-        "fallbacks": getattr(segmenter, "fallbacks", 0) - fallbacks_before,
+        "processed_files": processed,
+        "skipped_files": len(ids) - processed,
+        "fallbacks": fallbacks_now,  # captions that fell back in this run
+        "fallback_captions": fallen,  # captions of the folder holding a fallback now
+        "no_words": no_words,
         "seconds": round(elapsed, 3),
     }
-    _write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
-    return summary
+
+
+# --------------------------------------------------------------------------- command
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _count(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
+    return value
+
+
+def _share(text: str) -> float:
+    value = float(text)
+    if not 0 <= value <= 1:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"must be a share between 0 and 1, got {text}")
+    return value
+
+
+for _f, _name in ((_positive_int, "int"), (_count, "int"), (_seconds, "float"), (_share, "float")):
+    _f.__name__ = _name  # argparse names the type in "invalid int value: 'x'"
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="segmo segment-texts", description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="segmo segment-texts", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="dataset folder holding texts/")
     parser.add_argument("--backend", choices=["rule", "openai", "transformers"], default="rule")
     parser.add_argument("--model", help="model name (openai) or name/path (transformers)")
-    parser.add_argument("--base-url", help="OpenAI-compatible server, e.g. http://localhost:8000/v1")
+    parser.add_argument("--base-url", help="OpenAI-compatible server, e.g. http://localhost:8000/v1 "
+                                           "(default: $OPENAI_BASE_URL)")
     parser.add_argument("--api-key-env", help="environment variable holding the API key (OPENAI_API_KEY)")
-    parser.add_argument("--concurrency", type=int, help="parallel requests (openai, default 8)")
-    parser.add_argument("--timeout", type=float, help="seconds per request (openai, default 60)")
-    parser.add_argument("--max-retries", type=int, help="re-asks before the rule fallback")
+    parser.add_argument("--concurrency", type=_positive_int, help="parallel requests (openai, default 8)")
+    parser.add_argument("--timeout", type=_seconds, help="seconds per request (openai, default 60)")
+    parser.add_argument("--max-retries", type=_count,
+                        help="retries of a failed request and re-asks of a rejected answer before "
+                             "the rule fallback (default: openai 3, transformers 1)")
+    parser.add_argument("--max-fallback-share", type=_share, default=0.0,
+                        help="exit with status 2 when more than this share of the captions hold rule "
+                             "fallbacks after the run (default 0)")
     parser.add_argument("--device", help="torch device (transformers, default cpu)")
-    parser.add_argument("--batch-size", type=int, help="generation batch (transformers, default 8)")
+    parser.add_argument("--batch-size", type=_positive_int, help="generation batch (transformers, default 8)")
     parser.add_argument("--no-think", action="store_true",
                         help="openai: ask the server to disable Qwen3 thinking (chat_template_kwargs)")
-    parser.add_argument("--batch-captions", type=int, default=256, help="captions per segmenter call")
+    parser.add_argument("--batch-captions", type=_positive_int, default=256, help="captions per segmenter call")
     parser.add_argument("--overwrite", action="store_true", help="redo every file")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
-
+    check_data_folder(args.data)  # before an LLM backend loads a model
     if args.backend == "rule":
-        given = [f for f in ("model", "base_url", "concurrency", "timeout", "device", "batch_size")
-                 if getattr(args, f) is not None]
+        given = [f for f in ("model", "base_url", "concurrency", "timeout", "device", "batch_size",
+                             "max_retries") if getattr(args, f) is not None]
         if given:
             parser.error(f"--backend rule takes none of {['--' + g.replace('_', '-') for g in given]}")
         segmenter = get_segmenter("rule")
     elif args.backend == "openai":
-        if not args.base_url or not args.model:
-            parser.error("--backend openai needs --base-url and --model")
+        if not args.model:
+            parser.error("--backend openai needs --model")
+        base_url = args.base_url or os.environ.get("OPENAI_BASE_URL")
+        if not base_url:
+            parser.error("--backend openai needs --base-url (or OPENAI_BASE_URL in the environment)")
+        try:
+            check_base_url(base_url)
+        except SegmoError as err:
+            parser.error(f"argument --base-url: {err}")
         extra = {"chat_template_kwargs": {"enable_thinking": False}} if args.no_think else None
-        segmenter = get_segmenter("openai", base_url=args.base_url, model=args.model,
+        segmenter = get_segmenter("openai", base_url=base_url, model=args.model,
                                   api_key_env=args.api_key_env, concurrency=args.concurrency,
                                   timeout=args.timeout, max_retries=args.max_retries, extra_body=extra)
     else:
@@ -198,10 +338,24 @@ def main(argv: list[str] | None = None) -> None:
             parser.error("--backend transformers needs --model")
         segmenter = get_segmenter("transformers", model_name_or_path=args.model, device=args.device,
                                   batch_size=args.batch_size, max_retries=args.max_retries)
-    summary = segment_folder(args.data, segmenter, args.backend, overwrite=args.overwrite,
-                             batch_captions=args.batch_captions)
     out_dir = args.data / "text_segments" / segmenter.name
+    try:
+        summary = segment_folder(args.data, segmenter, args.backend, overwrite=args.overwrite,
+                                 batch_captions=args.batch_captions,
+                                 max_fallback_share=args.max_fallback_share, progress=not args.quiet)
+    except FallbackShareError:
+        _print(json.loads(read_text(out_dir / "summary.json")), out_dir)
+        raise
+    _print(summary, out_dir)
+
+
+def _print(summary: dict[str, Any], out_dir: Path) -> None:
     print(f"segment-texts: {summary['motions']} motions, {summary['captions']} captions -> {out_dir}")
     print(f"  segments per caption: {summary['segment_histogram']} (mean {summary['mean_segments']})")
     print(f"  processed {summary['processed_files']} files, skipped {summary['skipped_files']}, "
-          f"fallbacks {summary['fallbacks']}, {summary['seconds']:.1f} s")
+          f"fallbacks {summary['fallbacks']} this run, {summary['fallback_captions']} in the folder, "
+          f"{summary['seconds']:.1f} s")
+    if summary["no_words"]:
+        shown = ", ".join(summary["no_words"][:5])
+        more = f" (+{len(summary['no_words']) - 5} more, listed in summary.json)" if len(summary["no_words"]) > 5 else ""
+        print(f"  {len(summary['no_words'])} caption(s) without words, not segmented: {shown}{more}")

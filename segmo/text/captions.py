@@ -1,0 +1,89 @@
+"""What "the caption lines of ``texts/<id>.txt``" are: one definition for every reader.
+
+`segment-texts` (which writes one segment line per caption line), `encode-texts` (which
+encodes the captions) and the dataset reader (which pairs caption line i with segment
+line i) all read a texts file through `read_caption_lines`, so they cannot disagree on
+which lines count:
+
+* a caption line is a line of the file that is not blank (whitespace only);
+* its caption is the part before the first '#', whitespace runs collapsed to one space;
+* a caption without a letter or digit (``.``, ``!!!``, an empty first field) has no words:
+  `segment-texts` reports it and writes a placeholder line, the dataset reader skips it
+  as a bad line, `encode-texts` does not encode it.
+
+`captions_hash` is what a segment file's record in ``manifest.jsonl`` stores, so that a
+caption edited in place makes its segment file stale (`segmo.text.manifest`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from segmo.errors import SegmoError
+
+SEPARATOR = "#"
+_WORD = re.compile(r"[^\W_]")  # a letter or digit, in any script
+
+
+@dataclass(frozen=True)
+class CaptionLine:
+    """One caption line of a texts file."""
+
+    lineno: int  # 1-based line number in the file, for messages
+    text: str  # the whole line, stripped
+    caption: str  # the part before the first '#', whitespace-normalised
+
+
+def caption_of(line: str) -> str:
+    """The caption of a texts-file line: the first '#' field, whitespace-normalised."""
+    return " ".join(line.split(SEPARATOR, 1)[0].split())
+
+
+def has_words(text: str) -> bool:
+    """Whether `text` holds a letter or a digit (``.`` and ``!!!`` do not)."""
+    return _WORD.search(text) is not None
+
+
+def read_text(path: Path) -> str:
+    """A file's text, decoded as UTF-8; SegmoError naming the file and line otherwise."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        line = data[: err.start].count(b"\n") + 1
+        column = err.start - data.rfind(b"\n", 0, err.start)
+        raise SegmoError(f"{path}:{line}: not UTF-8 text ({err.reason} at byte {column} "
+                         "of the line)") from err
+
+
+def read_caption_lines(path: str | Path) -> list[CaptionLine]:
+    """The caption lines of a texts file (see the module docstring), in file order."""
+    path = Path(path)
+    return [CaptionLine(n, s.strip(), caption_of(s))
+            for n, s in enumerate(read_text(path).splitlines(), 1) if s.strip()]
+
+
+def captions_hash(captions: list[str]) -> str:
+    """sha256 (hex) of a file's caption list, in order; what a segment file was made from."""
+    payload = json.dumps([" ".join(c.split()) for c in captions], ensure_ascii=False)
+    return hashlib.sha256(payload.encode("utf-8")).hexdigest()
+
+
+def check_data_folder(data: str | Path) -> tuple[Path, list[Path]]:
+    """`data` and its texts files; SegmoError naming what is wrong with the folder."""
+    data = Path(data)
+    if not data.exists():
+        raise SegmoError(f"--data {data}: no such folder")
+    if not data.is_dir():
+        raise SegmoError(f"--data {data}: is a file, not a dataset folder (the folder holding texts/)")
+    texts_dir = data / "texts"
+    if not texts_dir.is_dir():
+        raise SegmoError(f"--data {data}: no texts/ folder in it (expected {texts_dir}/<id>.txt)")
+    files = sorted(p for p in texts_dir.glob("*.txt") if p.is_file())
+    if not files:
+        raise SegmoError(f"{texts_dir} holds no <id>.txt caption files")
+    return data, files
