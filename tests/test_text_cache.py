@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from segmo.errors import SegmoError
 from segmo.text.cache import TextFeatureCache, main, normalise_text, update_cache
 from segmo.text.encoders import get_text_encoder
 
@@ -163,7 +164,7 @@ def test_command_summary_and_errors(tmp_path, capsys):
     assert "5 distinct texts, 5 new, 0 reused" in out and "MiB on disk" in out
     main(["--data", str(root)])
     assert "0 new, 5 reused" in capsys.readouterr().out
-    with pytest.raises(SystemExit, match=r"no texts/ folder.*nowhere"):
+    with pytest.raises(SegmoError, match=r"--data .*nowhere: no such folder"):
         main(["--data", str(tmp_path / "nowhere")])
-    with pytest.raises(SystemExit, match=r"text_segments/llm.*present: rule"):
+    with pytest.raises(SegmoError, match=r"--segments llm: no text-segment folder .*text_segments/llm.*present: rule"):
         main(["--data", str(root), "--segments", "llm"])

@@ -16,25 +16,36 @@ Layout (all arrays ``.npy``, memory-mapped on read)::
 
 Token features are kept for captions only (segments need just a sentence vector).
 Sentence vectors are float16, half the size of float32: on all-MiniLM-L6-v2 (400
-synthetic captions/segments) cosine similarities between texts move by at most 6e-5. Updates are incremental and crash-safe: a run encodes
-only texts missing from the cache, writes each new shard's files under temporary names,
-renames them, and only then atomically replaces ``index.json``; files of a killed run
-that never reached the index are ignored and later overwritten. One writer at a time.
+synthetic captions/segments) cosine similarities between texts move by at most 6e-5.
+Captions are the caption lines of `segmo.text.captions` (the definition segment-texts
+and the dataset reader use); captions and segments without a word (".") are not encoded.
+
+Updates are incremental and crash-safe: a run encodes only texts missing from the cache,
+writes each new shard's files atomically (`segmo.files.write_atomic`), and only then
+atomically replaces ``index.json``; files of a killed run that never reached the index
+are ignored and later overwritten, so a killed run resumes to the same files as an
+uninterrupted one. One writer per dataset folder: `update_cache` holds the folder's
+`FolderLock` for its whole run, so a second `encode-texts` (or a `segment-texts`) on the
+same folder stops at once naming the first one's PID, and nothing is lost. Expected
+failures (a missing folder, a file that is not UTF-8, a corrupt index.json or meta.json,
+an unknown encoder) raise `SegmoError` naming the file or argument.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from segmo.errors import ArgumentParser, SegmoError
+from segmo.files import FolderLock, atomic_open, remove_temporaries, write_atomic
+from segmo.text.captions import check_data_folder, has_words, read_caption_lines, read_text
 from segmo.text.encoders import TextEncoder, encoder_folder_name, get_text_encoder
 
 FORMAT = 1
@@ -53,19 +64,10 @@ def cache_folder(root: str | Path, encoder: str) -> Path:
 
 # --------------------------------------------------------------------------- reading texts
 def read_captions(root: str | Path) -> list[str]:
-    """Normalised captions (first '#' field of every line) of ``ROOT/texts/*.txt``, in file
-    order, duplicates kept."""
-    folder = Path(root) / "texts"
-    if not folder.is_dir():
-        raise FileNotFoundError(f"no texts/ folder: {folder} does not exist (is --data the "
-                                "dataset root, holding texts/<id>.txt?)")
-    captions = []
-    for path in sorted(folder.glob("*.txt")):
-        for line in path.read_text(encoding="utf-8").splitlines():
-            caption = normalise_text(line.split("#", 1)[0])
-            if caption:
-                captions.append(caption)
-    return captions
+    """Normalised captions of ``ROOT/texts/*.txt`` (`segmo.text.captions`), in file order,
+    duplicates kept, captions without words left out."""
+    _, files = check_data_folder(root)
+    return [c.caption for path in files for c in read_caption_lines(path) if has_words(c.caption)]
 
 
 def read_segments(root: str | Path, names: list[str] | None = None) -> list[str]:
@@ -77,15 +79,38 @@ def read_segments(root: str | Path, names: list[str] | None = None) -> list[str]
         names = present
     missing = [n for n in names if n not in present]
     if missing:
-        raise FileNotFoundError(f"no text-segment folder {base / missing[0]} (present: "
-                                f"{', '.join(present) or 'none'}; build one with "
-                                "`segmo segment-texts`)")
+        raise SegmoError(f"--segments {missing[0]}: no text-segment folder {base / missing[0]} "
+                         f"(present: {', '.join(present) or 'none'}; build one with "
+                         "`segmo segment-texts`)")
     segments = []
     for name in names:
         for path in sorted((base / name).glob("*.txt")):
-            for line in path.read_text(encoding="utf-8").splitlines():
-                segments += [s for s in map(normalise_text, line.split("#")) if s]
+            for line in read_text(path).splitlines():
+                segments += [s for s in map(normalise_text, line.split("#")) if has_words(s)]
     return segments
+
+
+def _read_json(path: Path, what: str) -> Any:
+    """A JSON object from `path`; SegmoError naming the file when it is not one."""
+    try:
+        value = json.loads(read_text(path))
+        if not isinstance(value, dict):
+            raise ValueError("not a JSON object")
+        return value
+    except ValueError as err:
+        raise SegmoError(f"{path}: corrupt {what} ({err}); delete {path.parent} and re-run "
+                         "`segmo encode-texts`") from err
+
+
+def _read_index(folder: Path) -> dict:
+    index = _read_json(folder / INDEX, "text-feature index")
+    shards = index.get("shards")
+    if index.get("format") != FORMAT or not isinstance(shards, list) or not all(
+            isinstance(sh, dict) and {"name", "texts", "token_texts"} <= set(sh) for sh in shards):
+        raise SegmoError(f"{folder / INDEX}: not a format-{FORMAT} text-feature index (expected "
+                         '{"format": 1, "shards": [{"name", "texts", "token_texts"}, ...]}); delete '
+                         f"{folder} and re-run `segmo encode-texts`")
+    return index
 
 
 # --------------------------------------------------------------------------- the cache
@@ -101,21 +126,24 @@ class TextFeatureCache:
 
     def __init__(self, folder: Path):
         self.folder = Path(folder)
-        self.meta = json.loads((self.folder / META).read_text(encoding="utf-8"))
-        self.dim = int(self.meta["dim"])
-        self.encoder = self.meta["encoder"]
-        index = json.loads((self.folder / INDEX).read_text(encoding="utf-8"))
+        self.meta = _read_json(self.folder / META, "text-feature metadata")
+        try:
+            self.dim = int(self.meta["dim"])
+            self.encoder = self.meta["encoder"]
+        except (KeyError, TypeError, ValueError) as err:
+            raise SegmoError(f"{self.folder / META}: no valid 'dim'/'encoder' ({err!r})") from err
+        index = _read_index(self.folder)
         self._sentences: list[np.ndarray] = []
         self._tokens: list[np.ndarray | None] = []
         self._rows: dict[str, tuple[int, int]] = {}  # text -> (shard, row)
         self._spans: dict[str, tuple[int, int, int]] = {}  # text -> (shard, start, end)
         for s, shard in enumerate(index["shards"]):
             stem = self.folder / shard["name"]
-            self._sentences.append(np.load(f"{stem}.sentence.npy", mmap_mode="r"))
+            self._sentences.append(_load_array(f"{stem}.sentence.npy", mmap_mode="r"))
             self._rows.update((t, (s, r)) for r, t in enumerate(shard["texts"]))
             if shard["token_texts"]:
-                self._tokens.append(np.load(f"{stem}.tokens.npy", mmap_mode="r"))
-                offsets = np.load(f"{stem}.offsets.npy").tolist()
+                self._tokens.append(_load_array(f"{stem}.tokens.npy", mmap_mode="r"))
+                offsets = _load_array(f"{stem}.offsets.npy").tolist()
                 self._spans.update((t, (s, offsets[j], offsets[j + 1]))
                                    for j, t in enumerate(shard["token_texts"]))
             else:
@@ -123,7 +151,8 @@ class TextFeatureCache:
 
     @classmethod
     def open(cls, root: str | Path, encoder: str) -> TextFeatureCache:
-        """Open ``ROOT/text_features/<encoder>/``; FileNotFoundError when it was never built."""
+        """Open ``ROOT/text_features/<encoder>/``; FileNotFoundError when it was never built,
+        SegmoError naming the file when a file of it is corrupt."""
         folder = cache_folder(root, encoder)
         if not (folder / INDEX).is_file() or not (folder / META).is_file():
             raise FileNotFoundError(f"no text-feature cache at {folder}; build it with "
@@ -192,17 +221,16 @@ class CacheSummary:
                 f"reused, {self.seconds:.1f} s, {self.bytes_on_disk / 2**20:.1f} MiB on disk")
 
 
-def _write_atomic(path: Path, write) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def _load_array(path: str, mmap_mode: str | None = None) -> np.ndarray:
+    try:
+        return np.load(path, mmap_mode=mmap_mode)
+    except (OSError, ValueError, EOFError) as err:
+        raise SegmoError(f"{path}: unreadable shard of the text-feature cache ({err}); delete "
+                         f"{Path(path).parent} and re-run `segmo encode-texts`") from err
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    _write_atomic(path, lambda f: f.write(json.dumps(obj, ensure_ascii=False).encode()))
+    write_atomic(path, json.dumps(obj, ensure_ascii=False))
 
 
 def _meta(encoder: TextEncoder) -> dict:
@@ -225,56 +253,73 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
     `segments`: names of ``text_segments/`` folders (None = all present). `encoder`: a name
     for `get_text_encoder` or an encoder object (whose `name` picks the folder); a named
     encoder is loaded only when something needs encoding. `shard_size` texts per shard.
+    Holds the folder's writer lock for the whole run (`FolderBusyError` if another writer
+    has it).
     """
+    if batch_size < 1 or shard_size < 1:
+        raise SegmoError(f"batch_size and shard_size must be >= 1, got {batch_size}, {shard_size}")
     start = time.perf_counter()
-    captions = read_captions(root)
-    if not captions:
-        raise ValueError(f"no captions found in {Path(root) / 'texts'}")
-    caption_set = dict.fromkeys(captions)  # ordered set
-    all_texts = dict.fromkeys([*caption_set, *read_segments(root, segments)])
-    name = encoder.name if isinstance(encoder, TextEncoder) else encoder_folder_name(encoder)
-    folder = Path(root) / "text_features" / name
-    folder.mkdir(parents=True, exist_ok=True)
-    for leftover in folder.glob("*.tmp"):  # from a killed run; never referenced
-        leftover.unlink()
+    root, _ = check_data_folder(root)
+    with FolderLock(root, "segmo encode-texts"):
+        captions = read_captions(root)
+        if not captions:
+            raise SegmoError(f"no caption with words in {root / 'texts'}")
+        caption_set = dict.fromkeys(captions)  # ordered set
+        all_texts = dict.fromkeys([*caption_set, *read_segments(root, segments)])
+        name = encoder.name if isinstance(encoder, TextEncoder) else encoder_folder_name(encoder)
+        folder = root / "text_features" / name
+        folder.mkdir(parents=True, exist_ok=True)
+        remove_temporaries(folder)  # from a killed run; never referenced
 
-    index = {"format": FORMAT, "shards": []}
-    if (folder / INDEX).is_file():
-        index = json.loads((folder / INDEX).read_text(encoding="utf-8"))
-    have = {t for shard in index["shards"] for t in shard["texts"]}
-    have_tokens = {t for shard in index["shards"] for t in shard["token_texts"]}
-    todo = [t for t in all_texts if t not in have or (t in caption_set and t not in have_tokens)]
-    # similar lengths in a shard keep the encoder's padding small
-    todo.sort(key=len, reverse=True)
+        index = _read_index(folder) if (folder / INDEX).is_file() else {"format": FORMAT, "shards": []}
+        have = {t for shard in index["shards"] for t in shard["texts"]}
+        have_tokens = {t for shard in index["shards"] for t in shard["token_texts"]}
+        todo = [t for t in all_texts if t not in have or (t in caption_set and t not in have_tokens)]
+        # similar lengths in a shard keep the encoder's padding small
+        todo.sort(key=len, reverse=True)
 
-    if todo:
-        if not isinstance(encoder, TextEncoder):
-            encoder = get_text_encoder(encoder, device=device)
-        meta = _meta(encoder)
-        if (folder / META).is_file():
-            old = json.loads((folder / META).read_text(encoding="utf-8"))
-            if (old["dim"], old["kind"]) != (meta["dim"], meta["kind"]):
-                raise ValueError(f"{folder} holds {old['kind']} features of dim {old['dim']}, "
-                                 f"but encoder {encoder!r} gives dim {meta['dim']}; delete the "
-                                 "folder or use another encoder name")
-        else:
-            _write_json(folder / META, meta)
-        if not (folder / INDEX).is_file():  # an empty but valid cache from the start
-            _write_json(folder / INDEX, index)
-        from tqdm.auto import tqdm
+        if todo:
+            if not isinstance(encoder, TextEncoder):
+                encoder = _load_encoder(encoder, device)
+            meta = _meta(encoder)
+            if (folder / META).is_file():
+                old = _read_json(folder / META, "text-feature metadata")
+                if (old.get("dim"), old.get("kind")) != (meta["dim"], meta["kind"]):
+                    raise SegmoError(f"{folder} holds {old.get('kind')} features of dim "
+                                     f"{old.get('dim')}, but encoder {encoder!r} gives dim "
+                                     f"{meta['dim']}; delete the folder or use another encoder name")
+            else:
+                _write_json(folder / META, meta)
+            if not (folder / INDEX).is_file():  # an empty but valid cache from the start
+                _write_json(folder / INDEX, index)
+            from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(todo), desc=f"encode-texts [{name}]", unit="text",
-                   disable=not progress)
-        for first in range(0, len(todo), shard_size):
-            chunk = todo[first:first + shard_size]
-            _append_shard(folder, index, encoder, chunk, have, caption_set, batch_size)
-            bar.update(len(chunk))
-        bar.close()
+            bar = tqdm(total=len(todo), desc=f"encode-texts [{name}]", unit="text",
+                       disable=not progress)
+            for first in range(0, len(todo), shard_size):
+                chunk = todo[first:first + shard_size]
+                _append_shard(folder, index, encoder, chunk, have, caption_set, batch_size)
+                bar.update(len(chunk))
+            bar.close()
 
-    size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+        size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
     return CacheSummary(folder=folder, total=len(all_texts), new=len(todo),
                         reused=len(all_texts) - len(todo),
                         seconds=time.perf_counter() - start, bytes_on_disk=size)
+
+
+def _load_encoder(name: str, device: str) -> TextEncoder:
+    """`get_text_encoder`, with its expected failures as one SegmoError line."""
+    try:
+        torch.device(device)
+    except RuntimeError as err:
+        raise SegmoError(f"--device {device!r}: not a torch device ({err})") from err
+    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+        raise SegmoError(f"--device {device!r}: this torch build sees no CUDA device")
+    try:
+        return get_text_encoder(name, device=device)
+    except (OSError, ImportError, ValueError) as err:
+        raise SegmoError(f"--encoder {name!r}: {err}") from err
 
 
 def _append_shard(folder: Path, index: dict, encoder: TextEncoder, chunk: list[str],
@@ -294,7 +339,8 @@ def _append_shard(folder: Path, index: dict, encoder: TextEncoder, chunk: list[s
     arrays = {"sentence": out.sentence[rows].numpy().astype(np.float16),
               "tokens": tokens.numpy().astype(np.float16), "offsets": offsets}
     for kind, array in arrays.items():
-        _write_atomic(folder / f"{stem}.{kind}.npy", lambda f, a=array: np.save(f, a))
+        with atomic_open(folder / f"{stem}.{kind}.npy", "wb") as f:
+            np.save(f, array)
     shard = {"name": stem, "texts": [chunk[i] for i in rows],
              "token_texts": [chunk[i] for i in token_rows]}
     _write_json(folder / INDEX, {**index, "shards": [*index["shards"], shard]})
@@ -303,29 +349,35 @@ def _append_shard(folder: Path, index: dict, encoder: TextEncoder, chunk: list[s
 
 
 # --------------------------------------------------------------------------- command
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+_positive_int.__name__ = "int"  # argparse names the type in "invalid int value: 'x'"
+
+
 def main(argv: list[str] | None = None) -> None:
     """`segmo encode-texts`: build or extend ``DATA/text_features/<encoder>/``."""
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="segmo encode-texts",
         description="Encode every caption and text segment of a dataset once with a frozen "
                     "text encoder and cache the features under DATA/text_features/<encoder>/.")
-    parser.add_argument("--data", required=True, help="dataset root (holds texts/)")
+    parser.add_argument("--data", type=Path, required=True, help="dataset root (holds texts/)")
     parser.add_argument("--encoder", default="minilm",
                         help="minilm (packaged, default), clip, a model directory or hub name")
     parser.add_argument("--segments", nargs="+", metavar="NAME",
                         help="text_segments/ folders to include (default: all present)")
-    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--batch-size", type=_positive_int, default=64)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--shard-size", type=int, default=1024, help=argparse.SUPPRESS)
+    parser.add_argument("--shard-size", type=_positive_int, default=1024, help=argparse.SUPPRESS)
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
-    if args.batch_size < 1 or args.shard_size < 1:
-        parser.error("--batch-size and --shard-size must be >= 1")
-    try:
-        summary = update_cache(args.data, args.encoder, segments=args.segments,
-                               batch_size=args.batch_size, device=args.device,
-                               shard_size=args.shard_size)
-    except (FileNotFoundError, OSError, ValueError) as error:
-        sys.exit(f"segmo encode-texts: {error}")
+    summary = update_cache(args.data, args.encoder, segments=args.segments,
+                           batch_size=args.batch_size, device=args.device,
+                           shard_size=args.shard_size, progress=not args.quiet)
     print(summary)
 
 
