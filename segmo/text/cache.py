@@ -272,6 +272,7 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
         remove_temporaries(folder)  # from a killed run; never referenced
 
         index = _read_index(folder) if (folder / INDEX).is_file() else {"format": FORMAT, "shards": []}
+        old = _read_json(folder / META, "text-feature metadata") if (folder / META).is_file() else None
         have = {t for shard in index["shards"] for t in shard["texts"]}
         have_tokens = {t for shard in index["shards"] for t in shard["token_texts"]}
         todo = [t for t in all_texts if t not in have or (t in caption_set and t not in have_tokens)]
@@ -282,8 +283,7 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
             if not isinstance(encoder, TextEncoder):
                 encoder = _load_encoder(encoder, device)
             meta = _meta(encoder)
-            if (folder / META).is_file():
-                old = _read_json(folder / META, "text-feature metadata")
+            if old is not None:
                 if (old.get("dim"), old.get("kind")) != (meta["dim"], meta["kind"]):
                     raise SegmoError(f"{folder} holds {old.get('kind')} features of dim "
                                      f"{old.get('dim')}, but encoder {encoder!r} gives dim "

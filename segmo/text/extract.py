@@ -5,7 +5,9 @@ holds the segments of caption line i (`segmo.text.captions`: the non-blank lines
 part before the first '#'), joined by '#'. ``<name>`` is the segmenter's name ("rule",
 "openai-qwen3-8b", ...). A caption without a word (``.``, ``!!!``) is not segmented: it is
 reported (file:line, in the log and in summary.json) and its line holds the caption
-itself (or ``.``) as a placeholder, never a blank line; the dataset reader skips it.
+itself (or ``.``) as a placeholder, never a blank line; the dataset reader skips it. A
+malformed line (not ``caption#tokens#from#to``) is segmented, and reported the same way,
+since the dataset reader will skip it too.
 
 One writer per dataset folder: the run holds ``DIR/.segmo-writer.lock`` (`FolderLock`),
 so a second `segment-texts` or `encode-texts` on the folder stops at once with the PID
@@ -46,6 +48,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from segmo.data.humanml3d import parse_text_line
 from segmo.errors import ArgumentParser, SegmoError
 from segmo.files import FolderLock, remove_temporaries, write_atomic
 from segmo.text.captions import (
@@ -102,10 +105,13 @@ class _Job:
     keep: list[str]  # the current output lines (a retry of fallbacks keeps the others)
 
 
-def _plan(files: list[Path], out_dir: Path, manifest: SegmentManifest, overwrite: bool) -> list[_Job]:
-    jobs = []
+def _plan(files: list[Path], out_dir: Path, manifest: SegmentManifest, overwrite: bool
+          ) -> tuple[list[_Job], list[str]]:
+    """The files to (re)write, and the malformed caption lines of all files (for the summary)."""
+    jobs, malformed = [], []
     for path in files:
         lines = read_caption_lines(path)
+        malformed += _malformed(f"texts/{path.name}", lines)
         out = out_dir / path.name
         record = manifest.get(path.stem)
         current = read_text(out).splitlines() if out.is_file() and not overwrite else None
@@ -116,7 +122,20 @@ def _plan(files: list[Path], out_dir: Path, manifest: SegmentManifest, overwrite
             jobs.append(_Job(path.stem, lines, list(range(len(lines))), []))
         elif record.get("fallbacks"):  # fresh, but some captions fell back: ask only those
             jobs.append(_Job(path.stem, lines, sorted(f["index"] for f in record["fallbacks"]), current))
-    return jobs
+    return jobs, malformed
+
+
+def _malformed(label: str, lines: list[CaptionLine]) -> list[str]:
+    """"FILE:LINE: why" for each line with words that the dataset reader will skip (it is
+    segmented all the same: segments depend on the caption only)."""
+    out = []
+    for cap in lines:
+        if has_words(cap.caption):
+            try:
+                parse_text_line(cap.text, label, cap.lineno)
+            except ValueError as err:
+                out.append(str(err))
+    return out
 
 
 def _batches(jobs: list[_Job], batch_captions: int) -> Iterator[list[_Job]]:
@@ -198,7 +217,9 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
         write_atomic(meta_path, json.dumps(meta, indent=2) + "\n")
         manifest = SegmentManifest(out_dir)
 
-        jobs = _plan(files, out_dir, manifest, overwrite)
+        jobs, malformed = _plan(files, out_dir, manifest, overwrite)
+        for problem in malformed:
+            log.warning("%s/%s; segmented, but the dataset reader will skip the line", data, problem)
         t0 = time.perf_counter()
         fallbacks_now = 0
         with tqdm(total=len(jobs), desc=f"segment-texts [{segmenter.name}]", unit="file",
@@ -217,6 +238,7 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
         ids = [p.stem for p in files]
         manifest.compact({p.stem for p in out_dir.glob("*.txt")})
         summary = _summary(meta, ids, out_dir, manifest, len(jobs), fallbacks_now, elapsed)
+        summary["malformed"] = malformed
         write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     captions, fallen = summary["captions"], summary["fallback_captions"]
     if max_fallback_share is not None and fallen > max_fallback_share * max(captions, 1):
@@ -359,3 +381,7 @@ def _print(summary: dict[str, Any], out_dir: Path) -> None:
         shown = ", ".join(summary["no_words"][:5])
         more = f" (+{len(summary['no_words']) - 5} more, listed in summary.json)" if len(summary["no_words"]) > 5 else ""
         print(f"  {len(summary['no_words'])} caption(s) without words, not segmented: {shown}{more}")
+    if summary["malformed"]:
+        more = f" (+{len(summary['malformed']) - 1} more, listed in summary.json)" if len(summary["malformed"]) > 1 else ""
+        print(f"  {len(summary['malformed'])} malformed caption line(s), segmented but skipped by the "
+              f"dataset reader: {summary['malformed'][0]}{more}")

@@ -308,7 +308,11 @@ class TransformersSegmenter(LLMSegmenter):
 
         if batch_size < 1:
             raise SegmoError(f"TransformersSegmenter: batch_size must be >= 1, got {batch_size}")
-        self.tokenizer = AutoTokenizer.from_pretrained(model_name_or_path)
+        try:
+            self.tokenizer = AutoTokenizer.from_pretrained(model_name_or_path)
+        except (OSError, ValueError) as err:  # not a model directory / hub model here
+            raise SegmoError(f"--model {model_name_or_path}: cannot load a tokenizer "
+                             f"({' '.join(str(err).split())[:200]})") from err
         self.tokenizer.padding_side = "left"  # generation continues the right end
         if self.tokenizer.pad_token is None:
             self.tokenizer.pad_token = self.tokenizer.eos_token
