@@ -12,13 +12,15 @@ What is skipped and what raises (``strict=True`` turns every skip into a ``Value
 
 * skipped with one ``warnings.warn`` per kind and counted in ``dataset.summary``: a motion
   file that is missing, empty (0 bytes or 0 frames), unreadable, or holds NaN/inf; a text
-  file that is missing; a text line that is not ``caption#tokens#from#to``; a text-segment
-  file that is missing; a motion without any usable caption;
+  file that is missing; a text line that is not ``caption#tokens#from#to`` or whose caption
+  has no words (``.``); a text-segment file that is missing; a motion without any usable
+  caption;
 * counted only (ordinary filtering, spec §2): samples outside ``min_frames <= t < max_frames``
   and, in window mode, motions shorter than the window;
 * raised: a missing split / statistics file or text-segment folder (``FileNotFoundError``),
   a motion of the wrong shape for the skeleton, statistics of the wrong shape or with a
-  non-positive std, a text-segment file whose line count differs from its text file, more
+  non-positive std, a text-segment file whose line count differs from its text file or
+  that its folder's ``manifest.jsonl`` records as made from other captions (stale), more
   text segments than ``max_segments``, a ground-truth file that does not match its text
   file (``ValueError``). Every message names the file (and line where there is one).
 
