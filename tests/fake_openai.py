@@ -31,7 +31,7 @@ def _envelope(content: str) -> str:
 
 class FakeOpenAI:
     FAULTS = ("500", "429", "hang", "badjson", "invalidjson", "prose", "itisit", "copies",
-              "dropped", "reversed", "401")
+              "dropped", "reversed", "400", "401")
 
     def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None) -> None:
         self.faults = dict(faults or {})
@@ -89,6 +89,8 @@ class FakeOpenAI:
         segments = self._rules.segment_one(caption)
         if fault == "401":
             return 401, {}, '{"error": {"message": "bad key"}}'
+        if fault == "400":  # what a server says to a prompt longer than its context
+            return 400, {}, '{"error": {"message": "maximum context length exceeded"}}'
         if fault == "500":
             return 500, {}, '{"error": {"message": "internal error"}}'
         if fault == "429":

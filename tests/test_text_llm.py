@@ -245,6 +245,15 @@ def test_openai_faults_are_retried_then_fall_back_with_their_reason(caplog):
     assert "falling back" in caplog.text
 
 
+def test_a_caption_the_server_refuses_falls_back_without_retries():
+    caption = " ".join(["a person walks forward then waves"] * 1700)  # 10,000 words
+    with FakeOpenAI({caption: "400"}) as server:
+        seg = _client(server.url, max_retries=3)
+        out, fell_back = seg.segment_with_fallbacks([caption])
+    assert out == [RuleSegmenter().segment_one(caption)] and server.calls[caption] == 1
+    assert fell_back == {0: "request failed: HTTP 400 (Error code: 400 - maximum context length exceeded)"}
+
+
 def test_rejected_answers_are_re_asked_with_the_reason():
     caption = "a person runs after walking"
     with FakeOpenAI({caption: "reversed-once"}) as server:

@@ -206,14 +206,15 @@ class OpenAISegmenter(LLMSegmenter):
 
     `base_url` includes the API version (``http://host:8000/v1``); None reads
     ``OPENAI_BASE_URL``. The key is read from the environment variable `api_key_env`
-    and may be absent for local servers. `timeout` (seconds) bounds each request;
-    timeouts, connection errors, 408/409/429 and 5xx are retried `max_retries` times by
-    the client, after the server's ``Retry-After`` when it sends one (up to two minutes)
-    and otherwise with exponential back-off from 0.5 s. A request still failing then
-    makes its caption fall back to the rules; 401/403/404 raise `SegmoError`, since they
-    mean a wrong configuration rather than a bad caption. After `max_failures_in_a_row`
-    failed requests (default ``max(16, 2 * concurrency)``) with no success in between,
-    the rest is not asked and `LLMUnavailableError` is raised.
+    and may be absent for local servers. `timeout` (seconds) is the longest wait for the
+    server (to connect, or for the next bytes of an answer). Timeouts, connection errors,
+    408/409/429 and 5xx are retried `max_retries` times by the client, after the server's
+    ``Retry-After`` when it sends one (up to two minutes) and otherwise with exponential
+    back-off from 0.5 s. A request still failing then makes its caption fall back to the
+    rules; 401/403/404 raise `SegmoError`, since they mean a wrong configuration rather
+    than a bad caption. After `max_failures_in_a_row` failed requests (default
+    ``max(16, 2 * concurrency)``) with no success in between, the rest is not asked and
+    `LLMUnavailableError` is raised.
     """
 
     def __init__(self, base_url: str | None, model: str, api_key_env: str = "OPENAI_API_KEY",
@@ -266,8 +267,9 @@ class OpenAISegmenter(LLMSegmenter):
                              f"{self.model!r} ({str(err.message)[:200]}); check --base-url, --model "
                              f"and the API key in ${self.api_key_env}") from err
         except openai.APIStatusError as err:
-            return self._failed(f"HTTP {err.status_code} ({str(err.message)[:120]}) after "
-                                f"{self.max_retries} retries")
+            retried = err.status_code in (408, 409, 429) or err.status_code >= 500
+            return self._failed(f"HTTP {err.status_code} ({' '.join(str(err.message).split())[:120]})"
+                                + (f" after {self.max_retries} retries" if retried else ""))
         except openai.APITimeoutError:
             return self._failed(f"no answer within {self.timeout:g} s, {self.max_retries} retries")
         except openai.APIConnectionError as err:
