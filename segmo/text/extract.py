@@ -174,10 +174,9 @@ def _write(job: _Job, results: dict[int, list[str]], fell_back: dict[int, str], 
                         "placeholder, and the dataset reader skips it)", texts_path, cap.lineno, cap.caption)
         elif i in results:
             lines[i] = format_line(results[i])
-    old = manifest.get(job.motion_id) if job.keep else None
-    kept = [f for f in (old or {}).get("fallbacks", []) if f["index"] not in results]
-    fallbacks = sorted(kept + [{"line": job.lines[i].lineno, "index": i, "reason": r}
-                               for i, r in fell_back.items()], key=lambda f: f["index"])
+    # a retry asks every caption that fell back before, so the new record's fallbacks are
+    # exactly this run's
+    fallbacks = [{"line": job.lines[i].lineno, "index": i, "reason": fell_back[i]} for i in sorted(fell_back)]
     write_atomic(out_dir / f"{job.motion_id}.txt", "".join(line + "\n" for line in lines))
     manifest.append({"id": job.motion_id, "captions": captions_hash([c.caption for c in job.lines]),
                      "lines": len(lines), "fallbacks": fallbacks, "no_words": no_words})
