@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from segmo.errors import ArgumentParser, SegmoError
+from segmo.errors import ArgumentParser, SegmoError, positive_int
 from segmo.files import FolderLock, atomic_open, remove_temporaries, write_atomic
 from segmo.text.captions import check_data_folder, has_words, read_caption_lines, read_text
 from segmo.text.encoders import TextEncoder, encoder_folder_name, get_text_encoder
@@ -349,16 +349,6 @@ def _append_shard(folder: Path, index: dict, encoder: TextEncoder, chunk: list[s
 
 
 # --------------------------------------------------------------------------- command
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-_positive_int.__name__ = "int"  # argparse names the type in "invalid int value: 'x'"
-
-
 def main(argv: list[str] | None = None) -> None:
     """`segmo encode-texts`: build or extend ``DATA/text_features/<encoder>/``."""
     parser = ArgumentParser(
@@ -370,9 +360,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="minilm (packaged, default), clip, a model directory or hub name")
     parser.add_argument("--segments", nargs="+", metavar="NAME",
                         help="text_segments/ folders to include (default: all present)")
-    parser.add_argument("--batch-size", type=_positive_int, default=64)
+    parser.add_argument("--batch-size", type=positive_int, default=64)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--shard-size", type=_positive_int, default=1024, help=argparse.SUPPRESS)
+    parser.add_argument("--shard-size", type=positive_int, default=1024, help=argparse.SUPPRESS)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     summary = update_cache(args.data, args.encoder, segments=args.segments,

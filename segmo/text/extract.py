@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import time
 from collections import Counter
@@ -49,7 +48,7 @@ from typing import Any
 from tqdm import tqdm
 
 from segmo.data.humanml3d import parse_text_line
-from segmo.errors import ArgumentParser, SegmoError
+from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
 from segmo.files import FolderLock, remove_temporaries, write_atomic
 from segmo.text.captions import (
     SEPARATOR,
@@ -277,36 +276,18 @@ def _summary(meta: dict, ids: list[str], out_dir: Path, manifest: SegmentManifes
 
 
 # --------------------------------------------------------------------------- command
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _count(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
 def _seconds(text: str) -> float:
-    value = float(text)
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
     return value
 
 
 def _share(text: str) -> float:
-    value = float(text)
-    if not 0 <= value <= 1:  # NaN fails too
-        raise argparse.ArgumentTypeError(f"must be a share between 0 and 1, got {text}")
+    value = finite_float(text)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a share between 0 and 1, got {text!r}")
     return value
-
-
-for _f, _name in ((_positive_int, "int"), (_count, "int"), (_seconds, "float"), (_share, "float")):
-    _f.__name__ = _name  # argparse names the type in "invalid int value: 'x'"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -317,19 +298,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--base-url", help="OpenAI-compatible server, e.g. http://localhost:8000/v1 "
                                            "(default: $OPENAI_BASE_URL)")
     parser.add_argument("--api-key-env", help="environment variable holding the API key (OPENAI_API_KEY)")
-    parser.add_argument("--concurrency", type=_positive_int, help="parallel requests (openai, default 8)")
+    parser.add_argument("--concurrency", type=positive_int, help="parallel requests (openai, default 8)")
     parser.add_argument("--timeout", type=_seconds, help="seconds per request (openai, default 60)")
-    parser.add_argument("--max-retries", type=_count,
+    parser.add_argument("--max-retries", type=non_negative_int,
                         help="retries of a failed request and re-asks of a rejected answer before "
                              "the rule fallback (default: openai 3, transformers 1)")
     parser.add_argument("--max-fallback-share", type=_share, default=0.0,
                         help="exit with status 2 when more than this share of the captions hold rule "
                              "fallbacks after the run (default 0)")
     parser.add_argument("--device", help="torch device (transformers, default cpu)")
-    parser.add_argument("--batch-size", type=_positive_int, help="generation batch (transformers, default 8)")
+    parser.add_argument("--batch-size", type=positive_int, help="generation batch (transformers, default 8)")
     parser.add_argument("--no-think", action="store_true",
                         help="openai: ask the server to disable Qwen3 thinking (chat_template_kwargs)")
-    parser.add_argument("--batch-captions", type=_positive_int, default=256, help="captions per segmenter call")
+    parser.add_argument("--batch-captions", type=positive_int, default=256, help="captions per segmenter call")
     parser.add_argument("--overwrite", action="store_true", help="redo every file")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
