@@ -17,6 +17,7 @@ import yaml
 from conftest import load_tool
 
 from segmo.data import MotionDataModule
+from segmo.errors import SegmoError
 from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
 from segmo.models.rvq import RVQVAE
@@ -147,7 +148,7 @@ def test_run_directory_resume_export_and_eval(tmp_path, capsys):
 def test_export_without_task_class_is_an_error(tmp_path):
     path = tmp_path / "plain.ckpt"
     torch.save({"state_dict": {}, "hyper_parameters": {}}, path)
-    with pytest.raises(SystemExit):
+    with pytest.raises(SegmoError, match="does not name its task class"):
         export_main([str(path), "--out", str(tmp_path / "out")])
 
 
