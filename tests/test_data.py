@@ -436,6 +436,9 @@ def test_train_loader_resumes_mid_epoch(tmp_path):
 
     whole, _ = run()
     assert len(whole) == 3 * 6  # 20 samples, batches of 3, the last incomplete one dropped
+    plain = dm.train_dataloader()  # without set_epoch, each full pass is the next epoch
+    assert [[b["id"] for b in plain] for _ in range(3)] == [[i for i, _ in whole[k:k + 6]]
+                                                           for k in (0, 6, 12)]
     head, state = run(stop=8)
     assert state == {"epoch": 1, "batches": 2}
     tail, _ = run(state=state)

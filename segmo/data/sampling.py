@@ -88,7 +88,7 @@ class ResumableDataLoader(DataLoader):
     ``state_dict()`` is ``{"epoch", "batches"}``: the epoch and the number of batches of it
     handed out so far (counted where they leave the loader, so batches that workers have
     prefetched do not count). ``load_state_dict`` makes the next iteration start at the
-    batch after those.
+    batch after those. A pass that runs to the end moves the sampler to the next epoch.
     """
 
     def __init__(self, dataset: Dataset, *, sampler: EpochSampler, **kwargs: Any) -> None:
@@ -97,10 +97,14 @@ class ResumableDataLoader(DataLoader):
 
     def __iter__(self) -> Iterator[Any]:
         sampler: EpochSampler = self.sampler
-        self._batches = sampler.skip // self.batch_size
+        epoch, self._batches = sampler.epoch, sampler.skip // self.batch_size
         for batch in super().__iter__():
             self._batches += 1
             yield batch
+        # A plain loop (a notebook, a tool) gets the next epoch's order on its next pass.
+        # Lightning never gets here (it stops at len()) and sets the epoch itself.
+        if sampler.epoch == epoch:
+            sampler.set_epoch(epoch + 1)
 
     def state_dict(self) -> dict[str, int]:
         return {"epoch": self.sampler.epoch, "batches": self._batches}
