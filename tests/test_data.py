@@ -292,7 +292,16 @@ def test_ground_truth_spans_follow_the_crop(tmp_path):
     assert len(seen) > 1
     gt["captions"].pop()
     (tmp_path / "segments" / "a.json").write_text(json.dumps(gt))
-    with pytest.raises(ValueError, match=r"a\.json has 1 captions"):
+    with pytest.raises(SegmoError, match=r"a\.json has 1 captions"):
+        MotionDataset(tmp_path)
+    (tmp_path / "segments" / "a.json").write_text('{"captions": [\n  {"segments": [}]}')
+    with pytest.raises(SegmoError, match=r"segments/a\.json:2: not valid JSON"):
+        MotionDataset(tmp_path)
+    (tmp_path / "segments" / "a.json").write_text('{"captions": [{"spans": []}, {}]}')
+    with pytest.raises(SegmoError, match=r"a\.json: not a ground-truth file .*KeyError"):
+        MotionDataset(tmp_path)
+    (tmp_path / "Std.npy").write_bytes(b"garbage")
+    with pytest.raises(SegmoError, match=r"Std\.npy: not a readable \.npy array"):
         MotionDataset(tmp_path)
 
 

@@ -23,7 +23,8 @@ What is skipped and what raises (``strict=True`` turns every skip into a ``Value
   this), a motion of the wrong shape for the skeleton, statistics of the wrong shape or with a
   non-positive std, a text-segment file whose line count differs from its text file, more
   text segments than ``max_segments``, a ground-truth file that does not match its text
-  file (``ValueError``). Every message names the file (and line where there is one).
+  file or is not valid JSON (``ValueError``; `SegmoError` where the user's files are at
+  fault). Every message names the file (and line where there is one).
 
 Randomness (crop offsets, windows) is a pure function of ``(seed, epoch, index)``
 (`segmo.data.sampling.sample_rng`): the training sampler passes the epoch in its keys
@@ -70,7 +71,7 @@ def read_split(root: str | Path, split: str) -> list[str]:
         raise FileNotFoundError(f"split file not found: {path}")
     ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
     if not ids:
-        raise ValueError(f"split file lists no ids: {path}")
+        raise SegmoError(f"split file lists no ids: {path}")
     return ids
 
 
@@ -80,7 +81,13 @@ def load_stats(root: str | Path, skeleton: str | SkeletonSpec = "t2m") -> tuple[
     for path in paths:
         if not path.is_file():
             raise FileNotFoundError(f"normalisation statistics not found: {path}")
-    return check_stats(np.load(paths[0]), np.load(paths[1]), skeleton, *map(str, paths))
+    arrays = []
+    for path in paths:
+        try:
+            arrays.append(np.load(path))
+        except (OSError, ValueError, EOFError) as error:
+            raise SegmoError(f"{path}: not a readable .npy array ({error})") from None
+    return check_stats(*arrays, skeleton, *map(str, paths))
 
 
 def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_name: str = "mean",
@@ -91,14 +98,14 @@ def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_
     for name, arr in ((mean_name, mean), (std_name, std)):
         arr = np.array(arr, dtype=np.float32)  # always a copy
         if arr.shape != (spec.feature_dim,):
-            raise ValueError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
+            raise SegmoError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
                              f"for skeleton {spec.name!r}")
         if not np.isfinite(arr).all():
-            raise ValueError(f"{name}: contains NaN or inf")
+            raise SegmoError(f"{name}: contains NaN or inf")
         arr.setflags(write=False)
         out.append(arr)
     if (out[1] <= 0).any():
-        raise ValueError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
+        raise SegmoError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
     return out[0], out[1]
 
 
@@ -121,19 +128,19 @@ def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> 
     parts = line.strip().split("#")
     where = f"{path}:{lineno}"
     if len(parts) != 4:
-        raise ValueError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
+        raise SegmoError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
                          f"'#'-separated fields: {line.strip()[:80]!r}")
     caption = parts[0].strip()
     if not caption:
-        raise ValueError(f"{where}: empty caption")
+        raise SegmoError(f"{where}: empty caption")
     try:
         start, end = float(parts[2]), float(parts[3])
     except ValueError:
-        raise ValueError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
+        raise SegmoError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
     start = 0.0 if math.isnan(start) else start
     end = 0.0 if math.isnan(end) else end
     if not (start == 0.0 and end == 0.0) and not (0.0 <= start < end):
-        raise ValueError(f"{where}: bad time tags from={start} to={end}")
+        raise SegmoError(f"{where}: bad time tags from={start} to={end}")
     return Caption(caption, start, end, lineno)
 
 
@@ -163,7 +170,7 @@ class LoadReport:
 
     def skip(self, kind: str, message: str) -> None:
         if self.strict:
-            raise ValueError(f"{message} (strict=True)")
+            raise SegmoError(f"{message} (strict=True)")
         self.counts[kind] += 1
         self.problems.append((kind, message))
 
@@ -316,7 +323,7 @@ class MotionDataset(Dataset):
         max_abs_z: float | None = MAX_ABS_Z,
     ) -> None:
         if max_segments < 1:
-            raise ValueError(f"max_segments={max_segments} must be at least 1")
+            raise SegmoError(f"max_segments={max_segments} must be at least 1")
         self.root = Path(root)
         self.split = split
         self.skeleton = get_skeleton(skeleton)
@@ -419,11 +426,18 @@ class MotionDataset(Dataset):
         path = self.root / "segments" / f"{mid}.json"
         if not path.is_file():
             return None
-        captions = json.loads(path.read_text())["captions"]
+        try:
+            captions = json.loads(path.read_text())["captions"]
+            spans = [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
+        except json.JSONDecodeError as error:
+            raise SegmoError(f"{path}:{error.lineno}: not valid JSON: {error.msg}") from None
+        except (KeyError, TypeError, ValueError) as error:
+            raise SegmoError(f"{path}: not a ground-truth file (captions[i].segments[j].start/end "
+                             f"expected; {type(error).__name__}: {error})") from None
         if len(captions) != num_lines:
-            raise ValueError(f"{path} has {len(captions)} captions but {text_path} has "
+            raise SegmoError(f"{path} has {len(captions)} captions but {text_path} has "
                              f"{num_lines} lines")
-        return [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
+        return spans
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -466,5 +480,5 @@ def resolve_stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[
     if mean is None and std is None:
         return load_stats(root, spec)
     if mean is None or std is None:
-        raise ValueError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
+        raise SegmoError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
     return check_stats(mean, std, spec)
