@@ -106,7 +106,8 @@ class Task(L.LightningModule):
         grads = [p.grad for group in optimizer.param_groups for p in group["params"]
                  if p.grad is not None]
         if grads:  # gradients are already all-reduced under DDP: every rank agrees
-            norm = torch.nn.utils.get_total_norm(grads)
+            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.detach().float())
+                                                         for g in grads]))
             if not bool(torch.isfinite(norm)):
                 self._raise("gradient norm", float(norm), [(self.global_rank, self._batch_ids)])
 

@@ -116,13 +116,13 @@ class SegmoCLI(LightningCLI):
 
 
 def _segmo_error(error: BaseException) -> SegmoError | None:
-    """The `SegmoError` behind ``error`` (jsonargparse wraps errors raised while it builds
-    the task or the DataModule), or None."""
-    seen = 0
-    while error is not None and seen < 10:
-        if isinstance(error, SegmoError):
-            return error
-        error, seen = error.__cause__ or error.__context__, seen + 1
+    """The `SegmoError` that ``error`` wraps and quotes (jsonargparse does so with errors
+    raised while it builds the task or the DataModule), or None."""
+    inner, seen = error, 0
+    while inner is not None and seen < 10:
+        if isinstance(inner, SegmoError):
+            return inner if inner is error or str(inner) in str(error) else None
+        inner, seen = inner.__cause__ or inner.__context__, seen + 1
     return None
 
 
