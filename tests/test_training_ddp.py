@@ -1,5 +1,6 @@
 """`segmo fit` under Lightning DDP with 2 CPU ranks (gloo): rvq, mask (in-sample alignment,
-with validation) and residual train, and the ranks end with identical weights.
+with validation), residual, length and evaluator train, and the ranks end with identical
+weights.
 
 The mask run's validation split is built so that only rank 0's share has ground-truth
 spans: the segment top-1 metrics are then logged by one rank's batches only, the case
@@ -29,6 +30,9 @@ TINY = {
              "--model.init_args.alignment_dim=16"],
     "residual": ["--model.init_args.dim=32", "--model.init_args.depth=1",
                  "--model.init_args.heads=2", "--model.init_args.ff_dim=32"],
+    "length": ["--model.init_args.hidden=16"],
+    "evaluator": [f"--model.init_args.{k}=8" for k in ("word_dim", "text_hidden", "movement_hidden",
+                                                       "movement_dim", "motion_hidden")],
 }
 STEPS = 4
 
@@ -69,7 +73,7 @@ def run_fit(args: list[str], timeout: float = 300) -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stage", ["rvq", "mask", "residual"])
+@pytest.mark.parametrize("stage", list(TINY))
 def test_two_cpu_ranks_end_with_identical_weights(stage, ddp_data, tokenizer_dir, tmp_path):
     if not torch.distributed.is_available():
         pytest.skip("torch.distributed is not available in this build")
@@ -81,7 +85,7 @@ def test_two_cpu_ranks_end_with_identical_weights(stage, ddp_data, tokenizer_dir
             "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false",
             "--trainer.accelerator=cpu", "--trainer.devices=2", "--trainer.strategy=ddp",
             "--trainer.callbacks+=fit_helpers.SaveRankState", f"--trainer.callbacks.directory={states}"]
-    if stage != "rvq":
+    if stage in ("mask", "residual"):
         args.append(f"--model.init_args.tokenizer={tokenizer_dir['t2m']}")
     run_fit(args)
 
@@ -97,3 +101,5 @@ def test_two_cpu_ranks_end_with_identical_weights(stage, ddp_data, tokenizer_dir
     assert {"val/loss", "train/loss"} <= logged
     if stage == "mask":
         assert "val/segment_top1" in logged  # from rank 0's batches alone
+    if stage == "evaluator":
+        assert "val/matching" in logged  # over the embeddings of both ranks

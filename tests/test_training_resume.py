@@ -66,11 +66,14 @@ def test_killed_and_resumed_fit_logs_the_same_losses(text_dataset, tokenizer_dir
     proc = segmo_fit([*args, f"--runs_dir={runs}", "--trainer.callbacks+=fit_helpers.HangAt",
                       f"--trainer.callbacks.step={KILL_AT}", f"--trainer.callbacks.marker={marker}"])
     deadline = time.monotonic() + 300
-    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert marker.exists(), proc.communicate()[0][-3000:] if proc.poll() is not None else "timeout"
-    os.killpg(proc.pid, signal.SIGKILL)  # kill -9, mid-epoch, steps after the checkpoint logged
-    proc.communicate()
+    try:
+        while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:  # kill -9, mid-epoch, steps after the checkpoint logged
+            os.killpg(proc.pid, signal.SIGKILL)
+        out, _ = proc.communicate()
+    assert marker.exists(), out[-3000:]
     checkpoint = run / "checkpoints" / f"step={CHECKPOINT_EVERY}.ckpt"
     assert checkpoint.is_file()
     killed_steps = {int(r["step"]) for r in rows(run / "metrics.csv")}
