@@ -6,23 +6,30 @@ as `_class_path` in the hyper-parameters) or given with `--task`; the task is re
 `meta`) is written with `save_pretrained`. Later stages and the pipeline load the
 directory with `segmo.models.pretrained.load_pretrained`, without Lightning.
 
+A checkpoint whose tensors are not all finite (a run that diverged) is refused, naming
+the tensors; so is a file that is not a checkpoint of `segmo fit`. Each is one line
+(`SegmoError`), which `segmo export` prints with exit status 2.
+
 Example: `segmo export runs/rvq/synthetic/version_0/checkpoints/last.ckpt --out models/rvq`
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
 from pathlib import Path
 
 import torch
+
+from segmo.errors import ArgumentParser, SegmoError
+
+SHOWN = 5  # non-finite tensors named in a message
 
 
 def task_class_path(checkpoint: dict, path: str | Path) -> str:
     hparams = checkpoint.get("hyper_parameters") or {}
     class_path = hparams.get("_class_path")
     if not class_path:
-        raise ValueError(
+        raise SegmoError(
             f"{path}: the checkpoint does not name its task class (it was not written by "
             "`segmo fit`); pass --task, e.g. --task segmo.tasks.rvq.RVQTask"
         )
@@ -34,18 +41,36 @@ def load_task(path: str | Path, task: str | None = None, map_location: str = "cp
     from lightning.pytorch import LightningModule
 
     # Our own checkpoints hold hyper-parameters and generator states, not just tensors.
-    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the user's to fix
+        raise SegmoError(f"{path}: not a readable checkpoint ({type(error).__name__}: {error})") from None
+    if not isinstance(checkpoint, dict) or not isinstance(checkpoint.get("state_dict"), dict):
+        raise SegmoError(f"{path}: not a Lightning checkpoint (no state_dict)")
+    check_finite(checkpoint["state_dict"], path)
     class_path = task or task_class_path(checkpoint, path)
     module_name, _, class_name = class_path.rpartition(".")
     try:
         cls = getattr(importlib.import_module(module_name), class_name)
     except (ImportError, AttributeError, ValueError) as error:
-        raise ValueError(f"--task / checkpoint class {class_path!r} cannot be imported: {error}") from None
+        raise SegmoError(f"--task / checkpoint class {class_path!r} cannot be imported: {error}") from None
     if not (isinstance(cls, type) and issubclass(cls, LightningModule)):
-        raise ValueError(f"{class_path!r} is not a LightningModule")
+        raise SegmoError(f"{class_path!r} is not a LightningModule")
     if not hasattr(cls, "export_model"):
-        raise ValueError(f"{class_path!r} has no export_model(); it cannot be exported")
+        raise SegmoError(f"{class_path!r} has no export_model(); it cannot be exported")
     return cls.load_from_checkpoint(path, map_location=map_location), class_path, checkpoint
+
+
+def check_finite(state_dict: dict, path: str | Path) -> None:
+    """Refuse a state dict whose floating-point tensors hold NaN or inf, naming them."""
+    from segmo.tasks.base import non_finite_tensors  # imports Lightning
+
+    bad = non_finite_tensors(state_dict)
+    if bad:
+        more = f" (+{len(bad) - SHOWN} more)" if len(bad) > SHOWN else ""
+        raise SegmoError(f"{path}: {len(bad)} of {len(state_dict)} tensors hold NaN/inf: "
+                         f"{', '.join(bad[:SHOWN])}{more}; the run diverged; export an earlier "
+                         "checkpoint")
 
 
 def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None) -> Path:
@@ -61,7 +86,7 @@ def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="segmo export", description="export a training checkpoint to a model directory"
     )
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) written by `segmo fit`")
@@ -72,12 +97,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     args = parser.parse_args(argv)
     if not Path(args.checkpoint).is_file():
-        parser.error(f"{args.checkpoint}: no such checkpoint file")
-    try:
-        out = export(args.checkpoint, args.out, args.task)
-    except ValueError as error:
-        parser.error(str(error))
-    print(out)
+        raise SegmoError(f"{args.checkpoint}: no such checkpoint file")
+    print(export(args.checkpoint, args.out, args.task))
 
 
 if __name__ == "__main__":

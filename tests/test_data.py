@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import SHARED
 
 from segmo.data import (
     MotionDataset,
@@ -19,6 +20,7 @@ from segmo.data import (
     parse_text_line,
     read_split,
 )
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import get_skeleton
 
 D = 263  # t2m feature width
@@ -134,19 +136,23 @@ def test_length_filter_per_skeleton(tmp_path):
         MotionDataset(root, skeleton="t2m")
 
 
-def test_random_crop_is_seeded(tmp_path):
+def test_random_crop_is_a_function_of_seed_epoch_and_index(tmp_path):
     raw = write_dataset(tmp_path, {"a": 43}, captions={"a": ["x#x/X#0#0"]})
+
+    def offset(ds, key):
+        m = ds[key]["motion"].numpy() * ds.std + ds.mean
+        return int(np.argmin([np.abs(raw["a"][o:o + 40] - m).max() for o in range(4)]))
 
     def offsets(seed):
         ds = MotionDataset(tmp_path, random_crop=True, seed=seed)
-        out = []
-        for _ in range(12):
-            m = ds[0]["motion"].numpy() * ds.std + ds.mean
-            out.append(int(np.argmin([np.abs(raw["a"][o:o + 40] - m).max() for o in range(4)])))
-        return out
+        return [offset(ds, (0, epoch)) for epoch in range(12)]
 
     a, b = offsets(1), offsets(1)
     assert a == b and len(set(a)) > 1 and offsets(2) != a
+    ds = MotionDataset(tmp_path, random_crop=True, seed=1)
+    assert {offset(ds, 0) for _ in range(5)} == {a[0]}  # one epoch, one crop per sample
+    ds.set_epoch(3)
+    assert offset(ds, 0) == a[3]
     assert all(MotionDataset(tmp_path)[0]["motion"].shape == (40, D) for _ in range(2))
 
 
@@ -154,30 +160,65 @@ def test_random_crop_is_seeded(tmp_path):
 
 
 def test_bad_motion_files_are_skipped_and_counted(tmp_path):
-    write_dataset(tmp_path, {"ok": 60, "nan": 60, "zero": 60, "frames0": 60, "notext": 60,
-                             "badline": 60})
+    write_dataset(tmp_path, {"ok": 60, "zero": 60, "frames0": 60, "notext": 60, "badline": 60})
     for mid in ("ok2", "gone"):  # "gone" is listed but has no motion file
         (tmp_path / "texts" / f"{mid}.txt").write_text("x#x/X#0#0\n")
-    arr = np.zeros((60, D), np.float32)
-    arr[5, 7] = np.nan
-    np.save(tmp_path / "new_joint_vecs" / "nan.npy", arr)
     (tmp_path / "new_joint_vecs" / "zero.npy").write_bytes(b"")
     np.save(tmp_path / "new_joint_vecs" / "frames0.npy", np.zeros((0, D), np.float32))
     (tmp_path / "texts" / "notext.txt").unlink()
     (tmp_path / "texts" / "badline.txt").write_text("fine#f/X#0#0\nno fields here\n")
-    ids = ["ok", "gone", "nan", "zero", "frames0", "notext", "badline"]
+    ids = ["ok", "gone", "zero", "frames0", "notext", "badline"]
     (tmp_path / "train.txt").write_text("\n".join(ids))
     with pytest.warns(UserWarning) as record:
         ds = MotionDataset(tmp_path)
     text = " | ".join(str(w.message) for w in record)
-    assert "gone.npy" in text and "nan.npy" in text and "zero.npy" in text
+    assert "gone.npy" in text and "zero.npy" in text
     assert "notext.txt" in text and "badline.txt:2" in text
     assert [s["id"] for s in ds] == ["ok", "ok", "badline"]
     summary = ds.summary
-    assert (summary["missing"], summary["nan"], summary["empty"], summary["missing_text"],
-            summary["bad_line"]) == (1, 1, 2, 1, 1)
+    assert (summary["missing"], summary["empty"], summary["missing_text"],
+            summary["bad_line"]) == (1, 2, 1, 1)
     with pytest.raises(ValueError, match="gone.npy"):
         MotionDataset(tmp_path, strict=True)
+
+
+@pytest.mark.parametrize("preload", [True, False])
+def test_non_finite_and_absurd_values_are_refused_naming_the_files(tmp_path, preload):
+    write_dataset(tmp_path, {f"m{i}": 60 for i in range(6)})
+    mean, std = np.load(tmp_path / "Mean.npy"), np.load(tmp_path / "Std.npy")
+    for mid, (frame, dim, value) in {"m1": (10, 5, 1e30), "m3": (0, 7, np.nan),
+                                     "m4": (59, 262, -np.inf)}.items():
+        arr = np.load(tmp_path / "new_joint_vecs" / f"{mid}.npy")
+        arr[frame, dim] = value
+        np.save(tmp_path / "new_joint_vecs" / f"{mid}.npy", arr)
+    with pytest.raises(SegmoError) as error:
+        MotionDataset(tmp_path, preload=preload)
+    message = str(error.value)
+    assert "\n" not in message and "train.txt: 3 of 6 motion files" in message
+    assert "m1.npy: frame 10 dim 5 is 1e+30" in message and "m3.npy: frame 0 dim 7 is nan" in message
+    assert "m4.npy: frame 59 dim 262 is -inf" in message
+    # A finite value just inside the bound is accepted; one beyond it is refused.
+    for mid in ("m3", "m4"):
+        np.save(tmp_path / "new_joint_vecs" / f"{mid}.npy", np.zeros((60, D), np.float32))
+    arr = np.load(tmp_path / "new_joint_vecs" / "m1.npy")
+    arr[10, 5] = mean[5] + 999 * std[5]
+    np.save(tmp_path / "new_joint_vecs" / "m1.npy", arr)
+    assert len(MotionWindowDataset(tmp_path, window=32, preload=preload)) == 6
+    with pytest.raises(SegmoError, match=r"1 of 6 .*m1\.npy: frame 10 dim 5 .*max_abs_z=500"):
+        MotionWindowDataset(tmp_path, window=32, preload=preload, max_abs_z=500)
+
+
+@pytest.mark.skipif(not (SHARED / "fixtures" / "humanml3d").is_dir(),
+                    reason="../shared/fixtures/humanml3d (real HumanML3D data) not present")
+def test_real_humanml3d_values_are_well_inside_the_bound():
+    from segmo.data.checks import MAX_ABS_Z, value_problem
+
+    folder = SHARED / "fixtures" / "humanml3d"
+    features = np.load(folder / "012314_features.npy")
+    mean, std = np.load(folder / "Mean.npy"), np.load(folder / "Std.npy")
+    z = np.abs((features - mean) / std).max()
+    assert 20 < z < MAX_ABS_Z / 40  # measured 24.3
+    assert value_problem(features, mean, std, MAX_ABS_Z) is None
 
 
 def test_wrong_width_raises_naming_file(tmp_path):
@@ -197,11 +238,11 @@ def test_lazy_loading_matches_preload(tmp_path):
     assert len(eager) == len(lazy) == 6 and not lazy.motions.arrays
     for i in range(len(eager)):
         assert torch.equal(eager[i]["motion"], lazy[i]["motion"])
+    lazy = MotionDataset(tmp_path, preload=False)
     arr = np.zeros((60, D), np.float32)
     arr[0, 0] = np.nan
-    np.save(tmp_path / "new_joint_vecs" / "a.npy", arr)
-    lazy = MotionDataset(tmp_path, preload=False)  # NaN is not visible from the header
-    with pytest.raises(ValueError, match=r"a\.npy.*NaN"):
+    np.save(tmp_path / "new_joint_vecs" / "a.npy", arr)  # changed after the check
+    with pytest.raises(SegmoError, match=r"a\.npy: changed while training: frame 0 dim 0 is nan"):
         lazy[0]
 
 
@@ -244,14 +285,23 @@ def test_ground_truth_spans_follow_the_crop(tmp_path):
     assert ds[0]["spans"] == [(0, 30), (30, 60)] and ds[1]["spans"] is None
     ds = MotionDataset(tmp_path, random_crop=True, seed=0)
     seen = set()
-    for _ in range(20):
-        (s0, e0), (s1, e1) = ds[0]["spans"]
+    for epoch in range(20):
+        (s0, e0), (s1, e1) = ds[(0, epoch)]["spans"]
         assert s0 == 0 and e0 == s1 and e1 == 60 and 27 <= e0 <= 30
         seen.add(e0)
     assert len(seen) > 1
     gt["captions"].pop()
     (tmp_path / "segments" / "a.json").write_text(json.dumps(gt))
-    with pytest.raises(ValueError, match=r"a\.json has 1 captions"):
+    with pytest.raises(SegmoError, match=r"a\.json has 1 captions"):
+        MotionDataset(tmp_path)
+    (tmp_path / "segments" / "a.json").write_text('{"captions": [\n  {"segments": [}]}')
+    with pytest.raises(SegmoError, match=r"segments/a\.json:2: not valid JSON"):
+        MotionDataset(tmp_path)
+    (tmp_path / "segments" / "a.json").write_text('{"captions": [{"spans": []}, {}]}')
+    with pytest.raises(SegmoError, match=r"a\.json: not a ground-truth file .*KeyError"):
+        MotionDataset(tmp_path)
+    (tmp_path / "Std.npy").write_bytes(b"garbage")
+    with pytest.raises(SegmoError, match=r"Std\.npy: not a readable \.npy array"):
         MotionDataset(tmp_path)
 
 
@@ -306,9 +356,9 @@ def test_window_dataset(tmp_path):
     with pytest.warns(UserWarning, match="missing"):
         one = MotionWindowDataset(tmp_path, window=64, seed=3)
         two = MotionWindowDataset(tmp_path, window=64, seed=3)
-    first = [one[2]["motion"] for _ in range(5)]
-    assert all(torch.equal(x, two[2]["motion"]) for x in first)  # same seed, same windows
-    assert len({float(x[0, 0]) for x in first}) > 1  # ... that differ between draws
+    first = [one[(2, epoch)]["motion"] for epoch in range(5)]
+    assert all(torch.equal(x, two[(2, e)]["motion"]) for e, x in enumerate(first))  # same seed
+    assert len({float(x[0, 0]) for x in first}) > 1  # ... windows that differ between epochs
     (tmp_path / "train.txt").write_text("a\nb\nc\nd\n")
     whole = MotionWindowDataset(tmp_path, window=None, random_crop=False)
     assert whole.ids == ["a", "b", "c"] and whole[2]["length"] == 128  # d: 230 >= max_frames
@@ -350,7 +400,7 @@ def test_datamodule(tmp_path):
         dm.dataset("dev")
 
 
-def test_datamodule_workers_are_seeded(tmp_path):
+def test_datamodule_batches_do_not_depend_on_the_worker_count(tmp_path):
     from segmo.data import MotionDataModule
 
     lengths = {f"{i:03d}": 150 for i in range(8)}
@@ -360,13 +410,94 @@ def test_datamodule_workers_are_seeded(tmp_path):
     for mid in lengths:
         np.save(tmp_path / "new_joint_vecs" / f"{mid}.npy", same)
 
-    def epoch():
-        dm = MotionDataModule(str(tmp_path), batch_size=4, window=32, num_workers=2, seed=5)
-        return [b["motion"][:, 0, 0].tolist() for b in dm.train_dataloader()]
+    def epochs(workers):
+        dm = MotionDataModule(str(tmp_path), batch_size=4, window=32, num_workers=workers, seed=5)
+        loader = dm.train_dataloader()
+        out = []
+        for epoch in range(2):
+            loader.sampler.set_epoch(epoch)  # as Lightning does at each epoch start
+            out.append([(b["id"], b["motion"][:, 0, 0].tolist()) for b in loader])
+        return out
 
-    a = epoch()
-    assert a == epoch()  # reproducible with workers
-    assert a[0] != a[1]  # the two workers (one batch each) do not repeat each other's offsets
+    a = epochs(0)
+    assert a == epochs(2)  # the same ids and windows with 0 or 2 workers
+    assert a[0] != a[1]  # another order and other windows in the next epoch
+    assert len({o for _, offsets in a[0] for o in offsets}) > 2
+
+
+def test_train_loader_resumes_mid_epoch(tmp_path):
+    from segmo.data import MotionDataModule
+
+    write_dataset(tmp_path, {f"{i:03d}": 60 + i for i in range(10)})
+    dm = MotionDataModule(str(tmp_path), batch_size=3, seed=2)
+
+    def run(stop=None, state=None):
+        loader, seen = dm.train_dataloader(), []
+        if state is not None:
+            loader.load_state_dict(state)
+        for epoch in range(state["epoch"] if state else 0, 3):
+            loader.sampler.set_epoch(epoch)
+            for batch in loader:
+                seen.append((batch["id"], batch["motion"].sum().item()))
+                if len(seen) == stop:
+                    return seen, loader.state_dict()
+        return seen, None
+
+    whole, _ = run()
+    assert len(whole) == 3 * 6  # 20 samples, batches of 3, the last incomplete one dropped
+    plain = dm.train_dataloader()  # without set_epoch, each full pass is the next epoch
+    assert [[b["id"] for b in plain] for _ in range(3)] == [[i for i, _ in whole[k:k + 6]]
+                                                           for k in (0, 6, 12)]
+    head, state = run(stop=8)
+    assert state == {"epoch": 1, "batches": 2}
+    tail, _ = run(state=state)
+    assert head + tail == whole
+
+
+def test_sampler_shares_an_epoch_between_ranks(tmp_path):
+    from segmo.data.sampling import EpochSampler
+
+    data = list(range(11))
+    ranks = [EpochSampler(data, seed=3, num_replicas=2, rank=r) for r in (0, 1)]
+    for sampler in ranks:
+        sampler.set_epoch(4)
+    keys = [list(s) for s in ranks]
+    assert len(keys[0]) == len(keys[1]) == 6 and all(e == 4 for k in keys for _, e in k)
+    indices = [i for k in keys for i, _ in k]
+    assert set(indices) == set(data)  # one index repeated to even out the shares
+    single = EpochSampler(data, seed=3, num_replicas=1, rank=0)
+    single.set_epoch(4)
+    order = [i for i, _ in single]
+    order.append(order[0])  # the padding
+    assert [i for i, _ in keys[0]] == order[0::2] and [i for i, _ in keys[1]] == order[1::2]
+
+
+def test_missing_text_features_are_reported_at_setup(tmp_path):
+    from segmo.data import MotionDataModule
+
+    write_dataset(tmp_path, {"a": 60, "b": 60})
+    seg = tmp_path / "text_segments" / "rule"
+    seg.mkdir(parents=True)
+    for mid in ("a", "b"):
+        (seg / f"{mid}.txt").write_text("walks#waves\nonly one\n")
+
+    class Partial(FakeCache):
+        folder = tmp_path / "text_features" / "fake"
+
+        def __contains__(self, text):
+            return text != "waves"
+
+        def has_tokens(self, text):
+            return text != "a person does b"
+
+    dm = MotionDataModule(str(tmp_path), text_segments="rule", text_features="fake")
+    dm.text_cache = Partial()  # (a cached_property: the instance attribute wins)
+    with pytest.raises(SegmoError) as error:
+        dm.setup("fit")
+    assert str(error.value) == (
+        f"{tmp_path}/text_features/fake: 2 of 7 texts of the train split are not in the "
+        "text-feature cache (first: 'a person does b'); update it with "
+        f"`segmo encode-texts --data {tmp_path} --encoder fake --segments rule`")
 
 
 @pytest.mark.slow

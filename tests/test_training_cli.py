@@ -17,6 +17,7 @@ import yaml
 from conftest import load_tool
 
 from segmo.data import MotionDataModule
+from segmo.errors import SegmoError
 from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
 from segmo.models.rvq import RVQVAE
@@ -147,7 +148,7 @@ def test_run_directory_resume_export_and_eval(tmp_path, capsys):
 def test_export_without_task_class_is_an_error(tmp_path):
     path = tmp_path / "plain.ckpt"
     torch.save({"state_dict": {}, "hyper_parameters": {}}, path)
-    with pytest.raises(SystemExit):
+    with pytest.raises(SegmoError, match="does not name its task class"):
         export_main([str(path), "--out", str(tmp_path / "out")])
 
 
@@ -168,3 +169,104 @@ def test_learning_rate_schedule():
     assert factor(0) == pytest.approx(0.1) and factor(9) == pytest.approx(1.0)
     assert factor(99) == pytest.approx(1.0) and factor(100) == pytest.approx(0.05)
     assert factor(250) == pytest.approx(0.05**2)
+
+
+# --------------------------------------------------------------------------- hostile input
+
+RVQ_YAML = (REPO / "configs/rvq/synthetic.yaml").read_text()
+
+
+def _edited(tmp_path: Path, old: str, new: str) -> tuple[Path, int]:
+    """A copy of configs/rvq/synthetic.yaml with `old` replaced, and the 1-based line of it."""
+    assert RVQ_YAML.count(old) == 1, old
+    text = RVQ_YAML.replace(old, new)
+    path = tmp_path / "mine.yaml"
+    path.write_text(text)
+    return path, text[: text.index(new)].count("\n") + 1
+
+
+HOSTILE = {
+    # name: (YAML edit or None, extra arguments, expected message; {yaml} {line} {root} {tmp})
+    "misspelt data key": (("batch_size: 64", "bach_size: 64"), [],
+                          "{yaml}:{line}: data.init_args.bach_size: segmo.data.MotionDataModule has "
+                          "no argument 'bach_size' (did you mean 'batch_size'?)"),
+    "misspelt model key": (("width: 128", "widht: 128"), [],
+                           "{yaml}:{line}: model.init_args.widht: segmo.tasks.rvq.RVQTask has no "
+                           "argument 'widht' (did you mean 'width'?)"),
+    "misspelt trainer key": (("max_steps: 3000", "max_step: 3000"), [],
+                             "{yaml}:{line}: trainer.max_step: the Trainer has no argument "
+                             "'max_step' (did you mean 'max_steps'?)"),
+    "misspelt top-level key": (("\ntrainer:\n  max_steps", "\ntrainr:\n  max_steps"), [],
+                               "trainr.max_steps: segmo fit has no key 'trainr' (did you mean "
+                               "'trainer'?)"),
+    "bad value type in YAML": (("batch_size: 64", "batch_size: abc"), [],
+                               "{yaml}:{line}: data.init_args.batch_size: expected int, got 'abc'"),
+    "bad choice in YAML": (("    skeleton: t2m\n    width", "    skeleton: t3m\n    width"), [],
+                           "{yaml}:{line}: model.init_args.skeleton: expected one of 't2m', 'kit', "
+                           "got 't3m'"),
+    "unknown class": (("class_path: segmo.data.MotionDataModule", "class_path: segmo.data.Nope"), [],
+                      "{yaml}:{line}: data.class_path: segmo.data.Nope: module 'segmo.data' has no "
+                      "attribute 'Nope'"),
+    "invalid YAML": (("trainer:\n", "trainer: [\n"), [],
+                     "not valid YAML: expected ',' or ']', but got ':' (while parsing a flow "
+                     "sequence started at line {line})"),
+    "missing config file": (None, ["--config", "{tmp}/none.yaml"], "--config {tmp}/none.yaml: no such file"),
+    "misspelt argument": (None, ["--data.init_args.bach_size=3"],
+                          "argument --data.init_args.bach_size=3: data.init_args.bach_size: "
+                          "segmo.data.MotionDataModule has no argument 'bach_size' (did you mean "
+                          "'batch_size'?)"),
+    "bad argument type": (None, ["--trainer.max_steps=abc"],
+                          "argument --trainer.max_steps=abc: trainer.max_steps: expected int, got 'abc'"),
+    "unknown argument": (None, ["--nonsense=1"], "unrecognized arguments: --nonsense=1"),
+    "missing data root": (None, ["--data.root={tmp}/nowhere"],
+                          "data.init_args.root='{tmp}/nowhere': no such dataset folder"),
+    "zero batch size": (None, ["--data.init_args.batch_size=0"],
+                        "data.init_args.batch_size=0 must be positive"),
+    "missing checkpoint": (None, ["--ckpt_path={tmp}/none.ckpt"],
+                           "--ckpt_path {tmp}/none.ckpt: no such checkpoint file"),
+    "not a checkpoint": (None, ["--ckpt_path={tmp}/junk.ckpt"],
+                         "--ckpt_path {tmp}/junk.ckpt: not a readable checkpoint"),
+    "default_root_dir": (None, ["--trainer.default_root_dir={tmp}/elsewhere"],
+                         "--trainer.default_root_dir is not used by segmo: the run directory is "
+                         "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead"),
+}
+
+
+@pytest.mark.parametrize("case", HOSTILE, ids=list(HOSTILE))
+def test_hostile_fit_input_is_one_line_with_exit_2(case, tmp_path, capsys):
+    from segmo.cli import main as segmo_main
+
+    edit, extra, expected = HOSTILE[case]
+    root = make_dataset(tmp_path / "data")
+    (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
+    yaml_path, line = _edited(tmp_path, *edit) if edit else (REPO / "configs/rvq/synthetic.yaml", 0)
+    config = [] if "--config" in extra else ["--config", str(yaml_path)]
+    argv = ["fit", *config, *tiny_overrides(root, tmp_path / "runs"), "--trainer.max_steps=1",
+            *[a.format(tmp=tmp_path) for a in extra]]
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        segmo_main(argv)
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert exit_.value.code == 2 and "Traceback" not in err and len(lines) == 1, err
+    assert lines[0].startswith(f"segmo fit: {yaml_path}:" if edit else "segmo fit: ")
+    assert expected.format(yaml=yaml_path, line=line, root=root, tmp=tmp_path) in lines[0]
+    assert not list((tmp_path / "runs").rglob("*.ckpt"))
+
+
+def test_tokenizer_that_is_not_a_model_directory(text_dataset, tmp_path, capsys):
+    from segmo.cli import main as segmo_main
+
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "config.json").write_text("{not json")
+    for tokenizer, expected in ((tmp_path, f"model.init_args.tokenizer='{tmp_path}': not an exported "
+                                           "tokenizer directory (no config.json)"),
+                                (broken, f"model.init_args.tokenizer='{broken}': "
+                                         f"{broken / 'config.json'}:1: not valid JSON")):
+        with pytest.raises(SystemExit) as exit_:
+            segmo_main(["fit", "--config", str(REPO / "configs/mask/synthetic.yaml"),
+                        f"--data.root={text_dataset['t2m']}", f"--runs_dir={tmp_path / 'runs'}",
+                        f"--model.init_args.tokenizer={tokenizer}"])
+        err = capsys.readouterr().err.strip()
+        assert exit_.value.code == 2 and "\n" not in err and err.startswith(f"segmo fit: {expected}"), err

@@ -1,4 +1,8 @@
-"""`MotionDataModule`: splits, statistics and loaders of one dataset folder (docs/design.md)."""
+"""`MotionDataModule`: splits, statistics and loaders of one dataset folder (docs/design.md).
+
+`setup` refuses a dataset before training starts, with counts: motions with NaN/inf or
+absurd values (`segmo.data.checks`), and texts missing from the text-feature cache.
+"""
 
 from __future__ import annotations
 
@@ -10,9 +14,12 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
+from segmo.data.checks import MAX_ABS_Z, missing_texts
 from segmo.data.collate import collate
 from segmo.data.humanml3d import MotionDataset, load_stats
+from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
 
@@ -23,9 +30,13 @@ class MotionDataModule(LightningDataModule):
     first N ids of each); predict uses the test split. Without ``window`` every split is a
     `MotionDataset` (one sample per caption; random crop offsets for train only). With
     ``window`` (tokenizer training) train is a `MotionWindowDataset` of random windows and
-    val/test are whole clips, one per motion. Train batches are shuffled by a generator
-    seeded with ``seed``; the last incomplete batch is dropped only when the train set holds
-    more than one batch.
+    val/test are whole clips, one per motion. The train order of epoch e is a permutation
+    drawn from ``(seed, e)`` and its crops from ``(seed, e, index)``; the loader's position
+    is saved in checkpoints (`segmo.data.sampling`), so a resumed run continues with the
+    batches an uninterrupted one would have seen. Under DDP each rank takes its share of
+    that order. The last incomplete batch is dropped only when a rank's share of the train
+    set holds more than one batch. ``max_abs_z`` bounds the feature values
+    (`segmo.data.checks`; None checks for NaN/inf only).
 
     Example::
 
@@ -49,12 +60,15 @@ class MotionDataModule(LightningDataModule):
         max_motions: int | None = None,
         preload: bool = True,
         strict: bool = False,
+        max_abs_z: float | None = MAX_ABS_Z,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         if batch_size <= 0:
-            raise ValueError(f"batch_size={batch_size} must be positive")
+            raise SegmoError(f"data.init_args.batch_size={batch_size} must be positive")
         self.root = Path(root)
+        if not self.root.is_dir():
+            raise SegmoError(f"data.init_args.root={root!r}: no such dataset folder")
         self.skeleton: SkeletonSpec = get_skeleton(skeleton)
         self.batch_size = batch_size
         self.num_workers = num_workers
@@ -67,10 +81,8 @@ class MotionDataModule(LightningDataModule):
         self.max_motions = max_motions
         self.preload = preload
         self.strict = strict
+        self.max_abs_z = max_abs_z
         self.datasets: dict[str, Dataset] = {}
-        # One generator for the life of the module, so that re-created train loaders
-        # (reload_dataloaders_every_n_epochs) continue the stream instead of repeating it.
-        self._shuffle = torch.Generator().manual_seed(seed)
 
     @property
     def feature_dim(self) -> int:
@@ -112,7 +124,7 @@ class MotionDataModule(LightningDataModule):
         mean, std = self._stats
         common = dict(skeleton=self.skeleton, mean=mean, std=std, unit_length=self.unit_length,
                       random_crop=train, seed=self.seed, max_motions=self.max_motions,
-                      preload=self.preload, strict=self.strict)
+                      preload=self.preload, strict=self.strict, max_abs_z=self.max_abs_z)
         if self.window is not None:
             return MotionWindowDataset(self.root, split, window=self.window if train else None,
                                        **common)
@@ -123,23 +135,36 @@ class MotionDataModule(LightningDataModule):
         splits = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",),
                   "predict": ("test",), None: ("train", "val", "test")}[stage]
         for split in splits:
-            self.dataset(split)
+            self._check_texts(split, self.dataset(split))
+
+    def _check_texts(self, split: str, ds: Dataset) -> None:
+        """Every caption and segment of ``split`` is in the text-feature cache, or one error."""
+        if self.text_cache is None or not isinstance(ds, MotionDataset):
+            return
+        missing, total = missing_texts((e.caption for e in ds.entries),
+                                       (s for e in ds.entries for s in e.segments), self.text_cache)
+        if missing:
+            segments = f" --segments {self.text_segments}" if self.text_segments else ""
+            raise SegmoError(
+                f"{self.text_cache.folder}: {len(missing)} of {total} texts of the {split} split "
+                f"are not in the text-feature cache (first: {missing[0]!r}); update it with "
+                f"`segmo encode-texts --data {self.root} --encoder {self.text_features}{segments}`")
 
     def _loader(self, split: str, train: bool = False) -> DataLoader:
         ds = self.dataset(split)
         if len(ds) == 0:
-            raise ValueError(f"{self.root / (split + '.txt')}: no usable samples "
+            raise SegmoError(f"{self.root / (split + '.txt')}: no usable samples "
                              f"(summary: {getattr(ds, 'summary', {})})")
-        return DataLoader(
-            ds,
-            batch_size=self.batch_size,
-            shuffle=train,
-            generator=self._shuffle if train else None,
-            drop_last=train and len(ds) > self.batch_size,
-            num_workers=self.num_workers,
-            persistent_workers=self.num_workers > 0,
-            collate_fn=collate,
-        )
+        common = dict(batch_size=self.batch_size, num_workers=self.num_workers,
+                      persistent_workers=self.num_workers > 0, collate_fn=collate,
+                      # Seeds the workers; without it the loader draws from the global RNG,
+                      # which the tasks' dropout and masking must have to themselves.
+                      generator=torch.Generator().manual_seed(self.seed))
+        if not train:
+            return DataLoader(ds, **common)
+        sampler = EpochSampler(ds, seed=self.seed)
+        return ResumableDataLoader(ds, sampler=sampler, drop_last=len(sampler) > self.batch_size,
+                                   **common)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", train=True)

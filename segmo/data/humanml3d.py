@@ -11,23 +11,27 @@ limits) comes from a `SkeletonSpec`. Two datasets are built on one reader:
 What is skipped and what raises (``strict=True`` turns every skip into a ``ValueError``):
 
 * skipped with one ``warnings.warn`` per kind and counted in ``dataset.summary``: a motion
-  file that is missing, empty (0 bytes or 0 frames), unreadable, or holds NaN/inf; a text
-  file that is missing; a text line that is not ``caption#tokens#from#to`` or whose caption
-  has no words (``.``); a text-segment file that is missing; a motion without any usable
-  caption;
+  file that is missing, empty (0 bytes or 0 frames) or unreadable; a text file that is
+  missing; a text line that is not ``caption#tokens#from#to`` or whose caption has no words
+  (``.``); a text-segment file that is missing; a motion without any usable caption;
 * counted only (ordinary filtering, spec §2): samples outside ``min_frames <= t < max_frames``
   and, in window mode, motions shorter than the window;
 * raised: a missing split / statistics file or text-segment folder (``FileNotFoundError``),
-  a motion of the wrong shape for the skeleton, statistics of the wrong shape or with a
+  motions holding NaN/inf or values more than ``max_abs_z`` standard deviations from the
+  mean (`segmo.data.checks`: one `SegmoError` for the split, with the count and the first
+  files, frame and dim; in lazy mode too, whose construction reads every file once for
+  this), a motion of the wrong shape for the skeleton, statistics of the wrong shape or with a
   non-positive std, a text-segment file whose line count differs from its text file or
   that its folder's ``manifest.jsonl`` records as made from other captions (stale), more
   text segments than ``max_segments``, a ground-truth file that does not match its text
-  file (``ValueError``). Every message names the file (and line where there is one).
+  file or is not valid JSON (``ValueError``; `SegmoError` where the user's files are at
+  fault). Every message names the file (and line where there is one).
 
-Randomness (crop offsets, windows) comes from a ``torch.Generator`` seeded with ``seed``
-in the main process, or, inside a DataLoader worker, with ``seed`` mixed with the worker
-seed that the DataLoader draws from its own (seeded) generator; so a run is reproducible
-for a given seed, DataLoader generator and worker count.
+Randomness (crop offsets, windows) is a pure function of ``(seed, epoch, index)``
+(`segmo.data.sampling.sample_rng`): the training sampler passes the epoch in its keys
+``(index, epoch)``; a plain integer key uses the dataset's ``epoch`` (`set_epoch`, 0 by
+default), so repeated reads of one sample in one epoch give the same crop, whatever the
+process or DataLoader worker that reads it.
 """
 
 from __future__ import annotations
@@ -43,8 +47,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset, get_worker_info
+from torch.utils.data import Dataset
 
+from segmo.data.checks import MAX_ABS_Z, refuse_values, value_problem
+from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.captions import caption_of, has_words, read_caption_lines
@@ -54,7 +60,7 @@ log = logging.getLogger(__name__)
 
 # Kinds of skipped items that are reported with a warning (malformed data), as opposed to
 # the length filters, which are ordinary and only counted.
-WARNED_KINDS = ("missing", "empty", "unreadable", "nan", "missing_text", "bad_line",
+WARNED_KINDS = ("missing", "empty", "unreadable", "missing_text", "bad_line",
                 "missing_segments", "no_captions")
 
 
@@ -68,7 +74,7 @@ def read_split(root: str | Path, split: str) -> list[str]:
         raise FileNotFoundError(f"split file not found: {path}")
     ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
     if not ids:
-        raise ValueError(f"split file lists no ids: {path}")
+        raise SegmoError(f"split file lists no ids: {path}")
     return ids
 
 
@@ -78,7 +84,13 @@ def load_stats(root: str | Path, skeleton: str | SkeletonSpec = "t2m") -> tuple[
     for path in paths:
         if not path.is_file():
             raise FileNotFoundError(f"normalisation statistics not found: {path}")
-    return check_stats(np.load(paths[0]), np.load(paths[1]), skeleton, *map(str, paths))
+    arrays = []
+    for path in paths:
+        try:
+            arrays.append(np.load(path))
+        except (OSError, ValueError, EOFError) as error:
+            raise SegmoError(f"{path}: not a readable .npy array ({error})") from None
+    return check_stats(*arrays, skeleton, *map(str, paths))
 
 
 def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_name: str = "mean",
@@ -89,14 +101,14 @@ def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_
     for name, arr in ((mean_name, mean), (std_name, std)):
         arr = np.array(arr, dtype=np.float32)  # always a copy
         if arr.shape != (spec.feature_dim,):
-            raise ValueError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
+            raise SegmoError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
                              f"for skeleton {spec.name!r}")
         if not np.isfinite(arr).all():
-            raise ValueError(f"{name}: contains NaN or inf")
+            raise SegmoError(f"{name}: contains NaN or inf")
         arr.setflags(write=False)
         out.append(arr)
     if (out[1] <= 0).any():
-        raise ValueError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
+        raise SegmoError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
     return out[0], out[1]
 
 
@@ -119,19 +131,19 @@ def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> 
     parts = line.strip().split("#")
     where = f"{path}:{lineno}"
     if len(parts) != 4:
-        raise ValueError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
+        raise SegmoError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
                          f"'#'-separated fields: {line.strip()[:80]!r}")
     caption = parts[0].strip()
     if not has_words(caption):  # "", ".", "!!!": segment-texts reports these too
-        raise ValueError(f"{where}: caption without words: {caption!r}")
+        raise SegmoError(f"{where}: caption without words: {caption!r}")
     try:
         start, end = float(parts[2]), float(parts[3])
     except ValueError:
-        raise ValueError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
+        raise SegmoError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
     start = 0.0 if math.isnan(start) else start
     end = 0.0 if math.isnan(end) else end
     if not (start == 0.0 and end == 0.0) and not (0.0 <= start < end):
-        raise ValueError(f"{where}: bad time tags from={start} to={end}")
+        raise SegmoError(f"{where}: bad time tags from={start} to={end}")
     return Caption(caption, start, end, lineno)
 
 
@@ -163,7 +175,7 @@ class LoadReport:
 
     def skip(self, kind: str, message: str) -> None:
         if self.strict:
-            raise ValueError(f"{message} (strict=True)")
+            raise SegmoError(f"{message} (strict=True)")
         self.counts[kind] += 1
         self.problems.append((kind, message))
 
@@ -185,21 +197,26 @@ class LoadReport:
 class MotionStore:
     """Raw (un-normalised) motions of a split, preloaded as read-only arrays or read lazily.
 
-    Lazy mode reads only the ``.npy`` header at construction, so a NaN in a lazily read
-    file is found when the sample is first loaded and raises there.
+    Every file's values are checked at construction (`segmo.data.checks.value_problem`
+    against ``mean``/``std``), lazy mode included, which reads each file once for that and
+    keeps only its length; the store raises one `SegmoError` naming the unusable files.
     """
 
     def __init__(self, root: Path, ids: list[str], spec: SkeletonSpec, report: LoadReport,
-                 preload: bool = True) -> None:
+                 preload: bool = True, *, mean: np.ndarray, std: np.ndarray,
+                 max_abs_z: float | None = MAX_ABS_Z, where: str = "") -> None:
         self.folder = root / "new_joint_vecs"
         self.preload = preload
         self.spec = spec
+        self.mean, self.std, self.max_abs_z = mean, std, max_abs_z
         self.arrays: dict[str, np.ndarray] = {}
         self.lengths: dict[str, int] = {}
+        bad: list[tuple[Path, str]] = []
         for mid in ids:
-            self._add(mid, report)
+            self._add(mid, report, bad)
+        refuse_values(where or str(root), bad, len(ids), max_abs_z)
 
-    def _add(self, mid: str, report: LoadReport) -> None:
+    def _add(self, mid: str, report: LoadReport, bad: list[tuple[Path, str]]) -> None:
         path = self.folder / f"{mid}.npy"
         if not path.is_file():
             report.skip("missing", f"{path}: motion file not found")
@@ -208,27 +225,29 @@ class MotionStore:
             report.skip("empty", f"{path}: empty file")
             return
         try:
-            arr = np.load(path) if self.preload else None
-            shape = arr.shape if arr is not None else read_npy_shape(path)
+            self._check_shape(path, read_npy_shape(path))
+            arr = np.load(path)
         except (OSError, ValueError, EOFError) as err:
+            if isinstance(err, SegmoError):  # the wrong shape: raised, not skipped
+                raise
             report.skip("unreadable", f"{path}: {err}")
             return
-        self._check_shape(path, shape)
-        if shape[0] == 0:
+        if arr.shape[0] == 0:
             report.skip("empty", f"{path}: 0 frames")
             return
-        if arr is not None:
-            if not np.isfinite(arr).all():
-                report.skip("nan", f"{path}: contains NaN or inf")
-                return
+        problem = value_problem(arr, self.mean, self.std, self.max_abs_z)
+        if problem is not None:
+            bad.append((path, problem))
+            return
+        if self.preload:
             arr = np.array(arr, dtype=np.float32)
             arr.setflags(write=False)
             self.arrays[mid] = arr
-        self.lengths[mid] = int(shape[0])
+        self.lengths[mid] = int(arr.shape[0])
 
     def _check_shape(self, path: Path, shape: tuple[int, ...]) -> None:
         if len(shape) != 2 or shape[1] != self.spec.feature_dim:
-            raise ValueError(f"{path}: shape {shape}, expected (t, {self.spec.feature_dim}) "
+            raise SegmoError(f"{path}: shape {shape}, expected (t, {self.spec.feature_dim}) "
                              f"for skeleton {self.spec.name!r}")
 
     def __contains__(self, mid: str) -> bool:
@@ -241,38 +260,19 @@ class MotionStore:
         path = self.folder / f"{mid}.npy"
         arr = np.load(path).astype(np.float32, copy=False)
         self._check_shape(path, arr.shape)
-        if not np.isfinite(arr).all():
-            raise ValueError(f"{path}: contains NaN or inf (found when loading lazily)")
+        problem = value_problem(arr, self.mean, self.std, self.max_abs_z)
+        if problem is not None or arr.shape[0] != self.lengths[mid]:
+            # The file changed after the dataset was checked.
+            raise SegmoError(f"{path}: changed while training: "
+                             f"{problem or f'{arr.shape[0]} frames, was {self.lengths[mid]}'}")
         return arr
 
 
-class SeededGenerator:
-    """A torch.Generator seeded from ``seed`` in the main process, re-seeded per DataLoader worker."""
-
-    def __init__(self, seed: int) -> None:
-        self.seed = seed
-        self._gen: torch.Generator | None = None
-        self._owner: tuple[int, int] | None = None
-
-    def get(self) -> torch.Generator:
-        info = get_worker_info()
-        owner = None if info is None else (info.id, info.seed)
-        if self._gen is None or owner != self._owner:
-            # Each worker holds a copy of the dataset; without re-seeding all copies would
-            # draw the same offsets. The worker seed derives from the loader's generator.
-            seed = self.seed if info is None else (self.seed * 1_000_003 + info.seed) % 2**63
-            self._gen = torch.Generator().manual_seed(seed)
-            self._owner = owner
-        return self._gen
-
-    def __getstate__(self) -> dict[str, Any]:  # Generators need not survive pickling (spawn)
-        return {"seed": self.seed, "_gen": None, "_owner": None}
-
-
-def crop_offset(t: int, size: int, random: bool, gen: SeededGenerator) -> int:
+def crop_offset(t: int, size: int, random: bool, rng: np.random.Generator) -> int:
+    """Start frame of a ``size``-frame crop of ``t`` frames: 0, or uniform when ``random``."""
     if not random or t == size:
         return 0
-    return int(torch.randint(0, t - size + 1, (1,), generator=gen.get()))
+    return int(rng.integers(0, t - size + 1))
 
 
 # ----------------------------------------------------------------------------- datasets
@@ -303,7 +303,8 @@ class MotionDataset(Dataset):
     Cropping to a multiple of ``unit_length`` drops ``t % unit_length`` frames: at a random
     offset when ``random_crop`` (training), else from the end (start 0, evaluation). Spans
     are shifted by the offset and clipped to [0, t]. Time-tagged sub-clips carry no spans
-    (ground truth is only written for whole clips, by the built-in corpus).
+    (ground truth is only written for whole clips, by the built-in corpus). The offset is a
+    function of ``(seed, epoch, i)`` (module docstring); keys may be ``i`` or ``(i, epoch)``.
     """
 
     def __init__(
@@ -324,9 +325,10 @@ class MotionDataset(Dataset):
         max_motions: int | None = None,
         preload: bool = True,
         strict: bool = False,
+        max_abs_z: float | None = MAX_ABS_Z,
     ) -> None:
         if max_segments < 1:
-            raise ValueError(f"max_segments={max_segments} must be at least 1")
+            raise SegmoError(f"max_segments={max_segments} must be at least 1")
         self.root = Path(root)
         self.split = split
         self.skeleton = get_skeleton(skeleton)
@@ -334,7 +336,7 @@ class MotionDataset(Dataset):
         self.random_crop = random_crop
         self.max_segments = max_segments
         self.mean, self.std = resolve_stats(self.root, self.skeleton, mean, std)
-        self._gen = SeededGenerator(seed)
+        self.seed, self.epoch = seed, 0
         seg_dir = None
         if text_segments is not None:
             seg_dir = self.root / "text_segments" / text_segments
@@ -343,7 +345,9 @@ class MotionDataset(Dataset):
 
         ids = read_split(self.root, split)[:max_motions]
         report = LoadReport(strict)
-        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload)
+        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload, mean=self.mean,
+                                   std=self.std, max_abs_z=max_abs_z,
+                                   where=str(self.root / f"{split}.txt"))
         self.entries: list[_Entry] = []
         for mid in ids:
             if mid in self.motions:
@@ -435,20 +439,32 @@ class MotionDataset(Dataset):
         path = self.root / "segments" / f"{mid}.json"
         if not path.is_file():
             return None
-        captions = json.loads(path.read_text())["captions"]
+        try:
+            captions = json.loads(path.read_text())["captions"]
+            spans = [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
+        except json.JSONDecodeError as error:
+            raise SegmoError(f"{path}:{error.lineno}: not valid JSON: {error.msg}") from None
+        except (KeyError, TypeError, ValueError) as error:
+            raise SegmoError(f"{path}: not a ground-truth file (captions[i].segments[j].start/end "
+                             f"expected; {type(error).__name__}: {error})") from None
         if len(captions) != num_lines:
-            raise ValueError(f"{path} has {len(captions)} captions but {text_path} has "
+            raise SegmoError(f"{path} has {len(captions)} captions but {text_path} has "
                              f"{num_lines} lines")
-        return [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
+        return spans
 
     def __len__(self) -> int:
         return len(self.entries)
 
-    def __getitem__(self, i: int) -> dict[str, Any]:
+    def set_epoch(self, epoch: int) -> None:
+        """The epoch whose crops plain integer keys get."""
+        self.epoch = epoch
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
+        i, epoch = split_key(key, self.epoch)
         e = self.entries[i]
         raw = self.motions.get(e.motion_id)[e.start:e.end]
         t = raw.shape[0] - raw.shape[0] % self.unit_length
-        off = crop_offset(raw.shape[0], t, self.random_crop, self._gen)
+        off = crop_offset(raw.shape[0], t, self.random_crop, sample_rng(self.seed, epoch, i))
         motion = torch.from_numpy((raw[off:off + t] - self.mean) / self.std)
         spans = None
         if e.spans is not None:
@@ -477,5 +493,5 @@ def resolve_stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[
     if mean is None and std is None:
         return load_stats(root, spec)
     if mean is None or std is None:
-        raise ValueError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
+        raise SegmoError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
     return check_stats(mean, std, spec)

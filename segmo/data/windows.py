@@ -13,14 +13,16 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from segmo.data.checks import MAX_ABS_Z
 from segmo.data.humanml3d import (
     LoadReport,
     MotionStore,
-    SeededGenerator,
     crop_offset,
     read_split,
     resolve_stats,
 )
+from segmo.data.sampling import sample_rng, split_key
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
 
@@ -31,7 +33,8 @@ class MotionWindowDataset(Dataset):
     motions shorter than the window are skipped and counted, and the length limits of the
     skeleton do not apply. ``window=None``: the whole clip, kept if
     ``min_frames <= t < max_frames`` and cropped to a multiple of ``unit_length`` from the
-    end (validation). A sample is ``{"motion": (w, d) z-scored, "length": w, "id": str}``.
+    end (validation). A sample is ``{"motion": (w, d) z-scored, "length": w, "id": str}``;
+    the window offset is a function of ``(seed, epoch, i)``, keys are ``i`` or ``(i, epoch)``.
     """
 
     def __init__(
@@ -49,19 +52,22 @@ class MotionWindowDataset(Dataset):
         max_motions: int | None = None,
         preload: bool = True,
         strict: bool = False,
+        max_abs_z: float | None = MAX_ABS_Z,
     ) -> None:
         if window is not None and (window <= 0 or window % unit_length):
-            raise ValueError(f"window={window} must be a positive multiple of unit_length={unit_length}")
+            raise SegmoError(f"window={window} must be a positive multiple of unit_length={unit_length}")
         self.root = Path(root)
         self.skeleton = get_skeleton(skeleton)
         self.window = window
         self.unit_length = unit_length
         self.random_crop = random_crop
         self.mean, self.std = resolve_stats(self.root, self.skeleton, mean, std)
-        self._gen = SeededGenerator(seed)
+        self.seed, self.epoch = seed, 0
         report = LoadReport(strict)
         ids = read_split(self.root, split)[:max_motions]
-        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload)
+        self.motions = MotionStore(self.root, ids, self.skeleton, report, preload, mean=self.mean,
+                                   std=self.std, max_abs_z=max_abs_z,
+                                   where=str(self.root / f"{split}.txt"))
         self.ids: list[str] = []
         for mid in ids:
             if mid not in self.motions:
@@ -81,10 +87,15 @@ class MotionWindowDataset(Dataset):
     def __len__(self) -> int:
         return len(self.ids)
 
-    def __getitem__(self, i: int) -> dict[str, Any]:
+    def set_epoch(self, epoch: int) -> None:
+        """The epoch whose windows plain integer keys get."""
+        self.epoch = epoch
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
+        i, epoch = split_key(key, self.epoch)
         mid = self.ids[i]
         raw = self.motions.get(mid)
         size = self.window if self.window is not None else raw.shape[0] - raw.shape[0] % self.unit_length
-        off = crop_offset(raw.shape[0], size, self.random_crop, self._gen)
+        off = crop_offset(raw.shape[0], size, self.random_crop, sample_rng(self.seed, epoch, i))
         motion = torch.from_numpy((raw[off:off + size] - self.mean) / self.std)
         return {"motion": motion, "length": size, "id": mid}

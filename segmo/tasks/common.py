@@ -7,6 +7,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from segmo.errors import SegmoError
 from segmo.models.pretrained import read_config
 from segmo.models.rvq import RVQVAE
 
@@ -36,14 +37,22 @@ def adamw_with_schedule(parameters, lr: float, weight_decay: float, warmup_steps
 def load_tokenizer(path: str) -> RVQVAE:
     """The frozen, exported RVQ-VAE that turns motions into tokens (spec §1, stage 1)."""
     if not (Path(path) / "config.json").is_file():
-        raise FileNotFoundError(
-            f"tokenizer={path!r}: not an exported tokenizer directory; train one with "
+        raise SegmoError(
+            f"model.init_args.tokenizer={path!r}: not an exported tokenizer directory (no "
+            "config.json); train one with "
             "`segmo fit --config configs/rvq/...` and `segmo export CKPT --out DIR`"
         )
-    kind = read_config(path)["kind"]
-    if kind != "rvq":
-        raise ValueError(f"tokenizer={path!r}: holds a {kind!r} model, not an 'rvq' tokenizer")
-    tokenizer = RVQVAE.from_pretrained(path)
+    try:
+        kind = read_config(path)["kind"]
+        if kind != "rvq":
+            raise SegmoError(f"holds a {kind!r} model, not an 'rvq' tokenizer")
+        tokenizer = RVQVAE.from_pretrained(path)
+    except SegmoError as error:  # names the file (and line) at fault
+        raise SegmoError(f"model.init_args.tokenizer={path!r}: {error}") from None
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError) as error:
+        # A damaged directory: invalid config.json, missing or truncated weights.
+        raise SegmoError(f"model.init_args.tokenizer={path!r}: cannot load the tokenizer: "
+                         f"{type(error).__name__}: {error}") from None
     tokenizer.requires_grad_(False)
     return tokenizer.eval()
 
@@ -58,18 +67,18 @@ def check_text_features(datamodule, text_dim: int, text_encoder: str | None, tas
         return text_encoder
     name = getattr(datamodule, "hparams", {}).get("text_features")
     if name is None:
-        raise ValueError(
+        raise SegmoError(
             f"{task}: the data has no text features; set data.init_args.text_features "
             "(e.g. minilm) and build the cache with `segmo encode-texts`"
         )
     if text_encoder is not None and text_encoder != name:
-        raise ValueError(
+        raise SegmoError(
             f"{task}: model.init_args.text_encoder={text_encoder!r} but "
             f"data.init_args.text_features={name!r}"
         )
     cache = getattr(datamodule, "text_cache", None)
     if cache is not None and cache.dim != text_dim:
-        raise ValueError(
+        raise SegmoError(
             f"{task}: model.init_args.text_dim={text_dim} but the cached text features "
             f"({name}) are {cache.dim}-d"
         )

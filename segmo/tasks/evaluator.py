@@ -31,16 +31,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-import lightning as L
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.errors import SegmoError
 from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
 from segmo.evaluation.metrics import euclidean_distance_matrix, r_precision
 from segmo.evaluation.words import CaptionTokens, Vocabulary
 from segmo.motion.skeleton import get_skeleton
+from segmo.tasks.base import Task
 
 
 def margin_contrastive_loss(text: Tensor, motion: Tensor, negative: Tensor, margin: float) -> dict[str, Tensor]:
@@ -65,7 +66,7 @@ def infonce_loss(text: Tensor, motion: Tensor, negative: Tensor, temperature: fl
     return {"t2m": t2m, "m2t": m2t, "matched": d.diagonal().mean().detach(), "loss": (t2m + m2t) / 2}
 
 
-class EvaluatorTask(L.LightningModule):
+class EvaluatorTask(Task):
     """Contrastive training of `T2MEvaluator`; see the module docstring."""
 
     stage: ClassVar[str] = "evaluator"
@@ -115,7 +116,7 @@ class EvaluatorTask(L.LightningModule):
         if datamodule is None:
             return
         if get_skeleton(datamodule.skeleton).name != self.skeleton.name:
-            raise ValueError(f"EvaluatorTask: the data uses skeleton {get_skeleton(datamodule.skeleton).name!r} "
+            raise SegmoError(f"EvaluatorTask: the data uses skeleton {get_skeleton(datamodule.skeleton).name!r} "
                              f"but the task was built for {self.skeleton.name!r}; set model.init_args.skeleton")
         self.tokens = CaptionTokens(datamodule.root)
         if self.model is not None:  # loaded from a checkpoint
@@ -123,7 +124,7 @@ class EvaluatorTask(L.LightningModule):
         if self.hparams.glove_dir is not None:
             vocab, vectors = Vocabulary.from_glove(self.hparams.glove_dir)
             if vectors.shape[1] != self.hparams.word_dim:
-                raise ValueError(f"EvaluatorTask: GloVe vectors are {vectors.shape[1]}-d but word_dim="
+                raise SegmoError(f"EvaluatorTask: GloVe vectors are {vectors.shape[1]}-d but word_dim="
                                  f"{self.hparams.word_dim}")
             self.model = self._build(vocab.words)
             with torch.no_grad():
@@ -132,14 +133,16 @@ class EvaluatorTask(L.LightningModule):
             split = Path(datamodule.root) / "train.txt"
             lists = [t for mid in split.read_text().split() for t in self.tokens.lines(mid)]
             if not lists:
-                raise ValueError(f"{split}: no captions to build the vocabulary from")
+                raise SegmoError(f"{split}: no captions to build the vocabulary from")
             self.model = self._build(Vocabulary.from_token_lists(lists, self.hparams.min_word_count).words)
         self.model.set_statistics(datamodule.mean, datamodule.std)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_save_checkpoint(checkpoint)
         checkpoint["evaluator_words"] = list(self.model.meta["words"])
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
         if self.model is None:
             self.model = self._build(checkpoint["evaluator_words"])
 
@@ -192,12 +195,18 @@ class EvaluatorTask(L.LightningModule):
         text = np.concatenate([t for t, _ in self._val])
         motion = np.concatenate([m for _, m in self._val])
         self._val = []
-        self.log(f"{prefix}/matching", float(np.diag(euclidean_distance_matrix(text, motion)).mean()))
+        if self.trainer.world_size > 1:
+            # Every rank scores the embeddings of all ranks (DDP's sampler gives each rank
+            # as many samples, padding with a few repeats), so the logged values agree.
+            text, motion = (self.all_gather(torch.from_numpy(x)).flatten(0, 1).cpu().numpy()
+                            for x in (text, motion))
+        self.log(f"{prefix}/matching", float(np.diag(euclidean_distance_matrix(text, motion)).mean()),
+                 sync_dist=True)
         if len(text) >= 32:
             # Consecutive rows of the (unshuffled) loader; a quick proxy of the §9 protocol.
             order = np.random.default_rng(0).permutation(len(text))
             for k, p in enumerate(r_precision(text[order], motion[order], 3), 1):
-                self.log(f"{prefix}/top{k}", float(p), prog_bar=k == 1)
+                self.log(f"{prefix}/top{k}", float(p), prog_bar=k == 1, sync_dist=True)
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         self._evaluate("val", batch)

@@ -9,16 +9,16 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
+from segmo.tasks.base import Task
 from segmo.tasks.common import adamw_with_schedule, check_text_features, token_lengths
 
 
-class LengthTask(L.LightningModule):
+class LengthTask(Task):
     """Trains `LengthEstimator` on batches with cached sentence vectors."""
 
     stage: ClassVar[str] = "length"
@@ -72,11 +72,13 @@ class LengthTask(L.LightningModule):
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         terms = self.step(batch)
-        self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=len(batch["lengths"]))
+        self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=len(batch["lengths"]),
+                      sync_dist=True)
 
     def test_step(self, batch: dict, batch_idx: int) -> None:
         terms = self.step(batch)
-        self.log_dict({f"test/{k}": v for k, v in terms.items()}, batch_size=len(batch["lengths"]))
+        self.log_dict({f"test/{k}": v for k, v in terms.items()}, batch_size=len(batch["lengths"]),
+                      sync_dist=True)
 
     @torch.no_grad()
     def export_model(self) -> LengthEstimator:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -27,6 +26,7 @@ from segmo.models.mask_transformer import (
     masked_token_loss,
 )
 from segmo.segmentation import SegmenterName, segment_batch
+from segmo.tasks.base import Task
 from segmo.tasks.common import (
     UNIT_LENGTH,
     adamw_with_schedule,
@@ -84,7 +84,7 @@ def segment_top1(text: Tensor, motion: Tensor, mask: Tensor) -> tuple[int, int]:
     return int(((pick == own) & mask).sum()), int(mask.sum())
 
 
-class MaskTask(L.LightningModule):
+class MaskTask(Task):
     """Trains `MaskTransformer` (+ its alignment head) on batches with cached text features."""
 
     stage: ClassVar[str] = "mask"
@@ -222,18 +222,23 @@ class MaskTask(L.LightningModule):
         sentence, segments, segment_mask = text_condition(batch)
         gt, usable = gt_token_spans(batch["spans"], segment_mask.sum(1), batch["lengths"],
                                     segment_mask.shape[1])
-        if not bool(usable.any()):
-            return
         gt, usable = gt.to(base.device), usable.to(base.device)
-        out = self.model(base, valid, sentence, segments, segment_mask)
         mask = segment_mask & usable[:, None] & (gt[..., 1] > gt[..., 0])
+        # Under DDP every rank must log the same keys (they are all-reduced at the end of the
+        # epoch), so whether to score this batch is decided for all ranks at once; a rank
+        # without ground truth here logs with weight 0.
+        any_rank = self.trainer.strategy.reduce(mask.any().float(), reduce_op="sum")
+        if float(any_rank) == 0:
+            return
+        out = self.model(base, valid, sentence, segments, segment_mask)
         total = int(mask.sum())
+        weight, total = total, max(total, 1)
         # Head-free score: mean motion feature over the span vs the segment's text vector.
         inside = (torch.arange(base.shape[1], device=base.device) >= gt[..., :1]) & (
             torch.arange(base.shape[1], device=base.device) < gt[..., 1:])
         pooled = torch.einsum("ban,bnd->bad", inside.float(), out.motion_features)
         correct_raw, _ = segment_top1(out.segment_features, pooled, mask)
-        self.log(f"{prefix}/segment_top1_raw", correct_raw / total, batch_size=total, sync_dist=True)
+        self.log(f"{prefix}/segment_top1_raw", correct_raw / total, batch_size=weight, sync_dist=True)
         if self.model.alignment is None:
             return
         head = self.model.alignment
@@ -245,7 +250,7 @@ class MaskTask(L.LightningModule):
                 text = text.gather(1, order[..., None].expand(-1, -1, text.shape[-1]))
             return segment_top1(text, head.embed_motion(run.motion_features, gt), mask)[0] / total
 
-        self.log(f"{prefix}/segment_top1", top1(out), batch_size=total, sync_dist=True,
+        self.log(f"{prefix}/segment_top1", top1(out), batch_size=weight, sync_dist=True,
                  prog_bar=True)
         # The motion features see the segments in their slot order, so they can simply copy
         # slot i into the i-th span. Fed in reverse order, a model whose motion features
@@ -255,11 +260,11 @@ class MaskTask(L.LightningModule):
         fed = segments.gather(1, order[..., None].expand_as(segments))
         reversed_run = self.model(base, valid, sentence, fed, segment_mask)
         self.log(f"{prefix}/segment_top1_reversed", top1(reversed_run, order),
-                 batch_size=total, sync_dist=True)
+                 batch_size=weight, sync_dist=True)
         unordered = torch.ones(base.shape[0], dtype=torch.bool, device=base.device)
         unordered_run = self.model(base, valid, sentence, segments, segment_mask,
                                    unordered=unordered)
-        self.log(f"{prefix}/segment_top1_unordered", top1(unordered_run), batch_size=total,
+        self.log(f"{prefix}/segment_top1_unordered", top1(unordered_run), batch_size=weight,
                  sync_dist=True)
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:

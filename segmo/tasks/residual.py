@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import lightning as L
 import torch
 from torch import Tensor
 
@@ -20,6 +19,7 @@ from segmo.models.residual_transformer import (
     ResidualTransformerConfig,
     sample_layers,
 )
+from segmo.tasks.base import Task
 from segmo.tasks.common import (
     adamw_with_schedule,
     check_text_features,
@@ -29,7 +29,7 @@ from segmo.tasks.common import (
 )
 
 
-class ResidualTask(L.LightningModule):
+class ResidualTask(Task):
     """Trains `ResidualTransformer` on batches with cached text features."""
 
     stage: ClassVar[str] = "residual"

@@ -12,18 +12,19 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar, Literal
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.errors import SegmoError
 from segmo.models.rvq import RVQVAE, RVQConfig, RVQOutput
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import get_skeleton
+from segmo.tasks.base import Task
 from segmo.tasks.common import adamw_with_schedule
 
 
-class RVQTask(L.LightningModule):
+class RVQTask(Task):
     """Trains `RVQVAE` on batches {"motion" (b, t, d) z-scored, "mask" (b, t) bool}."""
 
     stage: ClassVar[str] = "rvq"
@@ -81,7 +82,7 @@ class RVQTask(L.LightningModule):
             return
         data_skeleton = getattr(datamodule, "skeleton", None)
         if data_skeleton is not None and get_skeleton(data_skeleton).name != self.skeleton.name:
-            raise ValueError(
+            raise SegmoError(
                 f"RVQTask: the data uses skeleton {get_skeleton(data_skeleton).name!r} but the task "
                 f"was built for {self.skeleton.name!r}; set model.init_args.skeleton to match"
             )
@@ -96,9 +97,11 @@ class RVQTask(L.LightningModule):
             )
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_save_checkpoint(checkpoint)
         checkpoint["rvq_generator_state"] = self.generator.get_state()
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
         if "rvq_generator_state" in checkpoint:
             self.generator.set_state(checkpoint["rvq_generator_state"])
 

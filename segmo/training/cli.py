@@ -7,6 +7,15 @@ stage uses this same entry point. On top of Lightning's defaults it adds
   the task's `stage` attribute, name = the config file's stem) holding the resolved
   `config.yaml`, CSV and TensorBoard logs and `checkpoints/` (`last.ckpt` and the best
   one by the task's `monitor` metric, lower is better);
+- exact resume: `segmo fit ... --ckpt_path RUN/checkpoints/last.ckpt` continues in RUN
+  (the same version directory; `segmo.training.runs`) with the data order, the loader's
+  place in the epoch and the random states of the interrupted run, so it logs the losses
+  an uninterrupted run logs (`segmo.data.sampling`, `segmo.tasks.base`);
+- `--trainer.default_root_dir` is refused: the run directory is set by `--runs_dir` and
+  `--run_name`, and Lightning would use default_root_dir only where no logger is given,
+  which segmo always gives, so it would be silently ignored;
+- one-line errors (`SegmoError`) for a bad config file, key, value or path
+  (`segmo.training.config_errors`), which `segmo` prints as ``segmo fit: ...``, exit 2;
 - a default seed of 0 (`--seed_everything`).
 
 Example: `segmo fit --config configs/rvq/synthetic.yaml --data.root /tmp/c2000`.
@@ -14,13 +23,20 @@ Example: `segmo fit --config configs/rvq/synthetic.yaml --data.root /tmp/c2000`.
 
 from __future__ import annotations
 
+import logging
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
+from jsonargparse import ArgumentError
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
-from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+from lightning.pytorch.loggers import TensorBoardLogger
+
+from segmo.errors import SegmoError
+from segmo.training.config_errors import check_config_files, config_error
+from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step
 
 SUBCOMMANDS = ("fit", "validate", "test")
 
@@ -37,27 +53,50 @@ class SegmoCLI(LightningCLI):
     def subcommands() -> dict[str, set[str]]:
         return {k: v for k, v in LightningCLI.subcommands().items() if k in SUBCOMMANDS}
 
-    def _run_directory(self) -> tuple[Path, str]:
+    def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
+        super().parse_arguments(parser, args)
+        config = self.config.get(self.config.get("subcommand") or "", None)
+        if config is None:
+            return
+        if config.get("trainer", {}).get("default_root_dir") is not None:
+            raise SegmoError(
+                "--trainer.default_root_dir is not used by segmo: the run directory is "
+                "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead")
+        ckpt_path = config.get("ckpt_path")
+        if ckpt_path is not None and ckpt_path not in ("last", "best", "hpc", "registry"):
+            if not Path(ckpt_path).is_file():
+                raise SegmoError(f"--ckpt_path {ckpt_path}: no such checkpoint file")
+            checkpoint_step(ckpt_path)  # readable, and a Lightning checkpoint
+
+    def _run_directory(self) -> tuple[Path, str, str | None, int | None]:
+        """(save_dir, name, version or None for the next free one, resume step or None)."""
         config = self.config[self.subcommand]
+        ckpt_path = config.get("ckpt_path")
+        if self.subcommand == "fit" and ckpt_path and Path(ckpt_path).is_file():
+            run = checkpoint_run(ckpt_path)
+            if run is not None:
+                return (*run, checkpoint_step(ckpt_path))
         stage = getattr(self.model, "stage", type(self.model).__name__.lower())
         name = config.get("run_name")
         if not name:
             files = config.get("config") or []
             name = Path(str(files[-1])).stem if files else "default"
-        return Path(config.get("runs_dir") or "runs") / stage, name
+        return Path(config.get("runs_dir") or "runs") / stage, name, None, None
 
     def instantiate_trainer(self, **kwargs: Any):
+        if self.datamodule is not None:
+            # Read and check the data (values, text features) before the Trainer prints its
+            # banners, so that a refused dataset is the only thing the user sees.
+            self.datamodule.setup(self.subcommand)
         trainer_config = self._get(self.config_init, "trainer", default={})
-        save_dir, name = self._run_directory()
+        save_dir, name, version, resume_step = self._run_directory()
         if trainer_config.get("logger") in (None, True):
-            csv = CSVLogger(save_dir, name=name)
+            csv = RunCSVLogger(save_dir, name=name, version=version, resume_step=resume_step)
             # Both loggers write into the same version directory.
-            tensorboard = TensorBoardLogger(
-                save_dir, name=name, version=csv.version, default_hp_metric=False
-            )
+            tensorboard = TensorBoardLogger(save_dir, name=name, version=csv.version,
+                                            default_hp_metric=False, purge_step=resume_step)
             kwargs["logger"] = [csv, tensorboard]
-        if trainer_config.get("default_root_dir") is None:
-            kwargs["default_root_dir"] = str(save_dir / name)
+        kwargs["default_root_dir"] = str(save_dir / name)
         callbacks = list(trainer_config.get("callbacks") or [])
         monitor = getattr(self.model, "monitor", None)
         fitting = self.subcommand == "fit"
@@ -76,25 +115,51 @@ class SegmoCLI(LightningCLI):
         return super().instantiate_trainer(**kwargs)
 
 
+def _segmo_error(error: BaseException) -> SegmoError | None:
+    """The `SegmoError` that ``error`` wraps and quotes (jsonargparse does so with errors
+    raised while it builds the task or the DataModule), or None."""
+    inner, seen = error, 0
+    while inner is not None and seen < 10:
+        if isinstance(inner, SegmoError):
+            return inner if inner is error or str(inner) in str(error) else None
+        inner, seen = inner.__cause__ or inner.__context__, seen + 1
+    return None
+
+
 def main(argv: list[str] | None = None) -> SegmoCLI:
     """Run `fit`, `validate` or `test`; argv starts with the sub-command. Returns the CLI
-    (its `trainer`, `model`, `datamodule`), which tests inspect."""
+    (its `trainer`, `model`, `datamodule`), which tests inspect. Expected failures raise
+    `SegmoError` with a one-line message."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] not in SUBCOMMANDS and argv[0] not in ("-h", "--help"):
-        raise SystemExit(f"segmo.training.cli: expected one of {SUBCOMMANDS}, got {argv[0]!r}")
+        raise SegmoError(f"segmo.training.cli: expected one of {SUBCOMMANDS}, got {argv[0]!r}")
+    check_config_files(argv)
+    # "Seed set to 0" would be the first of two lines of every error; config.yaml records it.
+    logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)
     with warnings.catch_warnings():
         # Called as `segmo fit ...`, sys.argv holds the same arguments as argv, which
         # LightningCLI would warn about.
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         # The frozen tokenizer inside the token-level tasks is in eval mode on purpose.
         warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode")
-        return SegmoCLI(
-            args=argv,
-            subclass_mode_model=True,
-            subclass_mode_data=True,
-            seed_everything_default=0,
-            # Each run gets its own version directory; a re-run there may rewrite the copy.
-            save_config_kwargs={"overwrite": True},
-        )
+        try:
+            return SegmoCLI(
+                args=argv,
+                subclass_mode_model=True,
+                subclass_mode_data=True,
+                seed_everything_default=0,
+                # Each run gets its own version directory; a re-run there may rewrite the copy.
+                save_config_kwargs={"overwrite": True},
+                # Parse errors raise (and become one line below) instead of printing usage.
+                parser_kwargs={"exit_on_error": False},
+            )
+        except ArgumentError as error:
+            raise config_error(str(error), argv) from None
+        except Exception as error:
+            found = _segmo_error(error)
+            if found is None or found is error:
+                raise
+            raise found from None
 
 
 if __name__ == "__main__":

@@ -1,0 +1,147 @@
+"""`Task`: what every training stage (rvq, mask, residual, length, evaluator) shares.
+
+* A non-finite training loss stops the run before its backward pass, and a non-finite
+  gradient before the optimiser step, with one line naming the step and the batch's sample
+  ids (`NonFiniteError`, a `SegmoError`: ``segmo fit`` prints it and exits with status 2).
+  Under DDP the ranks agree first (one all-reduce of a flag per step), so they stop
+  together instead of deadlocking in the next collective.
+* No checkpoint is written whose tensors are not all finite.
+* Checkpoints hold the global RNG states (torch, CUDA, numpy, python) of every rank, which
+  condition dropout, masking and nn.Dropout draw from; they are put back just before the
+  first batch of a resumed run, so that it draws what the uninterrupted run drew. With the
+  data order (`segmo.data.sampling`) this makes a resumed run log the same losses.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.utilities import rank_zero_warn
+from torch import Tensor
+
+from segmo.errors import SegmoError
+
+RNG_KEY = "segmo_rng_states"
+SHOWN_IDS = 8
+
+
+class NonFiniteError(SegmoError):
+    """Training produced a NaN/inf loss, gradient or checkpoint tensor."""
+
+
+def rng_states() -> dict[str, Any]:
+    """The global random states of this process, as tensors and plain numbers (so that
+    checkpoints still load with ``torch.load(weights_only=True)``)."""
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    return {"torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None,
+            "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, gauss],
+            "python": random.getstate()}
+
+
+def set_rng_states(states: dict[str, Any]) -> None:
+    torch.set_rng_state(states["torch"])
+    if states.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+    kind, keys, pos, has_gauss, gauss = states["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    random.setstate(states["python"])
+
+
+def non_finite_tensors(state_dict: dict[str, Any]) -> list[str]:
+    """Names of the floating-point tensors of ``state_dict`` holding NaN or inf."""
+    return [name for name, value in state_dict.items()
+            if isinstance(value, Tensor) and value.is_floating_point()
+            and not bool(torch.isfinite(value).all())]
+
+
+def _distributed() -> bool:
+    return torch.distributed.is_available() and torch.distributed.is_initialized() \
+        and torch.distributed.get_world_size() > 1
+
+
+def _gather(obj: Any) -> list[Any]:
+    """``obj`` of every rank (a list of one without a process group)."""
+    if not _distributed():
+        return [obj]
+    out = [None] * torch.distributed.get_world_size()
+    torch.distributed.all_gather_object(out, obj)
+    return out
+
+
+class Task(L.LightningModule):
+    """Base class of the training stages; subclasses that override a hook below call super."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._batch_ids: list[str] = []
+        self._batch_idx = 0
+        self._rng_to_restore: list[dict[str, Any]] | None = None
+
+    # -- non-finite guards -------------------------------------------------------------------
+
+    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
+        self._batch_ids = [str(i) for i in batch.get("id", [])] if isinstance(batch, dict) else []
+        self._batch_idx = batch_idx
+        if self._rng_to_restore is not None:
+            states, self._rng_to_restore = self._rng_to_restore, None
+            if len(states) == self.trainer.world_size:
+                set_rng_states(states[self.global_rank])
+            else:
+                rank_zero_warn(f"the checkpoint holds the random states of {len(states)} ranks, "
+                               f"this run has {self.trainer.world_size}: they are not restored, "
+                               "so dropout and masking draws differ from the interrupted run")
+
+    def on_before_backward(self, loss: Tensor) -> None:
+        self._stop_if_non_finite("loss", loss.detach())
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        if getattr(self.trainer.precision_plugin, "scaler", None) is not None:
+            return  # fp16 loss scaling skips steps with inf gradients by design
+        grads = [p.grad for group in optimizer.param_groups for p in group["params"]
+                 if p.grad is not None]
+        if grads:  # gradients are already all-reduced under DDP: every rank agrees
+            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.detach().float())
+                                                         for g in grads]))
+            if not bool(torch.isfinite(norm)):
+                self._raise("gradient norm", float(norm), [(self.global_rank, self._batch_ids)])
+
+    def _stop_if_non_finite(self, what: str, value: Tensor) -> None:
+        bad = torch.tensor(0.0 if bool(torch.isfinite(value).all()) else 1.0, device=value.device)
+        if _distributed():
+            torch.distributed.all_reduce(bad)
+        if float(bad) == 0:
+            return
+        reports = _gather((self.global_rank, bool(torch.isfinite(value).all()), self._batch_ids))
+        where = [(rank, ids) for rank, finite, ids in reports if not finite]
+        self._raise(what, float(value) if value.numel() == 1 else math.nan, where)
+
+    def _raise(self, what: str, value: float, where: list[tuple[int, list[str]]]) -> None:
+        rank, ids = where[0] if where else (self.global_rank, self._batch_ids)
+        shown = ", ".join(ids[:SHOWN_IDS]) + (f" (+{len(ids) - SHOWN_IDS} more)"
+                                              if len(ids) > SHOWN_IDS else "")
+        on_rank = f" on rank {rank}" if _distributed() else ""
+        raise NonFiniteError(
+            f"{type(self).__name__}: the training {what} is {value} at step {self.global_step} "
+            f"(epoch {self.current_epoch}, batch {self._batch_idx}){on_rank}; the batch's samples: "
+            f"{shown or 'no ids'}; stopped before the update, so the checkpoints written so far "
+            "are finite (look at those motions, or lower the learning rate)")
+
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        bad = non_finite_tensors(checkpoint.get("state_dict", {}))
+        if bad:
+            raise NonFiniteError(
+                f"{type(self).__name__}: not writing a checkpoint at step {self.global_step}: "
+                f"{len(bad)} of {len(checkpoint['state_dict'])} tensors hold NaN/inf "
+                f"({', '.join(bad[:5])}{', ...' if len(bad) > 5 else ''})")
+        checkpoint[RNG_KEY] = _gather(rng_states())
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self._rng_to_restore = checkpoint.get(RNG_KEY)

@@ -1,0 +1,102 @@
+"""Run directories `runs/<stage>/<name>/version_<k>` and their logs across a resume.
+
+A fresh `segmo fit` takes the next free version. ``--ckpt_path`` pointing into a run
+directory (``.../version_<k>/checkpoints/*.ckpt``) continues that run: the loggers write
+into the same version directory, `metrics.csv` keeps the rows the interrupted run logged
+before the checkpoint's step and drops the ones after it (the resumed run logs those
+steps again), and TensorBoard purges its events from that step on. So that the rows up
+to a checkpoint are on disk when a run is killed, `RunCSVLogger` writes every row as it
+is logged instead of every 100 steps.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import torch
+from lightning.fabric.loggers.csv_logs import _ExperimentWriter
+from lightning.pytorch.loggers import CSVLogger
+from lightning.pytorch.loggers.csv_logs import ExperimentWriter
+from lightning.pytorch.loggers.logger import rank_zero_experiment
+
+from segmo.errors import SegmoError
+from segmo.files import write_atomic
+
+
+def checkpoint_run(ckpt_path: str | Path) -> tuple[Path, str, str] | None:
+    """(save_dir, name, version) of the run directory holding ``ckpt_path``, or None when
+    the checkpoint does not lie in ``SAVE_DIR/NAME/version_<k>/checkpoints/``."""
+    path = Path(ckpt_path).resolve()
+    run = path.parent.parent
+    if path.parent.name != "checkpoints" or not run.name.startswith("version_"):
+        return None
+    return run.parent.parent, run.parent.name, run.name
+
+
+def checkpoint_step(ckpt_path: str | Path) -> int:
+    """The global step a checkpoint was written at (memory-mapped: reads little)."""
+    try:
+        try:
+            checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+        except RuntimeError:  # not in the zip format, which mmap needs
+            checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the user's to fix
+        raise SegmoError(f"--ckpt_path {ckpt_path}: not a readable checkpoint "
+                         f"({type(error).__name__}: {error})") from None
+    if not isinstance(checkpoint, dict) or "global_step" not in checkpoint:
+        raise SegmoError(f"--ckpt_path {ckpt_path}: not a Lightning checkpoint (no global_step)")
+    return int(checkpoint["global_step"])
+
+
+class _ResumedWriter(ExperimentWriter):
+    """The metrics writer of a resumed run: keeps the interrupted run's rows before
+    ``keep_below`` (instead of deleting the file, as Lightning's writer does)."""
+
+    def __init__(self, log_dir: str, keep_below: int) -> None:
+        self._keep_below = keep_below
+        super().__init__(log_dir)
+
+    def _check_log_dir_exists(self) -> None:
+        path = Path(self.metrics_file_path)
+        if not path.is_file():
+            return
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            keys, rows = list(reader.fieldnames or []), []
+            for row in reader:
+                try:  # a row torn by the kill has no parsable step: dropped
+                    if int(row.get("step") or "") < self._keep_below and None not in row:
+                        rows.append(row)
+                except ValueError:
+                    continue
+        out = io.StringIO()
+        writer = csv.DictWriter(out, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
+        write_atomic(path, out.getvalue())
+        self.metrics_keys = keys
+
+
+class RunCSVLogger(CSVLogger):
+    """`CSVLogger` that writes each row when logged and, with ``resume_step``, continues
+    the metrics of an interrupted run in the same version directory."""
+
+    def __init__(self, save_dir: str | Path, name: str, version: int | str | None = None,
+                 resume_step: int | None = None) -> None:
+        super().__init__(save_dir, name=name, version=version, flush_logs_every_n_steps=1)
+        self._resume_step = resume_step
+
+    @property
+    @rank_zero_experiment
+    def experiment(self) -> _ExperimentWriter:
+        if self._experiment is None:
+            self._fs.makedirs(self.root_dir, exist_ok=True)
+            self._experiment = (ExperimentWriter(self.log_dir) if self._resume_step is None
+                                else _ResumedWriter(self.log_dir, self._resume_step))
+        return self._experiment
+
+    def after_save_checkpoint(self, checkpoint_callback: Any) -> None:
+        self.save()
