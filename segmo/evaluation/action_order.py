@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from segmo.errors import SegmoError
 from segmo.models.pretrained import Pretrained
 
 
@@ -156,7 +157,7 @@ class ActionClassifier(nn.Module, Pretrained):
         root = Path(dataset_root)
         ids = (root / f"{split}.txt").read_text().split()[:max_motions]
         if not ids:
-            raise ValueError(f"{root / (split + '.txt')}: no motions")
+            raise SegmoError(f"{root / (split + '.txt')}: no motions")
         motions, labels, names = [], [], set()
         for mid in ids:
             actions, spans = read_ground_truth(root, mid)
@@ -217,7 +218,7 @@ def evaluate_action_order(classifier: ActionClassifier, dataset_root: str | Path
     if features is not None:
         ids = [i for i in ids if i in features]
     if not ids:
-        raise ValueError(f"evaluate_action_order: no motions to evaluate in {root / (split + '.txt')}")
+        raise SegmoError(f"evaluate_action_order: no motions to evaluate in {root / (split + '.txt')}")
     index = {c: i for i, c in enumerate(classifier.classes)}
     preds, trues, correct, frames = [], [], 0, 0
     for mid in ids:

@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.errors import SegmoError
+
 
 def _np(x: Any) -> np.ndarray:
     if isinstance(x, torch.Tensor):
@@ -57,7 +59,7 @@ def r_precision(text_emb: Any, motion_emb: Any, top_k: int = 3, batch_size: int 
         raise ValueError(f"r_precision: text {t.shape} and motion {m.shape} embeddings differ in shape")
     n = (len(t) // batch_size) * batch_size
     if n == 0:
-        raise ValueError(f"r_precision: fewer than batch_size={batch_size} pairs ({len(t)})")
+        raise SegmoError(f"r_precision: fewer than batch_size={batch_size} pairs ({len(t)})")
     hits = np.zeros(top_k)
     for s in range(0, n, batch_size):
         d = euclidean_distance_matrix(t[s:s + batch_size], m[s:s + batch_size])
@@ -241,7 +243,8 @@ def evaluate_generation(
         rng = np.random.default_rng([seed, rep])
         groups = _one_caption_per_motion(batches, rng, batch_size)
         if not groups:
-            raise ValueError(f"evaluate_generation: fewer than batch_size={batch_size} motions")
+            raise SegmoError(f"evaluate_generation: fewer than batch_size={batch_size} motions "
+                             "in the split; lower --batch-size")
         text, real, fake = [], [], []
         for g_index, g in enumerate(groups):
             text.append(_np(embed_text(g["caption"], g["rows"])))

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.errors import SegmoError
 from segmo.evaluation import report
 from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
 from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
@@ -66,7 +67,7 @@ def load_batches(cfg: EvaluateConfig, skeleton: str) -> tuple[Any, list[dict]]:
                        max_motions=cfg.max_motions)
     ds.mean, ds.std = np.array(ds.mean, dtype=np.float32), np.array(ds.std, dtype=np.float32)
     if len(ds) == 0:
-        raise ValueError(f"{Path(cfg.data) / (cfg.split + '.txt')}: no usable samples ({ds.summary})")
+        raise SegmoError(f"{Path(cfg.data) / (cfg.split + '.txt')}: no usable samples ({ds.summary})")
     return ds, list(DataLoader(ds, batch_size=64, collate_fn=collate))
 
 

@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from segmo.errors import SegmoError
+
 # The 15 POS categories of the released evaluator, in its one-hot order.
 POS_CATEGORIES: tuple[str, ...] = (
     "VERB", "NOUN", "DET", "ADP", "NUM", "AUX", "PRON", "ADJ", "ADV",
@@ -118,7 +120,7 @@ def read_text_tokens(path: str | Path) -> list[list[tuple[str, str]]]:
             continue
         parts = line.split("#")
         if len(parts) < 2:
-            raise ValueError(f"{path}:{lineno}: expected 'caption#word/POS ...#from#to'")
+            raise SegmoError(f"{path}:{lineno}: expected 'caption#word/POS ...#from#to'")
         tokens = parse_tokens(parts[1])
         out.append(tokens or tag_caption(parts[0]))
     return out
