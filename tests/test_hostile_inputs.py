@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from conftest import cli_failure, hash_encoder
 from test_pipeline import TEXT_DIM, build_stages
 
@@ -194,6 +195,23 @@ CLI_CASES = [
         "metrics.json", "`--compare` of a folder without metrics.json"),
     Cli("evaluate-compare-json", "evaluate --compare {bad_metrics} --out {tmp}/e",
         "metrics.json:1", "`--compare` of an invalid metrics.json"),
+    # -- segmo export, fit, validate, test (more of fit: tests/test_training_cli.py)
+    Cli("export-missing", "export {tmp}/none.ckpt --out {tmp}/m", "none.ckpt",
+        "a checkpoint that does not exist"),
+    Cli("export-garbage", "export {junk_ckpt} --out {tmp}/m", "junk.ckpt",
+        "a file that is not a checkpoint"),
+    Cli("export-not-lightning", "export {list_ckpt} --out {tmp}/m", "list.ckpt",
+        "a torch file that is no Lightning checkpoint"),
+    Cli("export-bad-task", "export {junk_ckpt} --task segmo.tasks.nope.Task --out {tmp}/m",
+        "junk.ckpt", "`--task` naming a class that does not exist"),
+    Cli("fit-missing-config", "fit --config {tmp}/none.yaml", "none.yaml",
+        "a YAML config that does not exist"),
+    Cli("fit-data-missing", "fit --config configs/rvq/synthetic.yaml --data.root {tmp}/nope",
+        "data.init_args.root", "a dataset folder that does not exist"),
+    Cli("validate-data-missing", "validate --config configs/rvq/synthetic.yaml --data.root "
+        "{tmp}/nope", "data.init_args.root", "`validate` on a dataset folder that does not exist"),
+    Cli("test-data-file", "test --config configs/rvq/synthetic.yaml --data.root {file}",
+        "data.init_args.root", "`test` with a file as the dataset folder"),
     # -- segmo demo
     Cli("demo-out-is-file", "demo --out {file}", "--out", "`--out` naming an existing file"),
     Cli("demo-budget", "demo --out {tmp}/d --budget huge", "--budget", "an unknown budget"),
@@ -293,6 +311,10 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     (files["foreign"] / "thesis.tex").write_text("mine")
     files["bad_metrics"] = tmp / "metrics.json"
     files["bad_metrics"].write_text("{oops")
+    files["junk_ckpt"] = tmp / "junk.ckpt"
+    files["junk_ckpt"].write_bytes(b"not a checkpoint")
+    files["list_ckpt"] = tmp / "list.ckpt"
+    torch.save([1, 2, 3], files["list_ckpt"])
 
     def variant(name: str, edit) -> None:
         files[name] = tmp / name
@@ -363,6 +385,7 @@ def model(world) -> SegMo:
 
 def _argv(case: Cli, world: dict[str, Path]) -> list[str]:
     filled = re.sub(r"\{(\w+)\}", lambda m: str(world[m.group(1)]), case.argv)
+    filled = filled.replace("configs/", f"{REPO / 'configs'}/")
     # "a-person-walks" keeps a multi-word prompt one token of the case string.
     return [part.replace("a-person-walks", "a person walks") for part in filled.split(" ")]
 
@@ -393,16 +416,33 @@ def test_api_raises_a_clear_error(case: Api, model, world):
     assert case.names in message and "\n" not in message, message
 
 
+# Hostile-input tests that live beside the code they exercise; the table names them too.
+OTHER_MODULES = {"tests/test_text_hostile.py": "segment-texts, encode-texts",
+                 "tests/test_training_cli.py": "fit (YAML and arguments)"}
+
+
 def test_the_documented_table_lists_every_case():
     text = TABLE.read_text(encoding="utf-8")
     documented = set(re.findall(r"^\| `([a-z0-9-]+)` \|", text, flags=re.MULTILINE))
     assert documented == {c.id for c in CLI_CASES} | {c.id for c in API_CASES}
+    for module in OTHER_MODULES:
+        for name in _hostile_tests(module):
+            assert f"`{name}`" in text, f"{module}::{name} is missing from {TABLE.name}"
+
+
+def _hostile_tests(module: str) -> list[str]:
+    """The hostile-input test functions of `module` (with their parametrized case names)."""
+    source = (REPO / module).read_text(encoding="utf-8")
+    if module.endswith("test_training_cli.py"):
+        return [f"fit: {name}" for name in re.findall(r'^    "([^"]+)": \(', source, re.M)]
+    return re.findall(r"^def (test_\w+)", source, re.M)
 
 
 def test_there_are_enough_cases_across_every_command():
     commands = {c.command for c in CLI_CASES}
     assert len(CLI_CASES) + len(API_CASES) >= 60
-    assert {"generate", "ground", "bundle", "render", "synth", "evaluate", "demo"} <= commands
+    assert {"generate", "ground", "bundle", "render", "synth", "evaluate", "demo", "export", "fit",
+            "validate", "test"} <= commands
 
 
 def test_debug_shows_the_traceback(world, capsys):
@@ -440,6 +480,10 @@ def table() -> str:
     for c in API_CASES:
         rows.append(f"| `{c.id}` | notebook API | {c.what} | "
                     f"{_cell(MESSAGES.get(c.id, c.error.__name__ + ': ' + c.names))} |")
+    for module, commands in OTHER_MODULES.items():
+        rows += ["", f"More cases of {commands}, in `{module}` (each asserts exit status 2, one "
+                 "line naming the file or argument, no traceback):", ""]
+        rows += [f"- `{name}`" for name in _hostile_tests(module)]
     return "\n".join(rows)
 
 
