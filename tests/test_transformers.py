@@ -387,6 +387,10 @@ def test_length_estimator_sample():
 
 
 def test_linear_fast_paths_match_f_linear():
+    """Where this CPU has them (segmo.cpu), the oneDNN paths run and match F.linear; where
+    it lacks one (bf16 without AVX-512), the layer is F.linear (tests/test_cpu.py simulates
+    those CPUs on any host)."""
+    from segmo import cpu
     from segmo.models.transformer import Linear
 
     torch.manual_seed(0)
@@ -395,9 +399,11 @@ def test_linear_fast_paths_match_f_linear():
     reference = torch.nn.functional.gelu(torch.nn.functional.linear(x, layer.weight, layer.bias))
     with torch.inference_mode():
         torch.testing.assert_close(layer(x), reference, rtol=1e-5, atol=1e-5)
+    assert set(layer._packed) == ({"fp32"} if cpu.onednn_linear() else set())
     assert layer(x).requires_grad  # training path keeps autograd
     with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
         fast = layer(x)
+        assert ("bf16" in layer._packed) == (cpu.onednn_linear() and cpu.onednn_bf16())
         assert fast.dtype == torch.bfloat16
         torch.testing.assert_close(fast.float(), reference, rtol=0.05, atol=0.05)
         with torch.no_grad():

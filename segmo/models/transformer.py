@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from segmo import cpu
+
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
     """The fixed sin/cos table of "Attention is all you need": (length, dim) float32."""
@@ -44,6 +46,9 @@ def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
 # - `Linear` also hands oneDNN its weights pre-packed in oneDNN's own blocked layout, once
 #   (bit-identical results, ~20 % faster matmuls in bf16, ~15 % in fp32).
 # Same arithmetic (fp32 accumulation); fp32 results agree with `F.linear` to ~1e-6.
+# These are private ops that refuse what the CPU cannot do (bf16 needs AVX512BW/VL/DQ or
+# AVX-NE-CONVERT), so each path runs only where `segmo.cpu` found it; elsewhere the layer
+# is `F.linear`, under autocast where it is on: the same results, only slower.
 _MKLDNN = getattr(torch.ops, "mkldnn", None)
 _ONEDNN_LINEAR = getattr(_MKLDNN, "_linear_pointwise", None)
 _ONEDNN_PACK = getattr(_MKLDNN, "_reorder_linear_weight", None)
@@ -58,8 +63,11 @@ def _onednn_mode(x: torch.Tensor, weight: torch.Tensor) -> str | None:
         return None
     if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
         return None
+    if not cpu.onednn_linear():
+        return None
     if torch.is_autocast_enabled("cpu"):
-        return "bf16" if torch.get_autocast_dtype("cpu") == torch.bfloat16 else None
+        bf16 = torch.get_autocast_dtype("cpu") == torch.bfloat16 and cpu.onednn_bf16()
+        return "bf16" if bf16 else None
     return "fp32" if x.dtype == torch.float32 else None
 
 
