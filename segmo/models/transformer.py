@@ -77,7 +77,8 @@ def _onednn_algorithm(activation: str) -> str:
 
 def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
            activation: str = "none") -> torch.Tensor:
-    """`F.linear` (then exact GELU if asked); fp32 CPU inference goes through oneDNN."""
+    """`F.linear` (then exact GELU if asked); fp32 CPU inference goes through oneDNN where
+    the CPU has that path (`segmo.cpu`)."""
     if _onednn_mode(x, weight) == "fp32":
         return _ONEDNN_LINEAR(x, weight, bias, activation, [], _onednn_algorithm(activation))
     y = F.linear(x, weight, bias)
@@ -88,7 +89,8 @@ class Linear(nn.Linear):
     """`nn.Linear` (same parameters) computed by `linear`; `activation="gelu"` fuses the
     GELU that follows. In CPU inference (fp32, or bf16 autocast) it calls oneDNN with its
     weights converted and packed once per precision, and packed again whenever the
-    parameters change (an optimizer step between validation batches)."""
+    parameters change (an optimizer step between validation batches); on a CPU without
+    that oneDNN path (bf16 without AVX-512, `segmo.cpu`) it is `linear`."""
 
     def __init__(self, in_features: int, out_features: int, activation: str = "none") -> None:
         super().__init__(in_features, out_features)
