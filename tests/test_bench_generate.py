@@ -1,7 +1,8 @@
-"""tools/bench_generate.py: the MoMask reference passes it times, and its MAC count."""
+"""tools/bench_generate.py: the MoMask passes it times, its MAC count, the precision it picks."""
 
 from __future__ import annotations
 
+import pytest
 from conftest import load_tool
 
 
@@ -56,3 +57,34 @@ def test_generation_macs_counts_what_the_floor_passes_compute(monkeypatch):
     assert 0 < prefix_counter.get_total_flops() < counter.get_total_flops()
     counted = counter.get_total_flops() - prefix_counter.get_total_flops()
     assert counted == 2 * tool.generation_macs(mask, residual, b, n, steps)
+
+
+@pytest.mark.parametrize("simulated", [False, True], ids=["this-cpu", "avx2-only"])
+def test_bench_says_which_precision_it_chose_and_why(monkeypatch, capsys, simulated):
+    """`--precision auto` (the default) runs what `segmo generate` runs; the first line and
+    the JSON say which precision, why, and on which CPU."""
+    import json
+
+    import torch
+
+    from segmo import cpu
+
+    if simulated:
+        answer = cpu.CPUInfo(model="AMD EPYC 7B13 (simulated)", isa="AVX2", onednn_linear=True,
+                             onednn_bf16=False, native_bf16=())
+        monkeypatch.setattr(cpu, "info", lambda: answer)
+    tool = _load_tool()
+    threads = torch.get_num_threads()
+    try:
+        tool.main(["--random-config", "tiny", "--repeats", "1", "--threads", "1",
+                   "--default-allocator"])
+    finally:
+        torch.set_num_threads(threads)
+    lines = capsys.readouterr().out.strip().splitlines()
+    expected, why = cpu.auto_precision()
+    assert lines[0] == f"precision {expected} (auto: {why}); CPU: {cpu.describe()}"
+    result = json.loads(lines[-1])
+    assert (result["precision"], result["precision_asked"]) == (expected, "auto")
+    assert result["precision_reason"] == why and result["cpu"] == cpu.describe()
+    if simulated:
+        assert expected == "fp32" and "no bf16 path in oneDNN" in why

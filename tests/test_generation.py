@@ -130,7 +130,8 @@ def test_generate_shapes_padding_and_seeds(models):
     assert torch.equal(base_only[..., 0], out[..., 0])
 
 
-@pytest.mark.parametrize("precision,sampler", [("bf16", "gumbel"), ("fp32", "gumbel")])
+@pytest.mark.parametrize("precision,sampler",
+                         [("bf16", "gumbel"), ("fp32", "gumbel"), ("auto", "categorical")])
 def test_generate_precision_and_sampler(models, precision, sampler):
     mask, residual = models
     out = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]), steps=3,
@@ -241,7 +242,7 @@ def test_bf16_decoding_agrees_with_fp32():
                                  num_quantizers=3)).eval()
     indices = torch.randint(0, 16, (2, 6, 3))
     lengths = torch.tensor([24, 16])
-    fp32 = decode_tokens(tokenizer, indices, lengths)
+    fp32 = decode_tokens(tokenizer, indices, lengths, precision="fp32")
     bf16 = decode_tokens(tokenizer, indices, lengths, precision="bf16")
     assert bf16.dtype == torch.float32 and not torch.equal(bf16, fp32)  # it did run in bf16
     torch.testing.assert_close(bf16, fp32, rtol=0.05, atol=0.05 * fp32.abs().max().item())

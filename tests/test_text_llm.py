@@ -248,7 +248,8 @@ def test_openai_faults_are_retried_then_fall_back_with_their_reason(caplog):
 def test_a_caption_the_server_refuses_falls_back_without_retries():
     caption = " ".join(["a person walks forward then waves"] * 1700)  # 10,000 words
     with FakeOpenAI({caption: "400"}) as server:
-        seg = _client(server.url, max_retries=3)
+        # (60 kB to send and parse: a generous timeout, or a busy machine times it out)
+        seg = _client(server.url, max_retries=3, timeout=10.0)
         out, fell_back = seg.segment_with_fallbacks([caption])
     assert out == [RuleSegmenter().segment_one(caption)] and server.calls[caption] == 1
     assert fell_back == {0: "request failed: HTTP 400 (Error code: 400 - maximum context length exceeded)"}

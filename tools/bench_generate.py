@@ -1,5 +1,6 @@
 """Benchmark text → tokens → features generation on this machine.
 
+    python tools/bench_generate.py --random-config humanml3d --batch-size 32
     python tools/bench_generate.py --random-config humanml3d --batch-size 32 --precision bf16
     python tools/bench_generate.py --model DIR --batch-size 1 --repeats 5
     python tools/bench_generate.py --random-config humanml3d --compare-precision
@@ -9,6 +10,14 @@
 paper-sized models (8 layers, width 384, 6 heads, FFN 1024, 512 codes, 6 quantizers,
 49 tokens = 196 frames, text_dim 512, A = 5) and a random RVQ-VAE decoder when
 `segmo.models.rvq` is importable (otherwise decoding is excluded from the timing).
+`--random-config tiny`: a 1-layer width-32 model, for checking that the tool runs (under
+emulation, say) rather than for its figures.
+
+`--precision auto` (the default) is what `segmo generate` runs: bf16 on a CPU with native
+bf16 (AVX512-BF16, AMX, AVX-NE-CONVERT), fp32 elsewhere (`segmo.cpu`). The first line says
+the precision chosen and why, and the CPU (model, the ISA torch's kernels use, its oneDNN
+paths); the JSON line repeats them. bf16 also runs where oneDNN has no bf16 path (no
+AVX-512), in torch's reference kernels: several times slower than fp32.
 
 Measured after one warm-up, over `--repeats` runs, median:
 - ms_per_motion: generation (+ decoding when a tokenizer is present) / batch size;
@@ -47,6 +56,7 @@ from pathlib import Path
 
 import torch
 
+from segmo import cpu
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import (
     _inference,
@@ -54,28 +64,36 @@ from segmo.generation.generate import (
     generate_tokens,
     guidance_condition,
     masked_count,
+    resolve_precision,
 )
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.pretrained import load_pretrained, read_config
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 from segmo.models.transformer import Linear
 
-RANDOM_CONFIGS = {"humanml3d": dict(feature_dim=263, max_tokens=49)}
+PAPER = dict(codebook_size=512, text_dim=512, max_segments=5, dim=384, depth=8, heads=6,
+             ff_dim=1024, num_quantizers=6)
+RANDOM_CONFIGS = {
+    "humanml3d": dict(PAPER, feature_dim=263, max_tokens=49, tokenizer={}),
+    "tiny": dict(codebook_size=16, text_dim=8, max_segments=2, dim=32, depth=1, heads=2,
+                 ff_dim=64, num_quantizers=3, feature_dim=12, max_tokens=6,
+                 tokenizer=dict(width=32, code_dim=16, codebook_size=16, num_quantizers=3)),
+}
 
 
 def random_models(name: str, seed: int):
-    spec = RANDOM_CONFIGS[name]
+    spec = dict(RANDOM_CONFIGS[name])
+    feature_dim, tokenizer_spec = spec.pop("feature_dim"), spec.pop("tokenizer")
+    num_quantizers = spec.pop("num_quantizers")
     torch.manual_seed(seed)
-    shared = dict(codebook_size=512, text_dim=512, max_segments=5, max_tokens=spec["max_tokens"],
-                  dim=384, depth=8, heads=6, ff_dim=1024)
-    mask = MaskTransformer(MaskTransformerConfig(**shared))
-    residual = ResidualTransformer(ResidualTransformerConfig(**shared, num_quantizers=6))
+    mask = MaskTransformer(MaskTransformerConfig(**spec))
+    residual = ResidualTransformer(ResidualTransformerConfig(**spec, num_quantizers=num_quantizers))
     try:
         from segmo.models.rvq import RVQVAE, RVQConfig
     except ImportError:
         tokenizer = None
     else:
-        tokenizer = RVQVAE(RVQConfig(feature_dim=spec["feature_dim"]))
+        tokenizer = RVQVAE(RVQConfig(feature_dim=feature_dim, **tokenizer_spec))
     return mask, residual, tokenizer
 
 
@@ -171,19 +189,20 @@ def momask_floor(trunk: torch.nn.Module, head: torch.nn.Module, b: int, n: int, 
                 head(trunk(x, src_key_padding_mask=padding)[1:])
 
 
-def gemm_gmacs(precision: str, repeats: int = 20) -> float:
-    """This machine's matmul throughput right now (GMAC/s): the paper-sized QKV projection of
-    a batch-32 guidance batch (3136 × 384 → 1152), timed as generation runs it. Shared
-    machines drift by 20 % and more between minutes; read the other figures against it."""
-    layer = Linear(384, 1152).eval()
-    x = torch.randn(64, 49, 384)
+def gemm_gmacs(precision: str, dim: int = 384, tokens: int = 49, repeats: int = 20) -> float:
+    """This machine's matmul throughput right now (GMAC/s): the QKV projection of a batch-32
+    guidance batch of the model (paper sizes: 3136 × 384 → 1152), timed as generation runs
+    it. Shared machines drift by 20 % and more between minutes; read the other figures
+    against it."""
+    layer = Linear(dim, 3 * dim).eval()
+    x = torch.randn(64, tokens, dim)
     with _inference([layer], precision, x.device):
         layer(x)
         start = time.perf_counter()
         for _ in range(repeats):
             layer(x)
         seconds = (time.perf_counter() - start) / repeats
-    return 64 * 49 * 384 * 1152 / seconds / 1e9
+    return 64 * tokens * dim * 3 * dim / seconds / 1e9
 
 
 def timed(fn, clock=time.perf_counter) -> float:
@@ -198,7 +217,8 @@ def main(argv: list[str] | None = None) -> None:
     source.add_argument("--model", type=Path, help="folder holding mask/residual[/rvq] model dirs")
     source.add_argument("--random-config", choices=sorted(RANDOM_CONFIGS))
     parser.add_argument("--batch-size", type=int, default=1)
-    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
+                        help="auto: bf16 on CPUs with native bf16, else fp32 (segmo.cpu)")
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
@@ -212,6 +232,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     allocator_tuned = False if args.default_allocator else keep_freed_memory()
+    asked = args.precision
+    args.precision, why = resolve_precision(asked, "cpu")
+    print(f"precision {args.precision} ({asked}: {why}); CPU: {cpu.describe()}")
+    host = {"precision": args.precision, "precision_asked": asked, "precision_reason": why,
+            "cpu": cpu.describe()}
 
     if args.model is not None:
         mask, residual, tokenizer = directory_models(args.model)
@@ -240,7 +265,7 @@ def main(argv: list[str] | None = None) -> None:
               f"{base:.3f}, all layers {every:.3f}, identical base sequences {first:.3f}")
         print(json.dumps({"base_agreement": round(base, 4), "all_agreement": round(every, 4),
                           "identical_sequences": round(first, 4), "batch": b,
-                          "threads": args.threads}))
+                          "threads": args.threads, "cpu": host["cpu"]}))
         return
 
     def run_generation() -> tuple[float, float, float]:
@@ -255,7 +280,7 @@ def main(argv: list[str] | None = None) -> None:
     out: list[torch.Tensor] = []
     run_generation()  # warm-up (allocator, oneDNN kernels, autocast caches)
     floor_passes(mask, residual, text, n, args.steps, args.precision)
-    gmacs = [gemm_gmacs(args.precision)]
+    gmacs = [gemm_gmacs(args.precision, mask.config.dim, n)]
     reference = None
     if args.momask_floor:
         trunk, head = momask_models(dim=mask.config.dim, depth=mask.config.depth,
@@ -277,7 +302,7 @@ def main(argv: list[str] | None = None) -> None:
         floor_cpu_times.append(time.process_time() - cpu_start)
         if reference is not None:
             momask_times.append(timed(reference))
-    gmacs.append(gemm_gmacs(args.precision))
+    gmacs.append(gemm_gmacs(args.precision, mask.config.dim, n))
     macs = generation_macs(mask, residual, b, n, args.steps) / b
     bound_ms = macs / (statistics.mean(gmacs) * 1e9) * 1000
     momask_ms = statistics.median(momask_times) * 1000 / b if momask_times else None
@@ -303,7 +328,7 @@ def main(argv: list[str] | None = None) -> None:
         "floor_ratio_cpu": round(cpu_ms / floor_cpu_ms, 3),
         "floor_ratio": round(tokens_ms / floor_ms, 3),
         "peak_rss_mb": round(peak_rss_mb, 1),
-        "batch": b, "precision": args.precision, "threads": args.threads,
+        "batch": b, **host, "threads": args.threads,
         "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
         "allocator_tuned": allocator_tuned,
         "matmul_gmacs_before_after": [round(x) for x in gmacs],

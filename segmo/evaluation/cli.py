@@ -271,7 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--action-classifier", help="action-classifier directory, or 'train' to fit one")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--max-motions", type=positive_int, help="keep the first N motions of the split")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="auto: bf16 on CPUs with native bf16 (AVX512-BF16, AMX), else fp32")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=positive_int, help="torch CPU threads (1 avoids stalls on a busy machine)")
     p.add_argument("--text-segments", help="use DATA/text_segments/NAME instead of the bundle's segmenter")
@@ -328,6 +329,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     keep_freed_memory()
+    if args.precision == "auto":  # the report records what ran
+        from segmo.generation.generate import resolve_precision
+
+        args.precision = resolve_precision("auto", torch.device(args.device))[0]
     cfg = EvaluateConfig(**{k: v for k, v in vars(args).items() if k not in ("compare", "skip", "threads")},
                          skip=skip)
     metrics = evaluate(cfg)

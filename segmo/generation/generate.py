@@ -12,6 +12,7 @@ masked out), and the text prefix is projected and encoded once per call, not onc
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -20,12 +21,13 @@ from typing import Literal
 import torch
 from torch import nn
 
+from segmo import cpu
 from segmo.generation.sampling import Sampler, cosine_schedule, sample_tokens
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.transformer import Condition
 
-Precision = Literal["fp32", "bf16"]
+Precision = Literal["auto", "fp32", "bf16"]
 UNIT_LENGTH = 4  # frames per token
 
 
@@ -74,10 +76,36 @@ def guided_logits(logits: torch.Tensor, scale: float) -> torch.Tensor:
     return unconditional + scale * (conditional - unconditional)
 
 
+def resolve_precision(precision: Precision, device: torch.device | str = "cpu"
+                      ) -> tuple[Literal["fp32", "bf16"], str]:
+    """What `precision` runs as on `device`, and why: ("fp32" | "bf16", reason).
+
+    "auto" is bf16 only on a CPU with native bf16 (`segmo.cpu.auto_precision`), fp32 on
+    other CPUs and on other devices; "fp32" and "bf16" are taken as asked.
+    """
+    if precision not in ("auto", "fp32", "bf16"):
+        raise ValueError(f"precision must be 'auto', 'fp32' or 'bf16', got {precision!r}")
+    device = torch.device(device)
+    if precision == "bf16" and device.type == "cpu" and not cpu.onednn_bf16():
+        return "bf16", ("asked for; this CPU has no oneDNN bf16 path, so it runs in torch's "
+                        "reference kernels, several times slower than fp32")
+    if precision != "auto":
+        return precision, "asked for"
+    if device.type != "cpu":
+        return "fp32", f"auto chooses bf16 on CPUs with native bf16 only, not on {device.type}"
+    return cpu.auto_precision()  # type: ignore[return-value]
+
+
 def _autocast(precision: Precision, device: torch.device) -> torch.autocast:
-    """bf16 autocast for precision "bf16", a disabled one for "fp32"."""
-    if precision not in ("fp32", "bf16"):
-        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    """bf16 autocast where `precision` resolves to "bf16", a disabled one for "fp32"."""
+    precision, _ = resolve_precision(precision, device)
+    if precision == "bf16" and device.type == "cpu" and not cpu.onednn_bf16():
+        # Asked for explicitly: run it (the same bf16 arithmetic as on a native CPU, in
+        # torch's reference kernels), and say once per process what it costs here.
+        warnings.warn("bf16 on this CPU runs in torch's reference kernels, several times "
+                      "slower than fp32 (no oneDNN bf16: needs AVX512BW/VL/DQ or "
+                      "AVX-NE-CONVERT); precision 'auto' or 'fp32' is faster here",
+                      UserWarning, stacklevel=1)
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
 
 
@@ -215,7 +243,7 @@ def generate_tokens(
     temperature: float = 1.0,
     sampler: Sampler = "categorical",
     generator: torch.Generator | None = None,
-    precision: Precision = "fp32",
+    precision: Precision = "auto",
 ) -> torch.Tensor:
     """Text → motion tokens.
 
@@ -223,7 +251,8 @@ def generate_tokens(
     lengths (b,) frames (multiples of 4 in [4, 4·max_tokens]) → indices (b, n, q) long with
     n = max(lengths) // 4, q = residual_model.config.num_quantizers (1 without a residual
     model); positions beyond a sample's length hold −1. Models run in eval mode (their mode
-    is restored afterwards); precision "bf16" runs the passes under bf16 autocast.
+    is restored afterwards); precision "bf16" runs the passes under bf16 autocast, "auto"
+    does so on CPUs with native bf16 only (`resolve_precision`).
     """
     _check_models(mask_model, residual_model)
     lengths = torch.as_tensor(lengths, device=sentence.device)
@@ -259,7 +288,7 @@ def edit_tokens(
     temperature: float = 1.0,
     sampler: Sampler = "categorical",
     generator: torch.Generator | None = None,
-    precision: Precision = "fp32",
+    precision: Precision = "auto",
 ) -> torch.Tensor:
     """Regenerate the tokens of a span under new text conditioning (temporal inpainting).
 
@@ -301,12 +330,13 @@ def edit_tokens(
 
 
 def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,
-                  precision: Precision = "fp32") -> torch.Tensor:
+                  precision: Precision = "auto") -> torch.Tensor:
     """Tokens → motion features with a tokenizer (design.md, `RVQVAE.decode`).
 
     indices (b, n, q') with q' ≤ tokenizer.num_quantizers (missing layers decode as zero
     codes, index −1); lengths (b,) frames → features (b, t, d) float32, frames ≥ length set
-    to 0. precision "bf16" runs the decoder under bf16 autocast (half the time on CPU).
+    to 0. precision "bf16" runs the decoder under bf16 autocast (half the time on a CPU with
+    native bf16), "auto" does so where the CPU has it (`resolve_precision`).
     """
     b, n, q = indices.shape
     missing = tokenizer.num_quantizers - q

@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from segmo import cpu
+
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
     """The fixed sin/cos table of "Attention is all you need": (length, dim) float32."""
@@ -44,6 +46,11 @@ def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
 # - `Linear` also hands oneDNN its weights pre-packed in oneDNN's own blocked layout, once
 #   (bit-identical results, ~20 % faster matmuls in bf16, ~15 % in fp32).
 # Same arithmetic (fp32 accumulation); fp32 results agree with `F.linear` to ~1e-6.
+# These are private ops that refuse what the CPU cannot do (bf16 needs AVX512BW/VL/DQ or
+# AVX-NE-CONVERT), so each path runs only where `segmo.cpu` found it; elsewhere the layer
+# is `F.linear`, under autocast where it is on. In fp32 that agrees to ~1e-6 (the same
+# tokens); in bf16 it rounds to bf16 before the GELU rather than after, and the tokens
+# agree with oneDNN's as well as bf16's agree with fp32's (tests/test_cpu.py).
 _MKLDNN = getattr(torch.ops, "mkldnn", None)
 _ONEDNN_LINEAR = getattr(_MKLDNN, "_linear_pointwise", None)
 _ONEDNN_PACK = getattr(_MKLDNN, "_reorder_linear_weight", None)
@@ -58,8 +65,11 @@ def _onednn_mode(x: torch.Tensor, weight: torch.Tensor) -> str | None:
         return None
     if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
         return None
+    if not cpu.onednn_linear():
+        return None
     if torch.is_autocast_enabled("cpu"):
-        return "bf16" if torch.get_autocast_dtype("cpu") == torch.bfloat16 else None
+        bf16 = torch.get_autocast_dtype("cpu") == torch.bfloat16 and cpu.onednn_bf16()
+        return "bf16" if bf16 else None
     return "fp32" if x.dtype == torch.float32 else None
 
 
@@ -69,7 +79,8 @@ def _onednn_algorithm(activation: str) -> str:
 
 def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
            activation: str = "none") -> torch.Tensor:
-    """`F.linear` (then exact GELU if asked); fp32 CPU inference goes through oneDNN."""
+    """`F.linear` (then exact GELU if asked); fp32 CPU inference goes through oneDNN where
+    the CPU has that path (`segmo.cpu`)."""
     if _onednn_mode(x, weight) == "fp32":
         return _ONEDNN_LINEAR(x, weight, bias, activation, [], _onednn_algorithm(activation))
     y = F.linear(x, weight, bias)
@@ -80,7 +91,8 @@ class Linear(nn.Linear):
     """`nn.Linear` (same parameters) computed by `linear`; `activation="gelu"` fuses the
     GELU that follows. In CPU inference (fp32, or bf16 autocast) it calls oneDNN with its
     weights converted and packed once per precision, and packed again whenever the
-    parameters change (an optimizer step between validation batches)."""
+    parameters change (an optimizer step between validation batches); on a CPU without
+    that oneDNN path (bf16 without AVX-512, `segmo.cpu`) it is `linear`."""
 
     def __init__(self, in_features: int, out_features: int, activation: str = "none") -> None:
         super().__init__(in_features, out_features)

@@ -80,7 +80,8 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=positive_int, default=10, help="masked-decoding steps")
     parser.add_argument("--temperature", type=finite_float, default=1.0,
                         help="sampling temperature (0 = greedy)")
-    parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                        help="auto: bf16 on CPUs with native bf16 (AVX512-BF16, AMX), else fp32")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--formats", default=",".join(FORMATS),

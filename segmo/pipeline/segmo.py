@@ -428,7 +428,7 @@ class SegMo:
             return self.tokenizer.encode(self.normalize_motion(motion)[0])
 
     def decode(self, tokens: torch.Tensor, lengths: torch.Tensor, texts: list[str],
-               segments: list[list[str]], precision: Precision = "fp32") -> GenerationOutput:
+               segments: list[list[str]], precision: Precision = "auto") -> GenerationOutput:
         """tokens (b, n, q) + lengths (b,) frames → GenerationOutput (raw features, joints)."""
         z = decode_tokens(self.tokenizer, tokens, lengths, precision)
         with torch.inference_mode():
@@ -460,7 +460,7 @@ class SegMo:
                  residual_guidance_scale: float | None = None, steps: int = 10,
                  temperature: float = 1.0, top_k_ratio: float = 0.1,
                  sampler: Sampler = "categorical", generator: torch.Generator | None = None,
-                 precision: Precision = "fp32") -> GenerationOutput:
+                 precision: Precision = "auto") -> GenerationOutput:
         """Text → motions. lengths: frames per text (multiples of 4 in [4, max_frames]), an
         int for all, or None to sample them from the length estimator. Guidance scales
         default to the bundle's. Reproducible for a seeded `generator`."""
@@ -491,7 +491,7 @@ class SegMo:
              residual_guidance_scale: float | None = None, steps: int = 10,
              temperature: float = 1.0, top_k_ratio: float = 0.1,
              sampler: Sampler = "categorical", generator: torch.Generator | None = None,
-             precision: Precision = "fp32") -> GenerationOutput:
+             precision: Precision = "auto") -> GenerationOutput:
         """Regenerate frames [start, end) of a motion from `text` (temporal inpainting).
 
         motion: a GenerationOutput (its tokens are edited, every sample with the same span)
