@@ -27,16 +27,19 @@ def test_generation_macs_counts_what_the_floor_passes_compute(monkeypatch):
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
-    from segmo.models import transformer
+    from segmo.models import cpu_inference
     from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
     from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 
     tool = _load_tool()
-    monkeypatch.setattr(transformer, "_ONEDNN_LINEAR", None)  # oneDNN calls go uncounted
+    # The CPU kernels with oneDNN off: linear layers run F.linear, attention two matmuls,
+    # all of which the counter sees.
+    monkeypatch.setattr(cpu_inference, "_ONEDNN_LINEAR", None)
     shared = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32,
                   depth=2, heads=2, ff_dim=64)
-    mask = MaskTransformer(MaskTransformerConfig(**shared)).eval()
-    residual = ResidualTransformer(ResidualTransformerConfig(**shared, num_quantizers=3)).eval()
+    mask = cpu_inference.use_cpu_kernels(MaskTransformer(MaskTransformerConfig(**shared)).eval())
+    residual = cpu_inference.use_cpu_kernels(
+        ResidualTransformer(ResidualTransformerConfig(**shared, num_quantizers=3)).eval())
     b, n, steps = 2, 10, 4
     text = tool.text_inputs(mask, b, seed=0)
     sampled = []  # the positions generation itself asks for, pass by pass

@@ -13,7 +13,8 @@ import torch
 from segmo import cpu
 from segmo.generation import generate_tokens
 from segmo.generation.generate import resolve_precision
-from segmo.models import transformer
+from segmo.models import cpu_inference
+from segmo.models.cpu_inference import PackedLinear, use_cpu_kernels
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 
@@ -35,7 +36,7 @@ TINY = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32,
 def simulate(monkeypatch, answer: cpu.CPUInfo) -> None:
     """Make segmo see `answer`, and make oneDNN refuse what that CPU's oneDNN refuses."""
     monkeypatch.setattr(cpu, "info", lambda: answer)
-    real_pack = transformer._ONEDNN_PACK
+    real_pack = cpu_inference._ONEDNN_PACK
 
     def pack(weight, rows):
         if weight.dtype == torch.bfloat16 and not answer.onednn_bf16:
@@ -45,14 +46,15 @@ def simulate(monkeypatch, answer: cpu.CPUInfo) -> None:
             raise RuntimeError("simulated: no oneDNN on this CPU")
         return real_pack(weight, rows)
 
-    monkeypatch.setattr(transformer, "_ONEDNN_PACK", pack)
+    monkeypatch.setattr(cpu_inference, "_ONEDNN_PACK", pack)
 
 
 @pytest.fixture(scope="module")
 def models():
     torch.manual_seed(0)
-    mask = MaskTransformer(MaskTransformerConfig(**TINY)).eval()
-    residual = ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3)).eval()
+    mask = use_cpu_kernels(MaskTransformer(MaskTransformerConfig(**TINY)).eval())
+    residual = use_cpu_kernels(
+        ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3)).eval())
     with torch.no_grad():  # sharper logits than the initialisation, as in test_generation
         mask.classifier.weight.mul_(50)
         residual.code_embeddings.mul_(50)
@@ -74,13 +76,13 @@ def generate(models, precision: str, seed: int = 0) -> torch.Tensor:
 def packed_layers(models) -> set[str]:
     """The modes ("fp32", "bf16") some `Linear` of the models holds pre-packed weights for."""
     return {mode for model in models for m in model.modules()
-            if isinstance(m, transformer.Linear) for mode in m._packed}
+            if isinstance(m, PackedLinear) for mode in m._packed}
 
 
 def clear_packed(models) -> None:
     for model in models:
         for m in model.modules():
-            if isinstance(m, transformer.Linear):
+            if isinstance(m, PackedLinear):
                 m._packed.clear()
 
 
@@ -188,7 +190,7 @@ def test_linear_without_a_fast_path_is_f_linear(monkeypatch, answer):
     never the private op that would refuse it."""
     simulate(monkeypatch, answer)
     torch.manual_seed(0)
-    layer = transformer.Linear(16, 24, activation="gelu").eval()
+    layer = PackedLinear(16, 24, activation="gelu").eval()
     x = torch.randn(3, 5, 16)
     expected = torch.nn.functional.gelu(torch.nn.functional.linear(x, layer.weight, layer.bias))
     with torch.inference_mode():
@@ -199,3 +201,32 @@ def test_linear_without_a_fast_path_is_f_linear(monkeypatch, answer):
                 torch.nn.functional.linear(x, layer.weight, layer.bias))
     assert y.dtype == torch.bfloat16 and torch.equal(y, autocast)
     assert set(layer._packed) == ({"fp32"} if answer.onednn_linear else set())
+
+
+def test_cpu_kernels_keep_the_model_and_its_tokens(tmp_path):
+    """`use_cpu_kernels` swaps kernels, not the model: the same parameters and state-dict
+    keys, the same fp32 tokens as the plain model, a second call changes nothing, and the
+    swapped model saves and loads as the plain one."""
+    torch.manual_seed(0)
+    plain = (MaskTransformer(MaskTransformerConfig(**TINY)).eval(),
+             ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3)).eval())
+    with torch.no_grad():
+        plain[0].classifier.weight.mul_(50)
+        plain[1].code_embeddings.mul_(50)
+    import copy
+
+    swapped = tuple(use_cpu_kernels(copy.deepcopy(m)) for m in plain)
+    for a, b in zip(plain, swapped, strict=True):
+        assert list(a.state_dict()) == list(b.state_dict())
+        assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(),
+                                                      b.state_dict().values(), strict=True))
+        parameters = [id(p) for p in b.parameters()]
+        use_cpu_kernels(b)
+        assert [id(p) for p in b.parameters()] == parameters
+    assert any(isinstance(m, PackedLinear) for m in swapped[0].modules())
+    assert torch.equal(generate(plain, "fp32"), generate(swapped, "fp32"))
+    swapped[0].save_pretrained(tmp_path / "mask")
+    loaded = MaskTransformer.from_pretrained(tmp_path / "mask")
+    assert not any(isinstance(m, PackedLinear) for m in loaded.modules())
+    assert all(torch.equal(x, y) for x, y in zip(loaded.state_dict().values(),
+                                                  plain[0].state_dict().values(), strict=True))

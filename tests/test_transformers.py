@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from segmo.models.cpu_inference import matmul_attention
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
 from segmo.models.mask_transformer import (
     MaskTransformer,
@@ -19,7 +20,6 @@ from segmo.models.residual_transformer import (
     layer_probabilities,
     sample_layers,
 )
-from segmo.models.transformer import attention
 
 TINY = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2,
             heads=2, ff_dim=64, dropout=0.1)
@@ -249,14 +249,14 @@ def test_inference_attention_matches_sdpa(dtype):
     key_valid[2, 4:] = False
     v[2, :, 4:] = 1e4  # masked values must not leak
     with torch.inference_mode():
-        fast = attention(q, k, v, key_valid)
+        fast = matmul_attention(q, k, v, key_valid)
     reference = torch.nn.functional.scaled_dot_product_attention(
         q.float(), k.float(), v.float(), attn_mask=key_valid[:, None, None, :])
     tolerance = 1e-6 if dtype == torch.float32 else 2e-2
     torch.testing.assert_close(fast.float(), reference, rtol=tolerance, atol=tolerance)
     assert fast.dtype == dtype
     # With autograd the fused kernel runs, and the two agree.
-    trained = attention(q.float().requires_grad_(), k.float(), v.float(), key_valid)
+    trained = matmul_attention(q.float().requires_grad_(), k.float(), v.float(), key_valid)
     torch.testing.assert_close(trained.detach(), reference, rtol=1e-6, atol=1e-6)
 
 
@@ -394,10 +394,10 @@ def test_linear_fast_paths_match_f_linear():
     it lacks one (bf16 without AVX-512), the layer is F.linear (tests/test_cpu.py simulates
     those CPUs on any host)."""
     from segmo import cpu
-    from segmo.models.transformer import Linear
+    from segmo.models.cpu_inference import PackedLinear
 
     torch.manual_seed(0)
-    layer = Linear(16, 24, activation="gelu")
+    layer = PackedLinear(16, 24, activation="gelu")
     x = torch.randn(3, 5, 16)
     reference = torch.nn.functional.gelu(torch.nn.functional.linear(x, layer.weight, layer.bias))
     with torch.inference_mode():

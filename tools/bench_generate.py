@@ -66,10 +66,10 @@ from segmo.generation.generate import (
     masked_count,
     resolve_precision,
 )
+from segmo.models.cpu_inference import PackedLinear, use_cpu_kernels
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.pretrained import load_pretrained, read_config
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
-from segmo.models.transformer import Linear
 
 PAPER = dict(codebook_size=512, text_dim=512, max_segments=5, dim=384, depth=8, heads=6,
              ff_dim=1024, num_quantizers=6)
@@ -86,8 +86,9 @@ def random_models(name: str, seed: int):
     feature_dim, tokenizer_spec = spec.pop("feature_dim"), spec.pop("tokenizer")
     num_quantizers = spec.pop("num_quantizers")
     torch.manual_seed(seed)
-    mask = MaskTransformer(MaskTransformerConfig(**spec))
-    residual = ResidualTransformer(ResidualTransformerConfig(**spec, num_quantizers=num_quantizers))
+    mask = use_cpu_kernels(MaskTransformer(MaskTransformerConfig(**spec)))
+    residual = use_cpu_kernels(
+        ResidualTransformer(ResidualTransformerConfig(**spec, num_quantizers=num_quantizers)))
     try:
         from segmo.models.rvq import RVQVAE, RVQConfig
     except ImportError:
@@ -106,7 +107,7 @@ def directory_models(directory: Path):
         if kind not in found:
             sys.exit(f"bench_generate: no {kind!r} model directory under {directory}")
     load = {kind: load_pretrained(path) for kind, path in found.items()}
-    return load["mask"], load["residual"], load.get("rvq")
+    return use_cpu_kernels(load["mask"]), use_cpu_kernels(load["residual"]), load.get("rvq")
 
 
 def text_inputs(mask: MaskTransformer, b: int, seed: int):
@@ -194,7 +195,7 @@ def gemm_gmacs(precision: str, dim: int = 384, tokens: int = 49, repeats: int = 
     guidance batch of the model (paper sizes: 3136 × 384 → 1152), timed as generation runs
     it. Shared machines drift by 20 % and more between minutes; read the other figures
     against it."""
-    layer = Linear(dim, 3 * dim).eval()
+    layer = PackedLinear(dim, 3 * dim).eval()
     x = torch.randn(64, tokens, dim)
     with _inference([layer], precision, x.device):
         layer(x)

@@ -33,7 +33,6 @@ from segmo.models.transformer import (
     TokenHead,
     Trunk,
     init_weights,
-    linear,
 )
 
 
@@ -84,6 +83,8 @@ class ResidualTransformer(nn.Module, Pretrained):
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
                            config.norm_first, config.max_tokens)
         self.head = TokenHead(config.dim)
+        # The tied output projection; `segmo.models.cpu_inference` swaps in a faster one.
+        self.project = F.linear
         self.apply(init_weights)
 
     def output_weight(self, layer: int) -> torch.Tensor:
@@ -141,7 +142,7 @@ class ResidualTransformer(nn.Module, Pretrained):
                                            positions)
         out = self.head(motion)
         if isinstance(layer, int):
-            logits = linear(out, self.output_weight(layer), self.output_bias[layer])
+            logits = self.project(out, self.output_weight(layer), self.output_bias[layer])
         else:
             weight = self.code_embeddings[layer]  # (b, codebook_size, dim)
             logits = torch.einsum("bnd,bvd->bnv", out, weight) + self.output_bias[layer][:, None]

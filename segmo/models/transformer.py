@@ -23,8 +23,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from segmo import cpu
-
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
     """The fixed sin/cos table of "Attention is all you need": (length, dim) float32."""
@@ -38,96 +36,20 @@ def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
     return table
 
 
-# Why linear layers bypass `F.linear` in CPU inference:
-# - fp32: PyTorch sends fp32 CPU matmuls to MKL, which runs AVX2 kernels on AMD CPUs, while
-#   oneDNN uses AVX-512 wherever the CPU has it: ~2× faster on this project's AMD machines.
-# - bf16 autocast: oneDNN with bias and GELU fused saves ~8 % of a pass over
-#   autocast's `addmm` + separate GELU (tools/bench_generate.py).
-# - `Linear` also hands oneDNN its weights pre-packed in oneDNN's own blocked layout, once
-#   (bit-identical results, ~20 % faster matmuls in bf16, ~15 % in fp32).
-# Same arithmetic (fp32 accumulation); fp32 results agree with `F.linear` to ~1e-6.
-# These are private ops that refuse what the CPU cannot do (bf16 needs AVX512BW/VL/DQ or
-# AVX-NE-CONVERT), so each path runs only where `segmo.cpu` found it; elsewhere the layer
-# is `F.linear`, under autocast where it is on. In fp32 that agrees to ~1e-6 (the same
-# tokens); in bf16 it rounds to bf16 before the GELU rather than after, and the tokens
-# agree with oneDNN's as well as bf16's agree with fp32's (tests/test_cpu.py).
-_MKLDNN = getattr(torch.ops, "mkldnn", None)
-_ONEDNN_LINEAR = getattr(_MKLDNN, "_linear_pointwise", None)
-_ONEDNN_PACK = getattr(_MKLDNN, "_reorder_linear_weight", None)
-# Rows the packed layout is tuned for (a batch-32 guidance batch); any row count works.
-_PACK_ROWS = 3136
-
-
-def _onednn_mode(x: torch.Tensor, weight: torch.Tensor) -> str | None:
-    """"fp32" or "bf16" when `linear` may call oneDNN directly, else None."""
-    if (_ONEDNN_LINEAR is None or x.device.type != "cpu" or weight.dtype != torch.float32
-            or not torch.backends.mkldnn.is_available()):
-        return None
-    if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
-        return None
-    if not cpu.onednn_linear():
-        return None
-    if torch.is_autocast_enabled("cpu"):
-        bf16 = torch.get_autocast_dtype("cpu") == torch.bfloat16 and cpu.onednn_bf16()
-        return "bf16" if bf16 else None
-    return "fp32" if x.dtype == torch.float32 else None
-
-
-def _onednn_algorithm(activation: str) -> str:
-    return "none" if activation == "gelu" else ""  # "none": exact (erf) GELU
-
-
-def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
-           activation: str = "none") -> torch.Tensor:
-    """`F.linear` (then exact GELU if asked); fp32 CPU inference goes through oneDNN where
-    the CPU has that path (`segmo.cpu`)."""
-    if _onednn_mode(x, weight) == "fp32":
-        return _ONEDNN_LINEAR(x, weight, bias, activation, [], _onednn_algorithm(activation))
-    y = F.linear(x, weight, bias)
-    return F.gelu(y) if activation == "gelu" else y
-
-
 class Linear(nn.Linear):
-    """`nn.Linear` (same parameters) computed by `linear`; `activation="gelu"` fuses the
-    GELU that follows. In CPU inference (fp32, or bf16 autocast) it calls oneDNN with its
-    weights converted and packed once per precision, and packed again whenever the
-    parameters change (an optimizer step between validation batches); on a CPU without
-    that oneDNN path (bf16 without AVX-512, `segmo.cpu`) it is `linear`."""
+    """`nn.Linear`, optionally followed by the exact (erf) GELU: the feed-forward's first
+    layer and the token head fuse it, so that a CPU kernel can compute both in one call
+    (`segmo.models.cpu_inference` swaps such a kernel in for CPU inference)."""
 
     def __init__(self, in_features: int, out_features: int, activation: str = "none") -> None:
         super().__init__(in_features, out_features)
         if activation not in ("none", "gelu"):
             raise ValueError(f"Linear: activation must be 'none' or 'gelu', got {activation!r}")
         self.activation = activation
-        self._packed: dict[str, tuple] = {}  # mode → (key, weight, bias); never saved
-
-    def __getstate__(self) -> dict:
-        state = super().__getstate__()
-        state["_packed"] = {}  # oneDNN's opaque tensors neither pickle nor deep-copy
-        return state
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        mode = _onednn_mode(x, self.weight)
-        if mode is None or _ONEDNN_PACK is None:
-            return linear(x, self.weight, self.bias, self.activation)
-        dtype = torch.bfloat16 if mode == "bf16" else torch.float32
-        key = (self.weight.data_ptr(), self.weight._version, self.bias._version)
-        cached = self._packed.get(mode)
-        if cached is None or cached[0] != key:
-            weight = _ONEDNN_PACK(self.weight.detach().to(dtype), _PACK_ROWS)
-            cached = self._packed[mode] = (key, weight, self.bias.detach().to(dtype))
-        _, weight, bias = cached
-        return _ONEDNN_LINEAR(x.to(dtype), weight, bias, self.activation, [],
-                              _onednn_algorithm(self.activation))
-
-
-# Why CPU inference computes attention with two matmuls instead of SDPA's fused kernel:
-# at this project's lengths (≤ ~60 keys) PyTorch's CPU flash kernel spends its time on
-# per-block overhead, not arithmetic: for a bf16 guidance batch (64 rows, 6 heads, 49
-# queries, 55 keys) it takes 4.0 ms per call against 1.4 ms here, ~10 ms per generated
-# motion (tools/bench_generate.py). The softmax runs in fp32 (bf16 softmax is 3× slower on
-# CPU). Training, dropout, GPUs and long sequences keep the fused kernel.
-_MATMUL_ATTENTION_MAX_KEYS = 256
+        y = F.linear(x, self.weight, self.bias)
+        return F.gelu(y) if self.activation == "gelu" else y
 
 
 def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torch.Tensor,
@@ -138,14 +60,7 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torc
     that may be attended to (every row needs one) → (b, heads, l, head_dim).
     """
     mask = key_valid[:, None, None, :]  # True = take part; broadcast over heads and queries
-    grad = torch.is_grad_enabled() and (q.requires_grad or k.requires_grad or v.requires_grad)
-    if (q.device.type != "cpu" or dropout > 0.0 or grad
-            or k.shape[2] > _MATMUL_ATTENTION_MAX_KEYS):
-        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
-    bias = torch.zeros(mask.shape, device=q.device).masked_fill(~mask, -math.inf)
-    scores = torch.matmul(q, k.transpose(-1, -2)).float()  # a new fp32 tensor: edit in place
-    scores.mul_(q.shape[-1] ** -0.5).add_(bias)  # (a broadcast masked_fill_ is 6× slower)
-    return torch.matmul(torch.softmax(scores, dim=-1).to(v.dtype), v)
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
 
 
 @dataclass
@@ -171,6 +86,8 @@ class SelfAttention(nn.Module):
         self.dropout = dropout
         self.qkv = Linear(dim, 3 * dim)
         self.out = Linear(dim, dim)
+        # The attention function; `segmo.models.cpu_inference` swaps in a faster one.
+        self.attend = attention
 
     def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None,
                 queries: torch.Tensor | None = None
@@ -189,7 +106,7 @@ class SelfAttention(nn.Module):
             keys = torch.cat([prefix.keys.to(k.dtype), k], dim=2)
             values = torch.cat([prefix.values.to(v.dtype), v], dim=2)
             key_valid = torch.cat([prefix.mask, valid], dim=1)
-        y = attention(q, keys, values, key_valid, self.dropout if self.training else 0.0)
+        y = self.attend(q, keys, values, key_valid, self.dropout if self.training else 0.0)
         return self.out(y.transpose(1, 2).reshape(b, q.shape[2], dim)), (k, v)
 
 

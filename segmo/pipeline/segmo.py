@@ -43,6 +43,7 @@ from segmo.generation.generate import (
     generate_tokens,
 )
 from segmo.generation.sampling import Sampler
+from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.pretrained import load_pretrained, read_config, read_json
@@ -181,8 +182,10 @@ class SegMo:
                 guidance_scale=2.0 if skeleton == "kit" else 4.0)
         self.config = config
         self.tokenizer = tokenizer.eval()
-        self.mask = mask.eval()
-        self.residual = residual.eval() if residual is not None else None
+        # Inference only: the CPU kernels (`segmo.models.cpu_inference`) are the faster
+        # way to run the transformers, and the same arithmetic.
+        self.mask = use_cpu_kernels(mask.eval())
+        self.residual = use_cpu_kernels(residual.eval()) if residual is not None else None
         self.length = length.eval() if length is not None else None
         for module in self.modules():
             module.requires_grad_(False)
