@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import ArgumentParser, non_negative_int
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -147,13 +148,10 @@ def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
 
 def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, residual: Path,
                          length: Path, seed: int) -> None:
-    import json
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
     import torch
 
     from segmo.pipeline import SegMo
@@ -168,13 +166,11 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
     print(f"    generated {len(PROMPTS)} motions -> {samples}")
 
     # Ground a multi-segment test caption in its real motion.
-    test_ids = (root / "test.txt").read_text().split()
-    for motion_id in test_ids:
-        truth = json.loads((root / "segments" / f"{motion_id}.json").read_text())
-        caption = truth["captions"][0]
+    for motion_id in read_split(root, "test"):
+        caption = read_ground_truth(root, motion_id)["captions"][0]
         if len(caption["segments"]) >= 2:
             break
-    features = np.load(root / "new_joint_vecs" / f"{motion_id}.npy")
+    features = read_motion(root, motion_id)
     # One window the size of an average segment: the paper's 5 tokens are far shorter than
     # the corpus's segments, so no window could overlap a true span well.
     window = max(1, len(features) // 4 // len(caption["segments"]))

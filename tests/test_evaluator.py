@@ -207,11 +207,8 @@ def test_fit_synthetic_config(tiny_corpus: Path, tmp_path: Path) -> None:
 
 
 def test_action_classifier_fit_predict_save(tiny_corpus: Path, tmp_path: Path) -> None:
-    from segmo.evaluation.action_order import (
-        ActionClassifier,
-        evaluate_action_order,
-        read_ground_truth,
-    )
+    from segmo.data.layout import read_actions as read_ground_truth
+    from segmo.evaluation.action_order import ActionClassifier, evaluate_action_order
 
     clf = ActionClassifier.fit(tiny_corpus, epochs=25, width=32, depth=3, lr=5e-3)
     train = (tiny_corpus / "train.txt").read_text().split()

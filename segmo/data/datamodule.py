@@ -16,7 +16,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from segmo.data.checks import MAX_ABS_Z, missing_texts
 from segmo.data.collate import collate
-from segmo.data.humanml3d import MotionDataset, load_stats
+from segmo.data.humanml3d import MotionDataset
+from segmo.data.layout import load_stats, split_file
 from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
 from segmo.errors import SegmoError
@@ -153,7 +154,7 @@ class MotionDataModule(LightningDataModule):
     def _loader(self, split: str, train: bool = False) -> DataLoader:
         ds = self.dataset(split)
         if len(ds) == 0:
-            raise SegmoError(f"{self.root / (split + '.txt')}: no usable samples "
+            raise SegmoError(f"{split_file(self.root, split)}: no usable samples "
                              f"(summary: {getattr(ds, 'summary', {})})")
         common = dict(batch_size=self.batch_size, num_workers=self.num_workers,
                       persistent_workers=self.num_workers > 0, collate_fn=collate,

@@ -3,7 +3,7 @@ the right order?
 
 A small frame-wise action classifier (`ActionClassifier`: dilated 1-D convolutions over
 z-scored features, one label per frame) is trained on the ground-truth spans of the
-corpus (`ROOT/segments/<id>.json`; classes = action names; arm overlays ("with") are
+corpus (`ROOT/segments/<id>.json`, `segmo.data.layout.read_actions`; classes = action names; arm overlays ("with") are
 ignored, the label is the main action). A motion's action sequence is then read without
 any ground truth: frame-wise class probabilities → moving average over `smooth` frames →
 argmax → runs; runs shorter than `min_frames` are dropped and equal neighbours merged.
@@ -23,7 +23,6 @@ Example::
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from segmo.data.layout import read_actions, read_motion, read_split, split_file, stats_files
 from segmo.errors import SegmoError
 from segmo.models.pretrained import Pretrained
 
@@ -79,15 +79,6 @@ def normalised_edit_distance(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequ
 def collapse(labels: Sequence[Any]) -> list[Any]:
     """Merge consecutive repeats: [a, a, b, a] → [a, b, a]."""
     return [x for i, x in enumerate(labels) if i == 0 or x != labels[i - 1]]
-
-
-def read_ground_truth(root: str | Path, motion_id: str) -> tuple[list[str], list[tuple[int, int]]]:
-    """Action names and frame spans (end exclusive) of `ROOT/segments/<id>.json`."""
-    path = Path(root) / "segments" / f"{motion_id}.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no ground truth (action order needs the built-in corpus)")
-    actions = json.loads(path.read_text())["actions"]
-    return [a["action"] for a in actions], [(int(a["start"]), int(a["end"])) for a in actions]
 
 
 class ActionClassifier(nn.Module, Pretrained):
@@ -155,14 +146,12 @@ class ActionClassifier(nn.Module, Pretrained):
             depth: int = 4, log: bool = False) -> ActionClassifier:
         """Train on the ground-truth spans of `split`; statistics from `ROOT/Mean.npy`/`Std.npy`."""
         root = Path(dataset_root)
-        ids = (root / f"{split}.txt").read_text().split()[:max_motions]
-        if not ids:
-            raise SegmoError(f"{root / (split + '.txt')}: no motions")
+        ids = read_split(root, split)[:max_motions]
         motions, labels, names = [], [], set()
         for mid in ids:
-            actions, spans = read_ground_truth(root, mid)
+            actions, spans = read_actions(root, mid)
             names.update(actions)
-            motions.append(np.load(root / "new_joint_vecs" / f"{mid}.npy").astype(np.float32))
+            motions.append(read_motion(root, mid).astype(np.float32))
             labels.append((actions, spans))
         classes = sorted(names)
         index = {c: i for i, c in enumerate(classes)}
@@ -178,8 +167,9 @@ class ActionClassifier(nn.Module, Pretrained):
             model = cls(ActionClassifierConfig(feature_dim=motions[0].shape[1], num_classes=len(classes),
                                                width=width, depth=depth))
             model.meta = {"classes": classes, "dataset": str(root)}
-            model.mean.copy_(torch.from_numpy(np.load(root / "Mean.npy")).float())
-            model.std.copy_(torch.from_numpy(np.load(root / "Std.npy")).float())
+            mean, std = (torch.from_numpy(np.load(path)).float() for path in stats_files(root))
+            model.mean.copy_(mean)
+            model.std.copy_(std)
             opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
             steps = epochs * ((len(ids) + batch_size - 1) // batch_size)
             sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps)
@@ -214,16 +204,16 @@ def evaluate_action_order(classifier: ActionClassifier, dataset_root: str | Path
     motions of `split` (their real features, or `features[id]` (t, d) raw, e.g. generated
     motions, for the ids given). Frame accuracy is only computed on real motions."""
     root = Path(dataset_root)
-    ids = (root / f"{split}.txt").read_text().split()[:max_motions]
+    ids = read_split(root, split)[:max_motions]
     if features is not None:
         ids = [i for i in ids if i in features]
     if not ids:
-        raise SegmoError(f"evaluate_action_order: no motions to evaluate in {root / (split + '.txt')}")
+        raise SegmoError(f"evaluate_action_order: no motions to evaluate in {split_file(root, split)}")
     index = {c: i for i, c in enumerate(classifier.classes)}
     preds, trues, correct, frames = [], [], 0, 0
     for mid in ids:
-        actions, spans = read_ground_truth(root, mid)
-        x = features[mid] if features is not None else np.load(root / "new_joint_vecs" / f"{mid}.npy")
+        actions, spans = read_actions(root, mid)
+        x = features[mid] if features is not None else read_motion(root, mid)
         preds.append(classifier.predict_sequence(x, **predict_kwargs))
         trues.append(collapse(actions))
         if features is None:

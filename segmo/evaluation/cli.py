@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.data.layout import has_ground_truth, split_file
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.evaluation import report
 from segmo.evaluation.metrics import (
@@ -154,7 +155,7 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     generate = Generator(model, cfg, ds.mean, ds.std, segments_of) if model is not None else None
     # A model trained without alignment (the "no align" ablation) has no shared space.
     aligned = model is not None and getattr(model.mask, "alignment", None) is not None
-    has_truth = (Path(cfg.data) / "segments").is_dir()
+    has_truth = has_ground_truth(cfg.data)
     skip = set(cfg.skip)
     metrics: dict[str, Any] = {"notes": {}}
     if model is not None:
@@ -310,9 +311,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--out {args.out}: exists and is not a directory")
     if args.batch_size < 2:
         parser.error(f"argument --batch-size: R-precision needs at least 2 rows, got {args.batch_size}")
-    split_file = Path(args.data) / f"{args.split}.txt"
-    if not split_file.is_file():
-        parser.error(f"--split {args.split}: {split_file} does not exist")
+    if not split_file(args.data, args.split).is_file():
+        parser.error(f"--split {args.split}: {split_file(args.data, args.split)} does not exist")
     if args.text_segments and not (Path(args.data) / "text_segments" / args.text_segments).is_dir():
         parser.error(f"--text-segments {args.text_segments}: no folder "
                      f"{Path(args.data) / 'text_segments' / args.text_segments}")

@@ -5,7 +5,6 @@ segment consistency (ISC), action order — and the options and data plumbing sh
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.data.layout import ground_truth_file, read_ground_truth
 from segmo.errors import SegmoError
 from segmo.evaluation import report
 from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
@@ -183,10 +183,9 @@ def known_segments(captions: list[str], segments_of: dict[str, list[str]] | None
 
 def ground_truth(cfg: EvaluateConfig, mid: str, caption_index: int, t: int) -> list[dict] | None:
     """Ground-truth segments of one caption clipped to the motion's first t frames."""
-    path = Path(cfg.data) / "segments" / f"{mid}.json"
-    if not path.is_file():
+    if not ground_truth_file(cfg.data, mid).is_file():
         return None
-    segs = json.loads(path.read_text())["captions"][caption_index]["segments"]
+    segs = read_ground_truth(cfg.data, mid)["captions"][caption_index]["segments"]
     return [dict(s, start=min(int(s["start"]), t), end=min(int(s["end"]), t)) for s in segs]
 
 

@@ -28,7 +28,6 @@ pre-trained as an auto-encoder and frozen.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -36,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.data.layout import read_split, split_file
 from segmo.errors import SegmoError
 from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
 from segmo.evaluation.metrics import euclidean_distance_matrix, r_precision
@@ -130,10 +130,11 @@ class EvaluatorTask(Task):
             with torch.no_grad():
                 self.model.word_embedding.weight.copy_(torch.from_numpy(vectors))
         else:
-            split = Path(datamodule.root) / "train.txt"
-            lists = [t for mid in split.read_text().split() for t in self.tokens.lines(mid)]
+            ids = read_split(datamodule.root, "train")
+            lists = [t for mid in ids for t in self.tokens.lines(mid)]
             if not lists:
-                raise SegmoError(f"{split}: no captions to build the vocabulary from")
+                raise SegmoError(f"{split_file(datamodule.root, 'train')}: no captions to build "
+                                 "the vocabulary from")
             self.model = self._build(Vocabulary.from_token_lists(lists, self.hparams.min_word_count).words)
         self.model.set_statistics(datamodule.mean, datamodule.std)
 

@@ -47,7 +47,6 @@ from typing import Any
 
 from tqdm import tqdm
 
-from segmo.data.humanml3d import parse_text_line
 from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
 from segmo.files import FolderLock, remove_temporaries, write_atomic
 from segmo.text.captions import (
@@ -56,8 +55,10 @@ from segmo.text.captions import (
     captions_hash,
     check_data_folder,
     has_words,
+    parse_text_line,
     read_caption_lines,
     read_text,
+    texts_file,
 )
 from segmo.text.llm import check_base_url, get_segmenter
 from segmo.text.manifest import SegmentManifest
@@ -230,7 +231,7 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
                     mine = {k: i for k, (owner, i) in enumerate(asked) if owner is job}
                     _write(job, {i: results[k] for k, i in mine.items()},
                            {i: fell_back[k] for k, i in mine.items() if k in fell_back},
-                           data / "texts" / f"{job.motion_id}.txt", out_dir, manifest)
+                           texts_file(data, job.motion_id), out_dir, manifest)
                     bar.update(1)
         elapsed = time.perf_counter() - t0
         ids = [p.stem for p in files]
