@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
-from segmo.evaluation.words import (
+from segmo.models.evaluator import EvaluatorConfig, T2MEvaluator
+from segmo.models.pretrained import load_pretrained
+from segmo.text.vocabulary import (
     POS_INDEX,
     Vocabulary,
     parse_tokens,
@@ -20,7 +21,6 @@ from segmo.evaluation.words import (
     read_text_tokens,
     tag_caption,
 )
-from segmo.models.pretrained import load_pretrained
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = dict(word_dim=12, text_hidden=8, movement_hidden=10, movement_dim=6, motion_hidden=8, embed_dim=5)
@@ -174,7 +174,7 @@ def test_text_tokens_of_the_corpus(tiny_corpus: Path) -> None:
 
 
 def test_caption_tokens(tiny_corpus: Path) -> None:
-    from segmo.evaluation.words import CaptionTokens
+    from segmo.text.vocabulary import CaptionTokens
 
     tokens = CaptionTokens(tiny_corpus)
     mid = (tiny_corpus / "train.txt").read_text().split()[0]

@@ -7,10 +7,10 @@ Data: `MotionDataModule` caption samples of whole clips (z-scored with the datas
 statistics, which are copied into the model). The text side needs `word/POS` tokens; the
 batch carries `id` and `caption_index`, so they are read from line `caption_index` of
 `ROOT/texts/<motion id>.txt`; a caption that cannot be found there (or has no tokens) is
-tagged with `segmo.evaluation.words.tag_caption`.
+tagged with `segmo.text.vocabulary.tag_caption`.
 
 Vocabulary: the released GloVe files when `glove_dir` is given (vectors frozen), otherwise
-every word of the train split's captions with learned vectors (`words.Vocabulary`). It is
+every word of the train split's captions with learned vectors (`Vocabulary`). It is
 saved in checkpoints so that `load_from_checkpoint` rebuilds the network before loading.
 
 Loss (`loss`), both over Euclidean distances d(text i, motion j) of the batch, where
@@ -37,11 +37,15 @@ from torch import Tensor
 
 from segmo.data.layout import read_split, split_file
 from segmo.errors import SegmoError
-from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
-from segmo.evaluation.metrics import euclidean_distance_matrix, r_precision
-from segmo.evaluation.words import CaptionTokens, Vocabulary
+from segmo.models.evaluator import (
+    EvaluatorConfig,
+    T2MEvaluator,
+    euclidean_distance_matrix,
+    r_precision,
+)
 from segmo.motion.skeleton import get_skeleton
 from segmo.tasks.base import Task
+from segmo.text.vocabulary import CaptionTokens, Vocabulary
 
 
 def margin_contrastive_loss(text: Tensor, motion: Tensor, negative: Tensor, margin: float) -> dict[str, Tensor]:
