@@ -25,7 +25,7 @@ COMMON = ["--split", "train", "--max-motions", "10", "--repeats", "2", "--batch-
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory) -> dict[str, Path]:
     """Corpus of 24 motions (19 in train), a random bundle, evaluator and action classifier."""
-    from segmo.evaluation.action_order import ActionClassifier, ActionClassifierConfig
+    from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig
     from segmo.models.alignment import AlignmentConfig
     from segmo.models.evaluator import EvaluatorConfig, T2MEvaluator
     from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig

@@ -259,10 +259,11 @@ def isc_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict],
 # ------------------------------------------------------------------------ action order
 
 def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
-    from segmo.evaluation.action_order import ActionClassifier
+    from segmo.models.action_classifier import ActionClassifier
+    from segmo.tasks.action_classifier import train_action_classifier
 
     if cfg.action_classifier == "train":
-        clf = ActionClassifier.fit(cfg.data, "train", epochs=10, seed=cfg.seed)
+        clf = train_action_classifier(cfg.data, epochs=10, seed=cfg.seed)
         clf.save_pretrained(out / "action_classifier")
         return clf
     return ActionClassifier.from_pretrained(cfg.action_classifier)
