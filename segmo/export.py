@@ -31,7 +31,7 @@ def task_class_path(checkpoint: dict, path: str | Path) -> str:
     if not class_path:
         raise SegmoError(
             f"{path}: the checkpoint does not name its task class (it was not written by "
-            "`segmo fit`); pass --task, e.g. --task segmo.tasks.rvq.RVQTask"
+            "`segmo fit`); pass --task, e.g. --task segmo.tasks.tokenizer.RVQTask"
         )
     return class_path
 
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", required=True, help="model directory to write")
     parser.add_argument(
         "--task", default=None,
-        help="task class path, e.g. segmo.tasks.rvq.RVQTask (default: recorded in the checkpoint)",
+        help="task class path, e.g. segmo.tasks.tokenizer.RVQTask (default: recorded in the checkpoint)",
     )
     args = parser.parse_args(argv)
     if not Path(args.checkpoint).is_file():

@@ -30,7 +30,7 @@ def setup(tmp_path_factory) -> dict[str, Path]:
     from segmo.models.evaluator import EvaluatorConfig, T2MEvaluator
     from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
     from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
-    from segmo.models.rvq import RVQVAE
+    from segmo.models.tokenizer import RVQVAE
     from segmo.pipeline.segmo import SegMo, SegMoConfig
     from segmo.synth.corpus import build_corpus
     from segmo.text.vocabulary import Vocabulary

@@ -30,7 +30,7 @@ from segmo.data.layout import (
     read_split,
     stats_files,
 )
-from segmo.segmentation import boundaries, get_segmenter
+from segmo.segmentation import boundaries, get_motion_segmenter
 
 UNIT = 4  # frames per token
 METHODS = ("uniform", "cpd", "kmeans")
@@ -83,7 +83,7 @@ def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | No
     cache: dict[tuple, list] = {}
     skipped = captions = 0
     for method in METHODS:  # keep one-off imports out of the timings
-        get_segmenter(method)(np.random.default_rng(0).normal(size=(12, 3)), 3)
+        get_motion_segmenter(method)(np.random.default_rng(0).normal(size=(12, 3)), 3)
     for motion_id in ids:
         record = read_ground_truth(data, motion_id)
         raw = read_motion(data, motion_id)
@@ -100,7 +100,7 @@ def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | No
                 key = (method, motion_id, start, end, a)
                 if key not in cache:
                     began = time.perf_counter()
-                    cache[key] = get_segmenter(method)(tokens, a, seed=0)
+                    cache[key] = get_motion_segmenter(method)(tokens, a, seed=0)
                     seconds[method] += time.perf_counter() - began
                     calls[method] += 1
                 spans = cache[key]

@@ -47,7 +47,7 @@ from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.pretrained import load_pretrained, read_config, read_json
 from segmo.models.residual_transformer import ResidualTransformer
-from segmo.models.rvq import RVQVAE
+from segmo.models.tokenizer import RVQVAE
 from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
@@ -316,9 +316,9 @@ class SegMo:
     @property
     def text_segmenter(self):
         if self._text_segmenter is None:
-            from segmo.text.llm import get_segmenter
+            from segmo.text.llm import get_text_segmenter
 
-            self._text_segmenter = get_segmenter(self.config.text_segmenter,
+            self._text_segmenter = get_text_segmenter(self.config.text_segmenter,
                                                  max_segments=self.max_segments)
         return self._text_segmenter
 

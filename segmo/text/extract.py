@@ -60,7 +60,7 @@ from segmo.text.captions import (
     read_text,
     texts_file,
 )
-from segmo.text.llm import check_base_url, get_segmenter
+from segmo.text.llm import check_base_url, get_text_segmenter
 from segmo.text.manifest import SegmentManifest
 from segmo.text.rules import TextSegmenter
 
@@ -321,7 +321,7 @@ def main(argv: list[str] | None = None) -> None:
                              "max_retries") if getattr(args, f) is not None]
         if given:
             parser.error(f"--backend rule takes none of {['--' + g.replace('_', '-') for g in given]}")
-        segmenter = get_segmenter("rule")
+        segmenter = get_text_segmenter("rule")
     elif args.backend == "openai":
         if not args.model:
             parser.error("--backend openai needs --model")
@@ -333,13 +333,13 @@ def main(argv: list[str] | None = None) -> None:
         except SegmoError as err:
             parser.error(f"argument --base-url: {err}")
         extra = {"chat_template_kwargs": {"enable_thinking": False}} if args.no_think else None
-        segmenter = get_segmenter("openai", base_url=base_url, model=args.model,
+        segmenter = get_text_segmenter("openai", base_url=base_url, model=args.model,
                                   api_key_env=args.api_key_env, concurrency=args.concurrency,
                                   timeout=args.timeout, max_retries=args.max_retries, extra_body=extra)
     else:
         if not args.model:
             parser.error("--backend transformers needs --model")
-        segmenter = get_segmenter("transformers", model_name_or_path=args.model, device=args.device,
+        segmenter = get_text_segmenter("transformers", model_name_or_path=args.model, device=args.device,
                                   batch_size=args.batch_size, max_retries=args.max_retries)
     out_dir = args.data / "text_segments" / segmenter.name
     try:

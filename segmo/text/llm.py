@@ -43,7 +43,7 @@ from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
 from segmo.text.validate import parse_answer, validate_segments
 
 __all__ = ["LLMSegmenter", "LLMUnavailableError", "OpenAISegmenter", "Prompt", "TransformersSegmenter",
-           "get_segmenter", "load_prompt", "parse_answer", "validate_segments"]
+           "get_text_segmenter", "load_prompt", "parse_answer", "validate_segments"]
 
 log = logging.getLogger(__name__)
 
@@ -347,7 +347,7 @@ class TransformersSegmenter(LLMSegmenter):
         return answers
 
 
-def get_segmenter(backend: str, **options: Any) -> TextSegmenter:
+def get_text_segmenter(backend: str, **options: Any) -> TextSegmenter:
     """Build a segmenter by backend name: "rule", "openai" or "transformers".
 
     Options are the backend's constructor arguments; None values are dropped so that
@@ -357,10 +357,10 @@ def get_segmenter(backend: str, **options: Any) -> TextSegmenter:
     if backend == "rule":
         extra = set(options) - {"max_segments"}
         if extra:
-            raise SegmoError(f"get_segmenter: the rule backend takes no option(s) {sorted(extra)}")
+            raise SegmoError(f"get_text_segmenter: the rule backend takes no option(s) {sorted(extra)}")
         return RuleSegmenter(**options)
     if backend == "openai":
         return OpenAISegmenter(**options)
     if backend == "transformers":
         return TransformersSegmenter(**options)
-    raise SegmoError(f"get_segmenter: unknown backend {backend!r} (choose rule, openai, transformers)")
+    raise SegmoError(f"get_text_segmenter: unknown backend {backend!r} (choose rule, openai, transformers)")
