@@ -21,12 +21,15 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
 from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import ArgumentParser, non_negative_int
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+# The top-level configs/ folder, shipped inside the package (pyproject.toml maps it to
+# segmo._configs), so that an installed segmo runs the demo as well as a source checkout.
+CONFIGS = files("segmo._configs")
 
 PROMPTS = [
     "a person walks forward, then waves with the right hand.",

@@ -35,6 +35,7 @@ import threading
 import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,9 @@ __all__ = ["LLMSegmenter", "LLMUnavailableError", "OpenAISegmenter", "Prompt", "
 
 log = logging.getLogger(__name__)
 
-PROMPT_DIR = Path(__file__).resolve().parents[2] / "prompts"
+# The top-level prompts/ folder, shipped inside the package (pyproject.toml maps it to
+# segmo._prompts), so that an installed segmo finds it as well as a source checkout.
+PROMPT_DIR = files("segmo._prompts")
 UNREADABLE = "<unreadable response"  # how a backend hands a broken answer to the re-ask loop
 
 
@@ -80,7 +83,8 @@ class Prompt:
 
 
 def load_prompt(directory: str | Path | None = None) -> Prompt:
-    """Read ``segment_system.md`` and ``segment_examples.json`` from `directory` (default prompts/)."""
+    """Read ``segment_system.md`` and ``segment_examples.json`` from `directory` (default:
+    the prompts shipped with segmo, the repository's prompts/ folder)."""
     directory = Path(directory) if directory is not None else PROMPT_DIR
     system_path, examples_path = directory / "segment_system.md", directory / "segment_examples.json"
     for path in (system_path, examples_path):
