@@ -24,8 +24,17 @@ from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
 
+import torch
+
 from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import ArgumentParser, non_negative_int
+from segmo.export import export
+from segmo.pipeline import SegMo
+from segmo.pipeline.grounding import plot_similarity_map
+from segmo.synth import build_corpus
+from segmo.text.cache import update_cache
+from segmo.text.extract import segment_folder
+from segmo.text.rules import RuleSegmenter
 
 # The top-level configs/ folder, shipped inside the package (pyproject.toml maps it to
 # segmo._configs), so that an installed segmo runs the demo as well as a source checkout.
@@ -71,7 +80,7 @@ def _done(start: float, timings: dict[str, float], key: str) -> None:
 
 def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
     """`segmo fit` one synthetic config, then `segmo export` its last checkpoint."""
-    from segmo.export import export
+    # Lightning takes seconds to import: kept out of `segmo demo --help`.
     from segmo.training.cli import main as fit
 
     # Lightning's banners and model tables would drown the demo's own progress lines.
@@ -89,11 +98,6 @@ def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
 
 
 def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
-    from segmo.synth import build_corpus
-    from segmo.text.cache import update_cache
-    from segmo.text.extract import segment_folder
-    from segmo.text.rules import RuleSegmenter
-
     out.mkdir(parents=True, exist_ok=True)
     root = out / "corpus"
     timings: dict[str, float] = {}
@@ -151,14 +155,11 @@ def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
 
 def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, residual: Path,
                          length: Path, seed: int) -> None:
+    # matplotlib on use, and its file backend chosen before pyplot is imported.
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import torch
-
-    from segmo.pipeline import SegMo
-    from segmo.pipeline.grounding import plot_similarity_map
 
     model = SegMo.from_stages(tokenizer=str(tokenizer), mask=str(mask), residual=str(residual),
                               length=str(length))

@@ -38,6 +38,7 @@ def task_class_path(checkpoint: dict, path: str | Path) -> str:
 
 def load_task(path: str | Path, task: str | None = None, map_location: str = "cpu"):
     """Rebuild the LightningModule saved in checkpoint `path` (class path `task` or recorded)."""
+    # Lightning takes seconds to import: kept out of `segmo export --help` and bad arguments.
     from lightning.pytorch import LightningModule
 
     # Our own checkpoints hold hyper-parameters and generator states, not just tensors.
@@ -63,7 +64,7 @@ def load_task(path: str | Path, task: str | None = None, map_location: str = "cp
 
 def check_finite(state_dict: dict, path: str | Path) -> None:
     """Refuse a state dict whose floating-point tensors hold NaN or inf, naming them."""
-    from segmo.tasks.base import non_finite_tensors  # imports Lightning
+    from segmo.tasks.base import non_finite_tensors  # imports Lightning (seconds), see above
 
     bad = non_finite_tensors(state_dict)
     if bad:

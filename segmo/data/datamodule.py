@@ -23,6 +23,7 @@ from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.text.cache import TextFeatureCache
 
 
 class MotionDataModule(LightningDataModule):
@@ -119,8 +120,6 @@ class MotionDataModule(LightningDataModule):
         """The text-feature cache shared by all splits, or None."""
         if self.text_features is None:
             return None
-        from segmo.text.cache import TextFeatureCache  # lazy: pulls in transformers
-
         return TextFeatureCache.open(self.root, self.text_features)
 
     def dataset(self, split: str) -> Dataset:

@@ -54,6 +54,7 @@ from segmo.data.layout import caption_spans, motion_file, read_split, resolve_st
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.text.cache import TextFeatureCache
 from segmo.text.captions import CaptionLine, parse_text_line, read_caption_lines, texts_file
 from segmo.text.manifest import load_manifest
 
@@ -271,8 +272,6 @@ class MotionDataset(Dataset):
         self.problems = report.problems
 
         if text_cache is None and text_features is not None:
-            from segmo.text.cache import TextFeatureCache  # lazy: the cache pulls in transformers
-
             text_cache = TextFeatureCache.open(self.root, text_features)
         self.text_cache = text_cache
 

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from segmo.data.layout import has_ground_truth, split_file
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
@@ -61,7 +62,8 @@ from segmo.evaluation.sections import (
     segmo_retrieval,
 )
 from segmo.generation.allocator import keep_freed_memory
-from segmo.models.pretrained import read_json
+from segmo.models.pretrained import load_pretrained, read_json
+from segmo.pipeline import SegMo
 
 # ------------------------------------------------------------------------- generation
 
@@ -87,8 +89,6 @@ class Generator:
                                   generator=torch.Generator(device=device).manual_seed(int(seed)))
         self.motions += len(captions)
         if self.bar is None:
-            from tqdm import tqdm
-
             self.bar = tqdm(desc="generate", unit="motion", disable=not self.cfg.progress)
         self.bar.update(len(captions))
         self.seconds += time.perf_counter() - start
@@ -129,8 +129,6 @@ def _timed(cfg: EvaluateConfig, key: str, fn: Any, *args: Any) -> Any:
 def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     """Run every section that applies, write OUT/metrics.json, report.md and plots; return
     the metrics dict. `model`: an already built SegMo (else loaded from `cfg.model`)."""
-    from segmo.models.pretrained import load_pretrained
-
     out = Path(cfg.out)
     if cfg.model is None and model is None and not cfg.real_only:
         raise SegmoError("segmo evaluate: --model is required unless --real-only")
@@ -142,8 +140,6 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     if cfg.real_only:
         model = None
     elif model is None:
-        from segmo.pipeline import SegMo
-
         model = SegMo.from_pretrained(cfg.model, device=cfg.device)
     out.mkdir(parents=True, exist_ok=True)
     skeleton = model.skeleton.name if model is not None else (

@@ -28,7 +28,8 @@ import torch
 from segmo.errors import SegmoError
 
 # Defined with the evaluator, whose training logs them too; part of the §9 metrics here.
-from segmo.models.evaluator import euclidean_distance_matrix, r_precision  # noqa: F401
+from segmo.models.evaluator import euclidean_distance_matrix, r_precision  # noqa: F401, I001
+from segmo.text.vocabulary import CaptionTokens
 
 
 def _np(x: Any) -> np.ndarray:
@@ -165,8 +166,6 @@ def t2m_embedders(evaluator: Any, dataset_root: Any, mean: Any, std: Any
     `caption_index`); motions are z-scored with the dataset's `mean`/`std` (d,), which
     `embed_motion` swaps for the evaluator's own statistics.
     """
-    from segmo.text.vocabulary import CaptionTokens
-
     tokens = CaptionTokens(dataset_root)
     device = evaluator.mean.device
     mean, std = torch.as_tensor(mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32)

@@ -141,7 +141,8 @@ def load_pretrained(directory: str | os.PathLike, map_location: str = "cpu") -> 
     """Load any model directory, dispatching on the `kind` recorded in its config."""
     kind = read_config(directory)["kind"]
     if kind not in _REGISTRY:
-        # Model classes register themselves on import.
+        # Model classes register themselves on import; imported here because the model
+        # modules import this one.
         import segmo.models.registry  # noqa: F401
     if kind not in _REGISTRY:
         raise SegmoError(f"{Path(directory) / CONFIG_FILE}: unknown model kind {kind!r}")

@@ -244,6 +244,7 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
     best window of each segment is outlined in red. `truth` (one (start, end) frame span
     per segment) underlines in white the windows lying inside the true span. Returns the
     matplotlib Axes."""
+    # matplotlib on use: grounding and retrieval themselves do not plot.
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 

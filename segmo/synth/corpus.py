@@ -21,6 +21,8 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from segmo.data.layout import (
     GROUND_TRUTH,
@@ -36,6 +38,7 @@ from segmo.data.layout import (
 )
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.files import LOCK_FILE, FolderLock
+from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.synth.actions import ACTIONS
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions, pos_tag
 from segmo.synth.sequence import sample_motion
@@ -70,8 +73,6 @@ def motion_id(index: int) -> str:
 
 def _build_one(job: tuple[str, int, int, str]) -> dict:
     """Generate and write motion `index`; returns its statistics for the parent."""
-    from segmo.motion.features import features_to_joints, joints_to_features
-
     root, seed, index, split = job
     root = Path(root)
     rng = np.random.default_rng([seed, index])
@@ -103,8 +104,6 @@ def _build_one(job: tuple[str, int, int, str]) -> dict:
 
 
 def _init_worker() -> None:
-    import torch
-
     torch.set_num_threads(1)
 
 
@@ -154,8 +153,6 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
 
 
 def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool) -> Path:
-    from tqdm import tqdm
-
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
@@ -170,8 +167,6 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool)
                 results = list(tqdm(pool.imap(_build_one, jobs, chunksize=4), total=num_motions,
                                     desc="synth", disable=not progress))
         else:
-            import torch
-
             # One motion is too small for intra-op threads; they only spin (and restore
             # the caller's setting afterwards).
             threads = torch.get_num_threads()

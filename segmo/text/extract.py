@@ -334,13 +334,15 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"argument --base-url: {err}")
         extra = {"chat_template_kwargs": {"enable_thinking": False}} if args.no_think else None
         segmenter = get_text_segmenter("openai", base_url=base_url, model=args.model,
-                                  api_key_env=args.api_key_env, concurrency=args.concurrency,
-                                  timeout=args.timeout, max_retries=args.max_retries, extra_body=extra)
+                                       api_key_env=args.api_key_env, concurrency=args.concurrency,
+                                       timeout=args.timeout, max_retries=args.max_retries,
+                                       extra_body=extra)
     else:
         if not args.model:
             parser.error("--backend transformers needs --model")
-        segmenter = get_text_segmenter("transformers", model_name_or_path=args.model, device=args.device,
-                                  batch_size=args.batch_size, max_retries=args.max_retries)
+        segmenter = get_text_segmenter("transformers", model_name_or_path=args.model,
+                                       device=args.device, batch_size=args.batch_size,
+                                       max_retries=args.max_retries)
     out_dir = args.data / "text_segments" / segmenter.name
     try:
         summary = segment_folder(args.data, segmenter, args.backend, overwrite=args.overwrite,

@@ -39,6 +39,8 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from segmo.errors import SegmoError
 from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
 from segmo.text.validate import parse_answer, validate_segments
@@ -259,7 +261,7 @@ class OpenAISegmenter(LLMSegmenter):
 
     def _request(self, messages: list[dict[str, str]]) -> str | Exception:
         """The answer text, or the error that remained once the client's retries were spent."""
-        import openai
+        import openai  # on use, as in __init__
 
         if self._failures_in_a_row >= self.max_failures_in_a_row:
             return RuntimeError("not asked: the server is down")
@@ -331,8 +333,6 @@ class TransformersSegmenter(LLMSegmenter):
         self.name = f"transformers-{_slug(str(model_name_or_path))}"
 
     def _complete_many(self, conversations: list[list[dict[str, str]]]) -> list[str | Exception]:
-        import torch
-
         answers: list[str | Exception] = []
         for start in range(0, len(conversations), self.batch_size):
             chunk = conversations[start : start + self.batch_size]
