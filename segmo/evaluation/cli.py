@@ -62,6 +62,7 @@ from segmo.evaluation.sections import (
     segmo_retrieval,
 )
 from segmo.generation.allocator import keep_freed_memory
+from segmo.generation.generate import resolve_precision
 from segmo.models.pretrained import load_pretrained, read_json
 from segmo.pipeline import SegMo
 
@@ -326,8 +327,6 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     keep_freed_memory()
     if args.precision == "auto":  # the report records what ran
-        from segmo.generation.generate import resolve_precision
-
         args.precision = resolve_precision("auto", torch.device(args.device))[0]
     cfg = EvaluateConfig(**{k: v for k, v in vars(args).items() if k not in ("compare", "skip", "threads")},
                          skip=skip)
