@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import importlib
 import sys
+import warnings
+
+from segmo.errors import SegmoError
 
 # name -> (module, function, one-line help)
 COMMANDS: dict[str, tuple[str, str, str]] = {
@@ -62,10 +65,6 @@ def main(argv: list[str] | None = None) -> None:
 
 def run(prog: str, command, argv: list[str], debug: bool = False) -> None:
     """Call ``command(argv)``, turning expected failures into one line and exit status 2."""
-    import warnings
-
-    from segmo.errors import SegmoError
-
     def one_line(message, category, filename, lineno, file=None, line=None) -> None:
         # A warning is news for the user, not a pointer into segmo's source.
         text = " ".join(str(message).split())

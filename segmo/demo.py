@@ -21,11 +21,24 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
-from segmo.errors import ArgumentParser, non_negative_int
+import torch
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+from segmo.data.layout import read_ground_truth, read_motion, read_split
+from segmo.errors import ArgumentParser, non_negative_int
+from segmo.export import export
+from segmo.pipeline import SegMo
+from segmo.pipeline.grounding import plot_similarity_map
+from segmo.synth import build_corpus
+from segmo.text.cache import update_cache
+from segmo.text.extract import segment_folder
+from segmo.text.rules import RuleSegmenter
+
+# The top-level configs/ folder, shipped inside the package (pyproject.toml maps it to
+# segmo._configs), so that an installed segmo runs the demo as well as a source checkout.
+CONFIGS = files("segmo._configs")
 
 PROMPTS = [
     "a person walks forward, then waves with the right hand.",
@@ -67,7 +80,7 @@ def _done(start: float, timings: dict[str, float], key: str) -> None:
 
 def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
     """`segmo fit` one synthetic config, then `segmo export` its last checkpoint."""
-    from segmo.export import export
+    # Lightning takes seconds to import: kept out of `segmo demo --help`.
     from segmo.training.cli import main as fit
 
     # Lightning's banners and model tables would drown the demo's own progress lines.
@@ -85,11 +98,6 @@ def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
 
 
 def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
-    from segmo.synth import build_corpus
-    from segmo.text.cache import update_cache
-    from segmo.text.extract import segment_folder
-    from segmo.text.rules import RuleSegmenter
-
     out.mkdir(parents=True, exist_ok=True)
     root = out / "corpus"
     timings: dict[str, float] = {}
@@ -147,17 +155,11 @@ def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
 
 def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, residual: Path,
                          length: Path, seed: int) -> None:
-    import json
-
+    # matplotlib on use, and its file backend chosen before pyplot is imported.
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
-    import torch
-
-    from segmo.pipeline import SegMo
-    from segmo.pipeline.grounding import plot_similarity_map
 
     model = SegMo.from_stages(tokenizer=str(tokenizer), mask=str(mask), residual=str(residual),
                               length=str(length))
@@ -168,13 +170,11 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
     print(f"    generated {len(PROMPTS)} motions -> {samples}")
 
     # Ground a multi-segment test caption in its real motion.
-    test_ids = (root / "test.txt").read_text().split()
-    for motion_id in test_ids:
-        truth = json.loads((root / "segments" / f"{motion_id}.json").read_text())
-        caption = truth["captions"][0]
+    for motion_id in read_split(root, "test"):
+        caption = read_ground_truth(root, motion_id)["captions"][0]
         if len(caption["segments"]) >= 2:
             break
-    features = np.load(root / "new_joint_vecs" / f"{motion_id}.npy")
+    features = read_motion(root, motion_id)
     # One window the size of an average segment: the paper's 5 tokens are far shorter than
     # the corpus's segments, so no window could overlap a true span well.
     window = max(1, len(features) // 4 // len(caption["segments"]))

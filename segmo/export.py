@@ -31,13 +31,14 @@ def task_class_path(checkpoint: dict, path: str | Path) -> str:
     if not class_path:
         raise SegmoError(
             f"{path}: the checkpoint does not name its task class (it was not written by "
-            "`segmo fit`); pass --task, e.g. --task segmo.tasks.rvq.RVQTask"
+            "`segmo fit`); pass --task, e.g. --task segmo.tasks.tokenizer.RVQTask"
         )
     return class_path
 
 
 def load_task(path: str | Path, task: str | None = None, map_location: str = "cpu"):
     """Rebuild the LightningModule saved in checkpoint `path` (class path `task` or recorded)."""
+    # Lightning takes seconds to import: kept out of `segmo export --help` and bad arguments.
     from lightning.pytorch import LightningModule
 
     # Our own checkpoints hold hyper-parameters and generator states, not just tensors.
@@ -63,7 +64,7 @@ def load_task(path: str | Path, task: str | None = None, map_location: str = "cp
 
 def check_finite(state_dict: dict, path: str | Path) -> None:
     """Refuse a state dict whose floating-point tensors hold NaN or inf, naming them."""
-    from segmo.tasks.base import non_finite_tensors  # imports Lightning
+    from segmo.tasks.base import non_finite_tensors  # imports Lightning (seconds), see above
 
     bad = non_finite_tensors(state_dict)
     if bad:
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", required=True, help="model directory to write")
     parser.add_argument(
         "--task", default=None,
-        help="task class path, e.g. segmo.tasks.rvq.RVQTask (default: recorded in the checkpoint)",
+        help="task class path, e.g. segmo.tasks.tokenizer.RVQTask (default: recorded in the checkpoint)",
     )
     args = parser.parse_args(argv)
     if not Path(args.checkpoint).is_file():

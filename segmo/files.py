@@ -138,7 +138,7 @@ class FolderLock:
 
 
 def _try_lock(handle: IO[str]) -> bool:
-    try:
+    try:  # imported here: which module exists depends on the platform
         import fcntl
     except ImportError:  # Windows
         import msvcrt

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
 from segmo.errors import ArgumentParser, SegmoError, finite_float, positive_int
 from segmo.files import atomic_open
@@ -141,6 +142,7 @@ class _StickFigure:
 def _figure(figsize: tuple[float, float], dpi: int):
     """A figure with its own Agg canvas: no pyplot state, so nothing is shown twice in a
     notebook and nothing leaks across calls (a notebook displays the returned figure)."""
+    # matplotlib on use: `segmo render --help` and the pipeline's npy/bvh outputs skip it.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -205,8 +207,6 @@ def save_animation(
     stride: render every stride-th frame (fps is divided accordingly, so playback speed
     is unchanged). fps: playback rate of the source frames; default the skeleton's.
     """
-    from PIL import Image
-
     spec = get_skeleton(skeleton)
     path = Path(path)
     suffix = path.suffix.lower()
@@ -240,7 +240,7 @@ def save_animation(
             images[0].save(f, format="GIF", save_all=True, append_images=images[1:], loop=0,
                            duration=int(round(1000 / rate)), disposal=2)
     else:
-        from matplotlib.animation import FFMpegWriter
+        from matplotlib.animation import FFMpegWriter  # matplotlib on use, as in _figure
 
         writer = FFMpegWriter(fps=rate)
         with writer.saving(fig, str(path), dpi):

@@ -113,7 +113,7 @@ def build_text_dataset(root: Path, skeleton: str = "t2m", motions: int = 12, see
 def build_tokenizer(path: Path, feature_dim: int, codebook_size: int = 16,
                     num_quantizers: int = 3, skeleton: str = "t2m") -> Path:
     """A randomly initialised, exported RVQ-VAE (the stages only need its interface)."""
-    from segmo.models.rvq import RVQVAE, RVQConfig
+    from segmo.models.tokenizer import RVQVAE, RVQConfig
 
     torch.manual_seed(0)
     model = RVQVAE(RVQConfig(feature_dim=feature_dim, width=16, code_dim=16,

@@ -25,15 +25,15 @@ COMMON = ["--split", "train", "--max-motions", "10", "--repeats", "2", "--batch-
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory) -> dict[str, Path]:
     """Corpus of 24 motions (19 in train), a random bundle, evaluator and action classifier."""
-    from segmo.evaluation.action_order import ActionClassifier, ActionClassifierConfig
-    from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
-    from segmo.evaluation.words import Vocabulary
+    from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig
     from segmo.models.alignment import AlignmentConfig
+    from segmo.models.evaluator import EvaluatorConfig, T2MEvaluator
     from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
     from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
-    from segmo.models.rvq import RVQVAE
+    from segmo.models.tokenizer import RVQVAE
     from segmo.pipeline.segmo import SegMo, SegMoConfig
     from segmo.synth.corpus import build_corpus
+    from segmo.text.vocabulary import Vocabulary
 
     root = tmp_path_factory.mktemp("evaluate")
     corpus = build_corpus(root / "synth", 24, seed=0, progress=False)

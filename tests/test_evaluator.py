@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
-from segmo.evaluation.words import (
+from segmo.models.evaluator import EvaluatorConfig, T2MEvaluator
+from segmo.models.pretrained import load_pretrained
+from segmo.text.vocabulary import (
     POS_INDEX,
     Vocabulary,
     parse_tokens,
@@ -20,7 +21,6 @@ from segmo.evaluation.words import (
     read_text_tokens,
     tag_caption,
 )
-from segmo.models.pretrained import load_pretrained
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = dict(word_dim=12, text_hidden=8, movement_hidden=10, movement_dim=6, motion_hidden=8, embed_dim=5)
@@ -174,7 +174,7 @@ def test_text_tokens_of_the_corpus(tiny_corpus: Path) -> None:
 
 
 def test_caption_tokens(tiny_corpus: Path) -> None:
-    from segmo.evaluation.words import CaptionTokens
+    from segmo.text.vocabulary import CaptionTokens
 
     tokens = CaptionTokens(tiny_corpus)
     mid = (tiny_corpus / "train.txt").read_text().split()[0]
@@ -206,14 +206,36 @@ def test_fit_synthetic_config(tiny_corpus: Path, tmp_path: Path) -> None:
                                atol=1e-6)
 
 
-def test_action_classifier_fit_predict_save(tiny_corpus: Path, tmp_path: Path) -> None:
-    from segmo.evaluation.action_order import (
-        ActionClassifier,
-        evaluate_action_order,
-        read_ground_truth,
-    )
+@pytest.mark.slow
+def test_fit_action_classifier_config(tiny_corpus: Path, tmp_path: Path) -> None:
+    """configs/action_classifier/synthetic.yaml through `segmo fit` and `segmo export`."""
+    from segmo.data.layout import read_motion, read_split
+    from segmo.export import export
+    from segmo.models.action_classifier import ActionClassifier
+    from segmo.training.cli import main as cli_main
 
-    clf = ActionClassifier.fit(tiny_corpus, epochs=25, width=32, depth=3, lr=5e-3)
+    argv = ["fit", "--config", str(REPO / "configs/action_classifier/synthetic.yaml"),
+            f"--data.root={tiny_corpus}", f"--runs_dir={tmp_path / 'runs'}", "--trainer.max_epochs=2",
+            "--trainer.enable_progress_bar=false", "--data.init_args.batch_size=8",
+            "--model.init_args.width=8", "--model.init_args.depth=2"]
+    cli = cli_main(argv)
+    assert cli.trainer.global_step > 0 and "val/frame_accuracy" in cli.trainer.callback_metrics
+    ckpt = next((tmp_path / "runs" / "action_classifier" / "synthetic").glob("version_*/checkpoints/last.ckpt"))
+    loaded = load_pretrained(export(ckpt, tmp_path / "exported"))
+    model = cli.model.export_model().eval()
+    assert isinstance(loaded, ActionClassifier) and loaded.classes == cli.datamodule.classes
+    torch.testing.assert_close(loaded.mean, cli.datamodule.mean)
+    x = read_motion(tiny_corpus, read_split(tiny_corpus, "val")[0])
+    np.testing.assert_allclose(loaded.frame_probabilities(x), model.frame_probabilities(x), atol=1e-6)
+
+
+def test_action_classifier_fit_predict_save(tiny_corpus: Path, tmp_path: Path) -> None:
+    from segmo.data.layout import read_actions as read_ground_truth
+    from segmo.evaluation.action_order import evaluate_action_order
+    from segmo.models.action_classifier import ActionClassifier
+    from segmo.tasks.action_classifier import train_action_classifier
+
+    clf = train_action_classifier(tiny_corpus, epochs=25, width=32, depth=3, lr=5e-3)
     train = (tiny_corpus / "train.txt").read_text().split()
     result = evaluate_action_order(clf, tiny_corpus, split="train")
     assert result["frame_accuracy"] > 0.6  # memorises its tiny training set

@@ -235,7 +235,7 @@ def test_decode_tokens_with_stub_tokenizer(models):
 
 
 def test_bf16_decoding_agrees_with_fp32():
-    from segmo.models.rvq import RVQVAE, RVQConfig
+    from segmo.models.tokenizer import RVQVAE, RVQConfig
 
     torch.manual_seed(0)
     tokenizer = RVQVAE(RVQConfig(feature_dim=12, width=32, code_dim=16, codebook_size=16,

@@ -18,7 +18,7 @@ from segmo.models.alignment import AlignmentConfig
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
-from segmo.models.rvq import RVQVAE
+from segmo.models.tokenizer import RVQVAE
 from segmo.pipeline import GenerationOutput, SegMo, edit_drift
 from segmo.pipeline.cli import bundle_main, generate_main, ground_main
 from segmo.pipeline.grounding import grounding_accuracy, pair_scores, plot_similarity_map

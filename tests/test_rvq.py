@@ -7,7 +7,7 @@ import torch
 
 from segmo.models.pretrained import load_pretrained
 from segmo.models.quantizer import ResidualQuantizer
-from segmo.models.rvq import RVQVAE, RVQConfig
+from segmo.models.tokenizer import RVQVAE, RVQConfig
 
 
 def tiny_config(**overrides) -> RVQConfig:

@@ -7,7 +7,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from segmo.models.rvq import RVQVAE, RVQConfig
+from segmo.models.tokenizer import RVQVAE, RVQConfig
 
 STEPS = 6
 

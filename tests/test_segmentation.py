@@ -12,10 +12,12 @@ from conftest import load_tool
 from segmo.segmentation import (
     CPDSegmenter,
     KMeansSegmenter,
-    get_segmenter,
     repair_boundaries,
     segment_batch,
     uniform_spans,
+)
+from segmo.segmentation import (
+    get_motion_segmenter as get_segmenter,
 )
 
 METHODS = ["uniform", "cpd", "kmeans"]
@@ -158,7 +160,7 @@ def test_boundary_error_tool_on_fake_corpus(fake_corpus, capsys):
 
 
 def test_boundary_error_tool_with_a_tokenizer(fake_corpus, tmp_path_factory):
-    rvq = pytest.importorskip("segmo.models.rvq", reason="tokenizer module not in this checkout")
+    rvq = pytest.importorskip("segmo.models.tokenizer", reason="tokenizer module not in this checkout")
     config = rvq.RVQConfig(feature_dim=6, width=16, code_dim=8, codebook_size=8)
     directory = rvq.RVQVAE(config).save_pretrained(tmp_path_factory.mktemp("tokenizer"))
     result = _load_tool().main(["--data", str(fake_corpus), "--tokenizer", str(directory)])

@@ -19,10 +19,12 @@ from segmo.text.llm import (
     LLMUnavailableError,
     OpenAISegmenter,
     Prompt,
-    get_segmenter,
     load_prompt,
     parse_answer,
     validate_segments,
+)
+from segmo.text.llm import (
+    get_text_segmenter as get_segmenter,
 )
 from segmo.text.rules import RuleSegmenter, TextSegmenter
 

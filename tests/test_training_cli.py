@@ -20,10 +20,10 @@ from segmo.data import MotionDataModule
 from segmo.errors import SegmoError
 from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
-from segmo.models.rvq import RVQVAE
+from segmo.models.tokenizer import RVQVAE
 from segmo.motion.skeleton import get_skeleton
 from segmo.tasks.common import step_schedule
-from segmo.tasks.rvq import RVQTask
+from segmo.tasks.tokenizer import RVQTask
 from segmo.training.cli import main as cli_main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,6 +69,24 @@ def test_fit_every_config(config, tmp_path):
     assert "val/mpjpe_mm" in cli.trainer.callback_metrics
 
 
+def test_the_former_class_path_still_trains_and_exports(tmp_path):
+    """YAMLs and checkpoints written before the tokenizer task moved name segmo.tasks.rvq."""
+    from segmo.export import export
+    from segmo.models.pretrained import load_pretrained
+
+    root = make_dataset(tmp_path / "data")
+    config = tmp_path / "old.yaml"
+    text = (REPO / "configs/rvq/synthetic.yaml").read_text()
+    config.write_text(text.replace("segmo.tasks.tokenizer.RVQTask", "segmo.tasks.rvq.RVQTask"))
+    cli = cli_main(["fit", "--config", str(config), *tiny_overrides(root, tmp_path / "runs"),
+                    "--trainer.max_steps=1", "--trainer.val_check_interval=1"])
+    assert isinstance(cli.model, RVQTask) and cli.trainer.global_step == 1
+    last = next((tmp_path / "runs" / "rvq" / "old").glob("version_*/checkpoints/last.ckpt"))
+    assert torch.load(last, weights_only=False)["hyper_parameters"]["_class_path"] == \
+        "segmo.tasks.rvq.RVQTask"
+    assert isinstance(load_pretrained(export(last, tmp_path / "tokenizer")), RVQVAE)
+
+
 def test_skeleton_mismatch_is_an_error(tmp_path):
     root = make_dataset(tmp_path / "data", "t2m")
     with pytest.raises(ValueError, match="skeleton"):
@@ -104,7 +122,7 @@ def test_run_directory_resume_export_and_eval(tmp_path, capsys):
 
     # Resuming restores the codebooks and flags; nothing re-initialises them.
     checkpoint = torch.load(last, weights_only=False)
-    assert checkpoint["hyper_parameters"]["_class_path"] == "segmo.tasks.rvq.RVQTask"
+    assert checkpoint["hyper_parameters"]["_class_path"] == "segmo.tasks.tokenizer.RVQTask"
     assert checkpoint["global_step"] == 2  # the final weights, not those of an earlier check
     capture = _CaptureAtStart()
     trainer = L.Trainer(max_steps=4, callbacks=[capture], logger=False, enable_checkpointing=False,
@@ -191,7 +209,7 @@ HOSTILE = {
                           "{yaml}:{line}: data.init_args.bach_size: segmo.data.MotionDataModule has "
                           "no argument 'bach_size' (did you mean 'batch_size'?)"),
     "misspelt model key": (("width: 128", "widht: 128"), [],
-                           "{yaml}:{line}: model.init_args.widht: segmo.tasks.rvq.RVQTask has no "
+                           "{yaml}:{line}: model.init_args.widht: segmo.tasks.tokenizer.RVQTask has no "
                            "argument 'widht' (did you mean 'width'?)"),
     "misspelt trainer key": (("max_steps: 3000", "max_step: 3000"), [],
                              "{yaml}:{line}: trainer.max_step: the Trainer has no argument "

@@ -9,7 +9,7 @@
 "mask", "residual" and optionally "rvq". `--random-config humanml3d`: randomly initialised
 paper-sized models (8 layers, width 384, 6 heads, FFN 1024, 512 codes, 6 quantizers,
 49 tokens = 196 frames, text_dim 512, A = 5) and a random RVQ-VAE decoder when
-`segmo.models.rvq` is importable (otherwise decoding is excluded from the timing).
+`segmo.models.tokenizer` is importable (otherwise decoding is excluded from the timing).
 `--random-config tiny`: a 1-layer width-32 model, for checking that the tool runs (under
 emulation, say) rather than for its figures.
 
@@ -90,7 +90,7 @@ def random_models(name: str, seed: int):
     residual = use_cpu_kernels(
         ResidualTransformer(ResidualTransformerConfig(**spec, num_quantizers=num_quantizers)))
     try:
-        from segmo.models.rvq import RVQVAE, RVQConfig
+        from segmo.models.tokenizer import RVQVAE, RVQConfig
     except ImportError:
         tokenizer = None
     else:

@@ -24,7 +24,7 @@ from collections import defaultdict
 import torch
 
 from segmo.data import MotionWindowDataset
-from segmo.models.rvq import RVQVAE
+from segmo.models.tokenizer import RVQVAE
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import get_skeleton
 

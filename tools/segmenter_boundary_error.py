@@ -23,7 +23,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from segmo.segmentation import boundaries, get_segmenter
+from segmo.data.layout import (
+    has_ground_truth,
+    read_ground_truth,
+    read_motion,
+    read_split,
+    stats_files,
+)
+from segmo.segmentation import boundaries, get_motion_segmenter
 
 UNIT = 4  # frames per token
 METHODS = ("uniform", "cpd", "kmeans")
@@ -67,10 +74,8 @@ def caption_cases(record: dict) -> list[tuple[int, int, list[int]]]:
 
 
 def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | None) -> dict:
-    ids = (data / f"{split}.txt").read_text().split()
-    if max_motions is not None:
-        ids = ids[:max_motions]
-    mean, std = np.load(data / "Mean.npy"), np.load(data / "Std.npy")
+    ids = read_split(data, split)[:max_motions]
+    mean, std = (np.load(path) for path in stats_files(data))  # any feature width
     encode = load_encoder(tokenizer) if tokenizer else None
     errors: dict[str, list[int]] = {m: [] for m in METHODS}
     seconds = dict.fromkeys(METHODS, 0.0)
@@ -78,10 +83,10 @@ def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | No
     cache: dict[tuple, list] = {}
     skipped = captions = 0
     for method in METHODS:  # keep one-off imports out of the timings
-        get_segmenter(method)(np.random.default_rng(0).normal(size=(12, 3)), 3)
+        get_motion_segmenter(method)(np.random.default_rng(0).normal(size=(12, 3)), 3)
     for motion_id in ids:
-        record = json.loads((data / "segments" / f"{motion_id}.json").read_text())
-        raw = np.load(data / "new_joint_vecs" / f"{motion_id}.npy")
+        record = read_ground_truth(data, motion_id)
+        raw = read_motion(data, motion_id)
         for start, end, truth in caption_cases(record):
             window = raw[start:end]
             tokens = encode(window) if encode else pool_tokens((window - mean) / std)
@@ -95,7 +100,7 @@ def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | No
                 key = (method, motion_id, start, end, a)
                 if key not in cache:
                     began = time.perf_counter()
-                    cache[key] = get_segmenter(method)(tokens, a, seed=0)
+                    cache[key] = get_motion_segmenter(method)(tokens, a, seed=0)
                     seconds[method] += time.perf_counter() - began
                     calls[method] += 1
                 spans = cache[key]
@@ -136,7 +141,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--max-motions", type=int, default=None)
     parser.add_argument("--tokenizer", default=None, help="exported tokenizer directory")
     args = parser.parse_args(argv)
-    if not (args.data / "segments").is_dir():
+    if not has_ground_truth(args.data):
         parser.error(
             f"--data {args.data}: no segments/ folder (ground truth of the built-in corpus)"
         )

@@ -1,16 +1,13 @@
-"""Datasets in the HumanML3D layout: reader, collate and the Lightning DataModule."""
+"""Datasets in the HumanML3D layout: the folder reader (`layout`), datasets, collate and the
+Lightning DataModule."""
 
 from typing import Any
 
 from segmo.data.collate import collate
-from segmo.data.humanml3d import (
-    Caption,
-    MotionDataset,
-    load_stats,
-    parse_text_line,
-    read_split,
-)
+from segmo.data.humanml3d import MotionDataset
+from segmo.data.layout import load_stats, read_split
 from segmo.data.windows import MotionWindowDataset
+from segmo.text.captions import Caption, parse_text_line
 
 __all__ = [
     "Caption",

@@ -1,4 +1,4 @@
-"""Batching of `MotionDataset` / `MotionWindowDataset` samples."""
+"""Batching of `MotionDataset` / `MotionWindowDataset` / `ActionFrameDataset` samples."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import torch
 
 # Per-sample values that are passed through as plain lists (strings, ragged structures).
 LIST_KEYS = ("caption", "segments", "id", "caption_index", "spans")
+IGNORE = -100  # a frame label that counts for nothing (`F.cross_entropy`'s ignore_index)
 
 
 def _pad(seqs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -28,7 +29,8 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     (True = valid frame), ``lengths`` (b,) long; lists for ``caption``, ``segments``, ``id``,
     ``caption_index``, ``spans`` (whichever the samples have); and when text features are
     present ``sentence`` (b, dim), ``segment_features`` (b, A, dim), ``segment_mask``
-    (b, A) bool, ``tokens`` (b, l, dim) zero-padded with ``token_mask`` (b, l) bool.
+    (b, A) bool, ``tokens`` (b, l, dim) zero-padded with ``token_mask`` (b, l) bool; frame
+    ``labels`` (b, t) long padded with `IGNORE`.
     """
     if not samples:
         raise ValueError("collate: empty list of samples")
@@ -48,6 +50,10 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     for key in ("sentence", "segment_features", "segment_mask"):
         if key in keys:
             batch[key] = torch.stack([s[key] for s in samples])
+    if "labels" in keys:
+        batch["labels"] = torch.full(mask.shape, IGNORE, dtype=torch.long)
+        for i, s in enumerate(samples):
+            batch["labels"][i, : len(s["labels"])] = s["labels"]
     if "tokens" in keys:
         batch["tokens"], batch["token_mask"] = _pad([s["tokens"] for s in samples])
     return batch

@@ -14,13 +14,16 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
+from segmo.data.actions import ActionFrameDataset, action_classes
 from segmo.data.checks import MAX_ABS_Z, missing_texts
 from segmo.data.collate import collate
-from segmo.data.humanml3d import MotionDataset, load_stats
+from segmo.data.humanml3d import MotionDataset
+from segmo.data.layout import load_stats, split_file
 from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.text.cache import TextFeatureCache
 
 
 class MotionDataModule(LightningDataModule):
@@ -34,7 +37,8 @@ class MotionDataModule(LightningDataModule):
     drawn from ``(seed, e)`` and its crops from ``(seed, e, index)``; the loader's position
     is saved in checkpoints (`segmo.data.sampling`), so a resumed run continues with the
     batches an uninterrupted one would have seen. Under DDP each rank takes its share of
-    that order. The last incomplete batch is dropped only when a rank's share of the train
+    that order. With ``frame_labels`` (the action classifier; built-in corpus only) every
+    split is an `ActionFrameDataset`: whole clips with one action label per frame. The last incomplete batch is dropped only when a rank's share of the train
     set holds more than one batch. ``max_abs_z`` bounds the feature values
     (`segmo.data.checks`; None checks for NaN/inf only).
 
@@ -61,11 +65,14 @@ class MotionDataModule(LightningDataModule):
         preload: bool = True,
         strict: bool = False,
         max_abs_z: float | None = MAX_ABS_Z,
+        frame_labels: bool = False,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         if batch_size <= 0:
             raise SegmoError(f"data.init_args.batch_size={batch_size} must be positive")
+        if frame_labels and window is not None:
+            raise SegmoError("data.init_args: frame_labels gives whole clips; it takes no window")
         self.root = Path(root)
         if not self.root.is_dir():
             raise SegmoError(f"data.init_args.root={root!r}: no such dataset folder")
@@ -82,6 +89,7 @@ class MotionDataModule(LightningDataModule):
         self.preload = preload
         self.strict = strict
         self.max_abs_z = max_abs_z
+        self.frame_labels = frame_labels
         self.datasets: dict[str, Dataset] = {}
 
     @property
@@ -103,12 +111,15 @@ class MotionDataModule(LightningDataModule):
         return torch.tensor(self._stats[1])
 
     @cached_property
+    def classes(self) -> list[str]:
+        """The action classes of ``frame_labels`` (those of the train split's ground truth)."""
+        return action_classes(self.root)
+
+    @cached_property
     def text_cache(self) -> Any:
         """The text-feature cache shared by all splits, or None."""
         if self.text_features is None:
             return None
-        from segmo.text.cache import TextFeatureCache  # lazy: pulls in transformers
-
         return TextFeatureCache.open(self.root, self.text_features)
 
     def dataset(self, split: str) -> Dataset:
@@ -122,6 +133,11 @@ class MotionDataModule(LightningDataModule):
     def _build(self, split: str) -> Dataset:
         train = split == "train"
         mean, std = self._stats
+        if self.frame_labels:
+            return ActionFrameDataset(self.root, split, self.skeleton, classes=self.classes,
+                                      mean=mean, std=std, max_motions=self.max_motions,
+                                      preload=self.preload, strict=self.strict,
+                                      max_abs_z=self.max_abs_z)
         common = dict(skeleton=self.skeleton, mean=mean, std=std, unit_length=self.unit_length,
                       random_crop=train, seed=self.seed, max_motions=self.max_motions,
                       preload=self.preload, strict=self.strict, max_abs_z=self.max_abs_z)
@@ -153,7 +169,7 @@ class MotionDataModule(LightningDataModule):
     def _loader(self, split: str, train: bool = False) -> DataLoader:
         ds = self.dataset(split)
         if len(ds) == 0:
-            raise SegmoError(f"{self.root / (split + '.txt')}: no usable samples "
+            raise SegmoError(f"{split_file(self.root, split)}: no usable samples "
                              f"(summary: {getattr(ds, 'summary', {})})")
         common = dict(batch_size=self.batch_size, num_workers=self.num_workers,
                       persistent_workers=self.num_workers > 0, collate_fn=collate,

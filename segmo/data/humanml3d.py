@@ -1,7 +1,9 @@
-"""Reader and datasets for the HumanML3D / KIT-ML folder layout (spec §2, docs/design.md).
+"""Datasets of the HumanML3D / KIT-ML folder layout (spec §2, docs/design.md).
 
-The folder layout is the same for every dataset; what differs (feature width, fps, length
-limits) comes from a `SkeletonSpec`. Two datasets are built on one reader:
+The folder layout is the same for every dataset (its files are read through
+`segmo.data.layout`, caption lines through `segmo.text.captions`); what differs (feature
+width, fps, length limits) comes from a `SkeletonSpec`. Two datasets are built on the
+motion store and load report of this module:
 
 * `MotionDataset` (here): one sample per caption line (time-tagged captions are their
   own sub-clip samples), with text segments, ground-truth spans and cached text features.
@@ -36,9 +38,7 @@ process or DataLoader worker that reads it.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import warnings
 from collections import Counter
 from dataclasses import dataclass
@@ -50,10 +50,12 @@ import torch
 from torch.utils.data import Dataset
 
 from segmo.data.checks import MAX_ABS_Z, refuse_values, value_problem
+from segmo.data.layout import caption_spans, motion_file, read_split, resolve_stats, split_file
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
-from segmo.text.captions import caption_of, has_words, read_caption_lines
+from segmo.text.cache import TextFeatureCache
+from segmo.text.captions import CaptionLine, parse_text_line, read_caption_lines, texts_file
 from segmo.text.manifest import load_manifest
 
 log = logging.getLogger(__name__)
@@ -65,93 +67,6 @@ WARNED_KINDS = ("missing", "empty", "unreadable", "missing_text", "bad_line",
 
 
 # ----------------------------------------------------------------------------- reading
-
-
-def read_split(root: str | Path, split: str) -> list[str]:
-    """Ids of ``ROOT/<split>.txt``, one per non-blank line, in file order."""
-    path = Path(root) / f"{split}.txt"
-    if not path.is_file():
-        raise FileNotFoundError(f"split file not found: {path}")
-    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
-    if not ids:
-        raise SegmoError(f"split file lists no ids: {path}")
-    return ids
-
-
-def load_stats(root: str | Path, skeleton: str | SkeletonSpec = "t2m") -> tuple[np.ndarray, np.ndarray]:
-    """``ROOT/Mean.npy`` and ``ROOT/Std.npy`` as read-only float32 copies, each (d,)."""
-    paths = [Path(root) / "Mean.npy", Path(root) / "Std.npy"]
-    for path in paths:
-        if not path.is_file():
-            raise FileNotFoundError(f"normalisation statistics not found: {path}")
-    arrays = []
-    for path in paths:
-        try:
-            arrays.append(np.load(path))
-        except (OSError, ValueError, EOFError) as error:
-            raise SegmoError(f"{path}: not a readable .npy array ({error})") from None
-    return check_stats(*arrays, skeleton, *map(str, paths))
-
-
-def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_name: str = "mean",
-                std_name: str = "std") -> tuple[np.ndarray, np.ndarray]:
-    """Validated read-only float32 copies (d,) of mean and std (the inputs are never aliased)."""
-    spec = get_skeleton(skeleton)
-    out = []
-    for name, arr in ((mean_name, mean), (std_name, std)):
-        arr = np.array(arr, dtype=np.float32)  # always a copy
-        if arr.shape != (spec.feature_dim,):
-            raise SegmoError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
-                             f"for skeleton {spec.name!r}")
-        if not np.isfinite(arr).all():
-            raise SegmoError(f"{name}: contains NaN or inf")
-        arr.setflags(write=False)
-        out.append(arr)
-    if (out[1] <= 0).any():
-        raise SegmoError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
-    return out[0], out[1]
-
-
-@dataclass(frozen=True)
-class Caption:
-    """One parsed line of ``texts/<id>.txt``; ``start``/``end`` in seconds, both 0 = whole clip."""
-
-    text: str
-    start: float
-    end: float
-    line: int  # 1-based line number in the file, for messages
-
-    @property
-    def whole_clip(self) -> bool:
-        return self.start == 0.0 and self.end == 0.0
-
-
-def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> Caption:
-    """Parse ``caption#word/POS ...#from#to``; NaN tags count as 0 (HumanML3D convention)."""
-    parts = line.strip().split("#")
-    where = f"{path}:{lineno}"
-    if len(parts) != 4:
-        raise SegmoError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
-                         f"'#'-separated fields: {line.strip()[:80]!r}")
-    caption = parts[0].strip()
-    if not has_words(caption):  # "", ".", "!!!": segment-texts reports these too
-        raise SegmoError(f"{where}: caption without words: {caption!r}")
-    try:
-        start, end = float(parts[2]), float(parts[3])
-    except ValueError:
-        raise SegmoError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
-    start = 0.0 if math.isnan(start) else start
-    end = 0.0 if math.isnan(end) else end
-    if not (start == 0.0 and end == 0.0) and not (0.0 <= start < end):
-        raise SegmoError(f"{where}: bad time tags from={start} to={end}")
-    return Caption(caption, start, end, lineno)
-
-
-def _lines(path: Path) -> list[tuple[int, str]]:
-    """Non-blank lines with their 1-based numbers; line i of a caption file ↔ index i here.
-
-    The one definition segment-texts uses too (`segmo.text.captions.read_caption_lines`)."""
-    return [(c.lineno, c.text) for c in read_caption_lines(path)]
 
 
 def read_npy_shape(path: Path) -> tuple[int, ...]:
@@ -205,7 +120,7 @@ class MotionStore:
     def __init__(self, root: Path, ids: list[str], spec: SkeletonSpec, report: LoadReport,
                  preload: bool = True, *, mean: np.ndarray, std: np.ndarray,
                  max_abs_z: float | None = MAX_ABS_Z, where: str = "") -> None:
-        self.folder = root / "new_joint_vecs"
+        self.root = root
         self.preload = preload
         self.spec = spec
         self.mean, self.std, self.max_abs_z = mean, std, max_abs_z
@@ -217,7 +132,7 @@ class MotionStore:
         refuse_values(where or str(root), bad, len(ids), max_abs_z)
 
     def _add(self, mid: str, report: LoadReport, bad: list[tuple[Path, str]]) -> None:
-        path = self.folder / f"{mid}.npy"
+        path = motion_file(self.root, mid)
         if not path.is_file():
             report.skip("missing", f"{path}: motion file not found")
             return
@@ -257,7 +172,7 @@ class MotionStore:
         """(t, d) float32 raw features."""
         if self.preload:
             return self.arrays[mid]
-        path = self.folder / f"{mid}.npy"
+        path = motion_file(self.root, mid)
         arr = np.load(path).astype(np.float32, copy=False)
         self._check_shape(path, arr.shape)
         problem = value_problem(arr, self.mean, self.std, self.max_abs_z)
@@ -347,7 +262,7 @@ class MotionDataset(Dataset):
         report = LoadReport(strict)
         self.motions = MotionStore(self.root, ids, self.skeleton, report, preload, mean=self.mean,
                                    std=self.std, max_abs_z=max_abs_z,
-                                   where=str(self.root / f"{split}.txt"))
+                                   where=str(split_file(self.root, split)))
         self.entries: list[_Entry] = []
         for mid in ids:
             if mid in self.motions:
@@ -357,27 +272,25 @@ class MotionDataset(Dataset):
         self.problems = report.problems
 
         if text_cache is None and text_features is not None:
-            from segmo.text.cache import TextFeatureCache  # lazy: the cache pulls in transformers
-
             text_cache = TextFeatureCache.open(self.root, text_features)
         self.text_cache = text_cache
 
     def _read_motion(self, mid: str, seg_dir: Path | None, report: LoadReport) -> list[_Entry]:
         spec = self.skeleton
-        text_path = self.root / "texts" / f"{mid}.txt"
+        text_path = texts_file(self.root, mid)
         if not text_path.is_file():
             report.skip("missing_text", f"{text_path}: text file not found")
             return []
-        lines = _lines(text_path)
+        lines = read_caption_lines(text_path)
         segments = self._read_segments(seg_dir, mid, text_path, lines, report)
         if segments is None:
             return []
-        spans = self._read_spans(mid, text_path, len(lines))
+        spans = caption_spans(self.root, mid, len(lines))
         t_full = self.motions.lengths[mid]
         out, parsed = [], 0
-        for index, (lineno, line) in enumerate(lines):
+        for index, line in enumerate(lines):
             try:
-                cap = parse_text_line(line, text_path, lineno)
+                cap = parse_text_line(line.text, text_path, line.lineno)
             except ValueError as err:
                 report.skip("bad_line", str(err))
                 continue
@@ -402,7 +315,7 @@ class MotionDataset(Dataset):
         return out
 
     def _read_segments(self, seg_dir: Path | None, mid: str, text_path: Path,
-                       lines: list[tuple[int, str]], report: LoadReport
+                       lines: list[CaptionLine], report: LoadReport
                        ) -> list[tuple[str, ...]] | None:
         """Per caption line, its text segments; [] when no segment folder was asked for.
 
@@ -415,42 +328,24 @@ class MotionDataset(Dataset):
         if not path.is_file():
             report.skip("missing_segments", f"{path}: text-segment file not found")
             return None
-        stale = load_manifest(seg_dir).stale_reason(mid, [caption_of(line) for _, line in lines])
+        stale = load_manifest(seg_dir).stale_reason(mid, [line.caption for line in lines])
         if stale is not None:
             raise SegmoError(f"{path} is stale: {stale} ({text_path}); re-run `segmo segment-texts "
                              f"--data {self.root}` with the backend that made {seg_dir.name}/")
-        seg_lines = _lines(path)
+        seg_lines = read_caption_lines(path)
         if len(seg_lines) != len(lines):
             raise SegmoError(f"{path} has {len(seg_lines)} lines but {text_path} has "
                              f"{len(lines)}; line i of one must match line i of the other")
         out = []
-        for lineno, line in seg_lines:
-            segs = tuple(s.strip() for s in line.split("#") if s.strip())
+        for line in seg_lines:
+            segs = tuple(s.strip() for s in line.text.split("#") if s.strip())
             if not segs:
-                raise SegmoError(f"{path}:{lineno}: no text segment on the line")
+                raise SegmoError(f"{path}:{line.lineno}: no text segment on the line")
             if len(segs) > self.max_segments:
-                raise SegmoError(f"{path}:{lineno}: {len(segs)} text segments, more than "
+                raise SegmoError(f"{path}:{line.lineno}: {len(segs)} text segments, more than "
                                  f"max_segments={self.max_segments}")
             out.append(segs)
         return out
-
-    def _read_spans(self, mid: str, text_path: Path, num_lines: int
-                    ) -> list[tuple[tuple[int, int], ...]] | None:
-        path = self.root / "segments" / f"{mid}.json"
-        if not path.is_file():
-            return None
-        try:
-            captions = json.loads(path.read_text())["captions"]
-            spans = [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
-        except json.JSONDecodeError as error:
-            raise SegmoError(f"{path}:{error.lineno}: not valid JSON: {error.msg}") from None
-        except (KeyError, TypeError, ValueError) as error:
-            raise SegmoError(f"{path}: not a ground-truth file (captions[i].segments[j].start/end "
-                             f"expected; {type(error).__name__}: {error})") from None
-        if len(captions) != num_lines:
-            raise SegmoError(f"{path} has {len(captions)} captions but {text_path} has "
-                             f"{num_lines} lines")
-        return spans
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -487,11 +382,3 @@ class MotionDataset(Dataset):
         return {"sentence": cache.sentence([e.caption])[0].float(), "segment_features": features,
                 "segment_mask": mask, "tokens": cache.tokens(e.caption).float()}
 
-
-def resolve_stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The given statistics (validated copies), or those of ``root`` when both are None."""
-    if mean is None and std is None:
-        return load_stats(root, spec)
-    if mean is None or std is None:
-        raise SegmoError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
-    return check_stats(mean, std, spec)

@@ -14,13 +14,8 @@ import torch
 from torch.utils.data import Dataset
 
 from segmo.data.checks import MAX_ABS_Z
-from segmo.data.humanml3d import (
-    LoadReport,
-    MotionStore,
-    crop_offset,
-    read_split,
-    resolve_stats,
-)
+from segmo.data.humanml3d import LoadReport, MotionStore, crop_offset
+from segmo.data.layout import read_split, resolve_stats, split_file
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
@@ -67,7 +62,7 @@ class MotionWindowDataset(Dataset):
         ids = read_split(self.root, split)[:max_motions]
         self.motions = MotionStore(self.root, ids, self.skeleton, report, preload, mean=self.mean,
                                    std=self.std, max_abs_z=max_abs_z,
-                                   where=str(self.root / f"{split}.txt"))
+                                   where=str(split_file(self.root, split)))
         self.ids: list[str] = []
         for mid in ids:
             if mid not in self.motions:

@@ -36,7 +36,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from segmo.data.layout import has_ground_truth, split_file
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.evaluation import report
 from segmo.evaluation.metrics import (
@@ -60,7 +62,9 @@ from segmo.evaluation.sections import (
     segmo_retrieval,
 )
 from segmo.generation.allocator import keep_freed_memory
-from segmo.models.pretrained import read_json
+from segmo.generation.generate import resolve_precision
+from segmo.models.pretrained import load_pretrained, read_json
+from segmo.pipeline import SegMo
 
 # ------------------------------------------------------------------------- generation
 
@@ -86,8 +90,6 @@ class Generator:
                                   generator=torch.Generator(device=device).manual_seed(int(seed)))
         self.motions += len(captions)
         if self.bar is None:
-            from tqdm import tqdm
-
             self.bar = tqdm(desc="generate", unit="motion", disable=not self.cfg.progress)
         self.bar.update(len(captions))
         self.seconds += time.perf_counter() - start
@@ -128,8 +130,6 @@ def _timed(cfg: EvaluateConfig, key: str, fn: Any, *args: Any) -> Any:
 def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     """Run every section that applies, write OUT/metrics.json, report.md and plots; return
     the metrics dict. `model`: an already built SegMo (else loaded from `cfg.model`)."""
-    from segmo.models.pretrained import load_pretrained
-
     out = Path(cfg.out)
     if cfg.model is None and model is None and not cfg.real_only:
         raise SegmoError("segmo evaluate: --model is required unless --real-only")
@@ -141,8 +141,6 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     if cfg.real_only:
         model = None
     elif model is None:
-        from segmo.pipeline import SegMo
-
         model = SegMo.from_pretrained(cfg.model, device=cfg.device)
     out.mkdir(parents=True, exist_ok=True)
     skeleton = model.skeleton.name if model is not None else (
@@ -154,7 +152,7 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     generate = Generator(model, cfg, ds.mean, ds.std, segments_of) if model is not None else None
     # A model trained without alignment (the "no align" ablation) has no shared space.
     aligned = model is not None and getattr(model.mask, "alignment", None) is not None
-    has_truth = (Path(cfg.data) / "segments").is_dir()
+    has_truth = has_ground_truth(cfg.data)
     skip = set(cfg.skip)
     metrics: dict[str, Any] = {"notes": {}}
     if model is not None:
@@ -310,9 +308,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--out {args.out}: exists and is not a directory")
     if args.batch_size < 2:
         parser.error(f"argument --batch-size: R-precision needs at least 2 rows, got {args.batch_size}")
-    split_file = Path(args.data) / f"{args.split}.txt"
-    if not split_file.is_file():
-        parser.error(f"--split {args.split}: {split_file} does not exist")
+    if not split_file(args.data, args.split).is_file():
+        parser.error(f"--split {args.split}: {split_file(args.data, args.split)} does not exist")
     if args.text_segments and not (Path(args.data) / "text_segments" / args.text_segments).is_dir():
         parser.error(f"--text-segments {args.text_segments}: no folder "
                      f"{Path(args.data) / 'text_segments' / args.text_segments}")
@@ -330,8 +327,6 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     keep_freed_memory()
     if args.precision == "auto":  # the report records what ran
-        from segmo.generation.generate import resolve_precision
-
         args.precision = resolve_precision("auto", torch.device(args.device))[0]
     cfg = EvaluateConfig(**{k: v for k, v in vars(args).items() if k not in ("compare", "skip", "threads")},
                          skip=skip)

@@ -27,6 +27,10 @@ import torch
 
 from segmo.errors import SegmoError
 
+# Defined with the evaluator, whose training logs them too; part of the §9 metrics here.
+from segmo.models.evaluator import euclidean_distance_matrix, r_precision  # noqa: F401, I001
+from segmo.text.vocabulary import CaptionTokens
+
 
 def _np(x: Any) -> np.ndarray:
     if isinstance(x, torch.Tensor):
@@ -36,37 +40,6 @@ def _np(x: Any) -> np.ndarray:
 
 def _rng(generator: np.random.Generator | None, seed: int | None) -> np.random.Generator:
     return generator if generator is not None else np.random.default_rng(seed)
-
-
-def euclidean_distance_matrix(a: Any, b: Any) -> np.ndarray:
-    """(n, d), (m, d) → (n, m) Euclidean distances."""
-    a, b = _np(a), _np(b)
-    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
-        raise ValueError(f"euclidean_distance_matrix: shapes {a.shape} and {b.shape} are not (n, d), (m, d)")
-    sq = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
-    return np.sqrt(np.maximum(sq, 0.0))
-
-
-def r_precision(text_emb: Any, motion_emb: Any, top_k: int = 3, batch_size: int = 32) -> np.ndarray:
-    """Top-1..top_k R-precision, (top_k,), of paired text/motion embeddings (n, d).
-
-    The rows are cut into consecutive batches of `batch_size` (an incomplete last batch is
-    dropped); in each, text i ranks the batch's motions by distance, and counts a hit at k
-    when its own motion is among the k nearest. Chance level at top-1 is 1/batch_size.
-    """
-    t, m = _np(text_emb), _np(motion_emb)
-    if t.shape != m.shape:
-        raise ValueError(f"r_precision: text {t.shape} and motion {m.shape} embeddings differ in shape")
-    n = (len(t) // batch_size) * batch_size
-    if n == 0:
-        raise SegmoError(f"r_precision: fewer than batch_size={batch_size} pairs ({len(t)})")
-    hits = np.zeros(top_k)
-    for s in range(0, n, batch_size):
-        d = euclidean_distance_matrix(t[s:s + batch_size], m[s:s + batch_size])
-        # Rank of the matched motion = how many motions are strictly nearer (ties favour it).
-        rank = (d < np.diag(d)[:, None]).sum(1)
-        hits += (rank[:, None] < np.arange(1, top_k + 1)[None, :]).sum(0)
-    return hits / n
 
 
 def matching_score(text_emb: Any, motion_emb: Any) -> float:
@@ -193,8 +166,6 @@ def t2m_embedders(evaluator: Any, dataset_root: Any, mean: Any, std: Any
     `caption_index`); motions are z-scored with the dataset's `mean`/`std` (d,), which
     `embed_motion` swaps for the evaluator's own statistics.
     """
-    from segmo.evaluation.words import CaptionTokens
-
     tokens = CaptionTokens(dataset_root)
     device = evaluator.mean.device
     mean, std = torch.as_tensor(mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32)

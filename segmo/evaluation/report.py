@@ -169,6 +169,8 @@ def compare_table(runs: Sequence[tuple[str, dict[str, Any]]]) -> str:
 # ------------------------------------------------------------------------------- plots
 
 def _pyplot():
+    # matplotlib on use (plots are the last step of `segmo evaluate`), its file backend
+    # chosen before pyplot is imported.
     import matplotlib
 
     matplotlib.use("Agg")  # files only; never needs a display

@@ -5,18 +5,33 @@ segment consistency (ISC), action order — and the options and data plumbing sh
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
 
+from segmo.data.collate import collate
+from segmo.data.humanml3d import MotionDataset
+from segmo.data.layout import ground_truth_file, read_ground_truth, split_file
 from segmo.errors import SegmoError
 from segmo.evaluation import report
+from segmo.evaluation.action_order import (
+    collapse,
+    evaluate_action_order,
+    normalised_edit_distance,
+    sequence_accuracy,
+)
+from segmo.evaluation.grounding import grounding_metrics
 from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
 from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
+from segmo.models.action_classifier import ActionClassifier
+from segmo.models.alignment import isc_from_cosines, paired_cosine
+from segmo.pipeline.grounding import pair_scores, plot_similarity_map
+from segmo.segmentation import uniform_spans
 
 SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
 SECTIONS: tuple[str, ...] = ("retrieval", "grounding", "isc", "action_order")
@@ -58,16 +73,11 @@ class EvaluateConfig:
 def load_batches(cfg: EvaluateConfig, skeleton: str) -> tuple[Any, list[dict]]:
     """The split as a MotionDataset (one sample per caption, whole clips cropped to
     multiples of 4 from the end) and its collated batches, in file order."""
-    from torch.utils.data import DataLoader
-
-    from segmo.data.collate import collate
-    from segmo.data.humanml3d import MotionDataset
-
     ds = MotionDataset(cfg.data, cfg.split, skeleton, text_segments=cfg.text_segments,
                        max_motions=cfg.max_motions)
     ds.mean, ds.std = np.array(ds.mean, dtype=np.float32), np.array(ds.std, dtype=np.float32)
     if len(ds) == 0:
-        raise SegmoError(f"{Path(cfg.data) / (cfg.split + '.txt')}: no usable samples ({ds.summary})")
+        raise SegmoError(f"{split_file(cfg.data, cfg.split)}: no usable samples ({ds.summary})")
     return ds, list(DataLoader(ds, batch_size=64, collate_fn=collate))
 
 
@@ -125,10 +135,6 @@ def _pair_scores(model: Any, captions: list[str], segments: list[list[str]], mot
                  pairs: list[tuple[int, int]], batch_size: int, progress: bool = False) -> np.ndarray:
     """Mean paired-segment cosine (uniform spans) of each (text i, motion j) pair, (len(pairs),).
     SegMo's motion features depend on the text prefix, so every pair is its own forward pass."""
-    from tqdm import tqdm
-
-    from segmo.pipeline.grounding import pair_scores
-
     out = []
     for s in tqdm(range(0, len(pairs), batch_size), desc="pairs", leave=False, disable=not progress):
         chunk = pairs[s:s + batch_size]
@@ -183,10 +189,9 @@ def known_segments(captions: list[str], segments_of: dict[str, list[str]] | None
 
 def ground_truth(cfg: EvaluateConfig, mid: str, caption_index: int, t: int) -> list[dict] | None:
     """Ground-truth segments of one caption clipped to the motion's first t frames."""
-    path = Path(cfg.data) / "segments" / f"{mid}.json"
-    if not path.is_file():
+    if not ground_truth_file(cfg.data, mid).is_file():
         return None
-    segs = json.loads(path.read_text())["captions"][caption_index]["segments"]
+    segs = read_ground_truth(cfg.data, mid)["captions"][caption_index]["segments"]
     return [dict(s, start=min(int(s["start"]), t), end=min(int(s["end"]), t)) for s in segs]
 
 
@@ -202,12 +207,6 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
                       ) -> dict[str, float] | None:
     """Ground the true segments of every caption with ≥ 2 of them; R@1 at IoU and mIoU of the
     best window vs the true span, and the same for the text-free uniform split (baseline)."""
-    from tqdm import tqdm
-
-    from segmo.evaluation.grounding import grounding_metrics
-    from segmo.pipeline.grounding import plot_similarity_map
-    from segmo.segmentation import uniform_spans
-
     pred, gold, uniform, plotted = [], [], [], 0
     for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
         t = int(b["lengths"][r])
@@ -239,8 +238,6 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
 
 def isc_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict],
                 segments_of: dict[str, list[str]] | None) -> dict[str, dict[str, float]]:
-    from segmo.models.alignment import isc_from_cosines, paired_cosine
-
     rows = all_rows(batches)
     out = {}
     for name in SEGMENTERS:
@@ -260,10 +257,11 @@ def isc_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict],
 # ------------------------------------------------------------------------ action order
 
 def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
-    from segmo.evaluation.action_order import ActionClassifier
-
     if cfg.action_classifier == "train":
-        clf = ActionClassifier.fit(cfg.data, "train", epochs=10, seed=cfg.seed)
+        # Lightning takes seconds to import; only this option trains anything.
+        from segmo.tasks.action_classifier import train_action_classifier
+
+        clf = train_action_classifier(cfg.data, epochs=10, seed=cfg.seed)
         clf.save_pretrained(out / "action_classifier")
         return clf
     return ActionClassifier.from_pretrained(cfg.action_classifier)
@@ -271,13 +269,6 @@ def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
 
 def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict],
                          generate: Any) -> dict[str, dict[str, float]]:
-    from segmo.evaluation.action_order import (
-        collapse,
-        evaluate_action_order,
-        normalised_edit_distance,
-        sequence_accuracy,
-    )
-
     result = {"real": evaluate_action_order(clf, cfg.data, cfg.split, max_motions=cfg.max_motions)}
     if generate is None:
         return result

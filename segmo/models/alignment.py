@@ -30,9 +30,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from segmo.segmentation import SegmenterName
-
 AlignMethod = Literal["in_sample", "batch", "global", "token", "none"]
+# The names of `segmo.segmentation.SegmenterName`, written out: models/ imports nothing above
+# it (tests/test_architecture.py checks both agree). The field is saved with the model but
+# read by nobody; issue 14 item 4 moves it to the task that uses it.
+SegmenterName = Literal["uniform", "cpd", "kmeans"]
 
 
 @dataclass

@@ -140,9 +140,7 @@ def read_config(directory: str | os.PathLike) -> dict:
 def load_pretrained(directory: str | os.PathLike, map_location: str = "cpu") -> torch.nn.Module:
     """Load any model directory, dispatching on the `kind` recorded in its config."""
     kind = read_config(directory)["kind"]
-    if kind not in _REGISTRY:
-        # Model classes register themselves on import.
-        import segmo.models.registry  # noqa: F401
+    # Model classes register themselves on import; segmo/models/__init__.py imports them all.
     if kind not in _REGISTRY:
         raise SegmoError(f"{Path(directory) / CONFIG_FILE}: unknown model kind {kind!r}")
     return _REGISTRY[kind].from_pretrained(directory, map_location=map_location)

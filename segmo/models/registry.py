@@ -1,8 +1,8 @@
 """Imports every model module so that `load_pretrained` knows every kind."""
 
-import segmo.evaluation.action_order  # noqa: F401
-import segmo.evaluation.evaluator  # noqa: F401
+import segmo.models.action_classifier  # noqa: F401
+import segmo.models.evaluator  # noqa: F401
 import segmo.models.length_estimator  # noqa: F401
 import segmo.models.mask_transformer  # noqa: F401
 import segmo.models.residual_transformer  # noqa: F401
-import segmo.models.rvq  # noqa: F401
+import segmo.models.tokenizer  # noqa: F401

@@ -13,13 +13,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+import torch
+
 from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
+from segmo.generation.allocator import keep_freed_memory
+from segmo.pipeline.grounding import plot_similarity_map
 from segmo.pipeline.outputs import FORMATS
+from segmo.pipeline.segmo import SegMo
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):
-    from segmo.pipeline.segmo import SegMo
-
     if not Path(directory).is_dir():
         parser.error(f"--model {directory}: no such directory (a bundle made by `segmo bundle`)")
     try:
@@ -37,8 +41,6 @@ def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str) ->
 
 def load_array(parser: argparse.ArgumentParser, flag: str, value: str):
     """A .npy file as a numeric array, or one line naming the flag and the file."""
-    import numpy as np
-
     if Path(value).is_dir():
         parser.error(f"{flag} {value}: is a directory, not a .npy file")
     if not Path(value).is_file():
@@ -61,10 +63,6 @@ def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
 
 
 def generate_main(argv: list[str] | None = None) -> None:
-    import torch
-
-    from segmo.generation.allocator import keep_freed_memory
-
     parser = ArgumentParser(prog="segmo generate",
                                      description="generate motions from text with a SegMo bundle")
     parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
@@ -143,11 +141,10 @@ def ground_main(argv: list[str] | None = None) -> None:
                        segments=segments)
     print(out)
     if args.out:
+        # matplotlib on use, its file backend chosen before plotting imports pyplot.
         import matplotlib
 
         matplotlib.use("Agg")
-        from segmo.pipeline.grounding import plot_similarity_map
-
         ax = plot_similarity_map(out)
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         ax.figure.savefig(args.out, dpi=120, bbox_inches="tight")
@@ -169,8 +166,6 @@ def bundle_main(argv: list[str] | None = None) -> None:
                         help="default CFG scale of the residual tokens (default 5)")
     parser.add_argument("--out", required=True, help="bundle directory to write")
     args = parser.parse_args(argv)
-    from segmo.pipeline.segmo import SegMo
-
     _check_output_dir(parser, "--out", args.out)
     for flag in ("tokenizer", "mask", "residual", "length"):
         value = getattr(args, flag)

@@ -16,7 +16,6 @@ pairs are batched.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import SegmoError
 from segmo.evaluation.grounding import best_span, grounding_metrics, sliding_windows
 from segmo.generation.generate import UNIT_LENGTH
@@ -244,6 +244,7 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
     best window of each segment is outlined in red. `truth` (one (start, end) frame span
     per segment) underlines in white the windows lying inside the true span. Returns the
     matplotlib Axes."""
+    # matplotlib on use: grounding and retrieval themselves do not plot.
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
@@ -294,18 +295,10 @@ def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
     segments, and the same metrics for the uniform split (a text-free baseline).
     """
     root = Path(data_root)
-    ids_file = root / f"{split}.txt"
-    if not ids_file.is_file():
-        raise FileNotFoundError(f"{ids_file}: no such split file")
-    ids = [line.strip() for line in ids_file.read_text().splitlines() if line.strip()]
     pred, truth, uniform = [], [], []
-    for mid in ids[:max_motions]:
-        gt_path = root / "segments" / f"{mid}.json"
-        if not gt_path.is_file():
-            raise FileNotFoundError(f"{gt_path}: grounding_accuracy needs the built-in corpus's "
-                                    "ground-truth segments")
-        record = json.loads(gt_path.read_text())
-        features = np.load(root / "new_joint_vecs" / f"{mid}.npy")
+    for mid in read_split(root, split)[:max_motions]:
+        record = read_ground_truth(root, mid)
+        features = read_motion(root, mid)
         if len(features) > model.max_frames + UNIT_LENGTH - 1:
             continue
         n = len(features) // UNIT_LENGTH

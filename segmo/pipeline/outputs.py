@@ -15,7 +15,9 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.motion.bvh import joints_to_bvh
 from segmo.motion.skeleton import SkeletonSpec
+from segmo.render import save_animation
 
 FORMATS = ("npy", "gif", "bvh")
 
@@ -80,13 +82,9 @@ class GenerationOutput:
                     np.save(path, array)
                     written.append(path)
             if "gif" in formats:
-                from segmo.render import save_animation
-
                 written.append(save_animation(joints, f"{stem}.gif", skeleton=self.skeleton,
                                               title=text, fps=self.fps))
             if "bvh" in formats:
-                from segmo.motion.bvh import joints_to_bvh
-
                 written.append(joints_to_bvh(joints, f"{stem}.bvh", fps=self.fps,
                                              skeleton=self.skeleton))
         index = [{"file": f"{prefix}_{i:02d}", "text": t, "segments": s, "frames": int(n)}

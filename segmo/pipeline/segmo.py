@@ -48,11 +48,14 @@ from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.pretrained import load_pretrained, read_config, read_json
 from segmo.models.residual_transformer import ResidualTransformer
-from segmo.models.rvq import RVQVAE
+from segmo.models.tokenizer import RVQVAE
 from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.pipeline import grounding  # it imports this module for its types only
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
+from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
+from segmo.text.llm import get_text_segmenter
 
 BUNDLE_FILE = "segmo.json"
 BUNDLE_FORMAT = 1
@@ -301,10 +304,8 @@ class SegMo:
     @property
     def text_encoder(self):
         if self._text_encoder is None:
-            from segmo.text.encoders import get_text_encoder
-
             try:
-                self._text_encoder = get_text_encoder(self.text_encoder_name)
+                self._text_encoder = encoders.get_text_encoder(self.text_encoder_name)
             except (OSError, ValueError, ImportError) as error:
                 raise SegmoError(
                     f"SegMo: cannot build text encoder {self.text_encoder_name!r} named in the "
@@ -319,10 +320,8 @@ class SegMo:
     @property
     def text_segmenter(self):
         if self._text_segmenter is None:
-            from segmo.text.llm import get_segmenter
-
-            self._text_segmenter = get_segmenter(self.config.text_segmenter,
-                                                 max_segments=self.max_segments)
+            self._text_segmenter = get_text_segmenter(self.config.text_segmenter,
+                                                      max_segments=self.max_segments)
         return self._text_segmenter
 
     @text_segmenter.setter
@@ -539,34 +538,26 @@ class SegMo:
     def ground(self, text: str, motion: Any, window: int = 5, stride: int = 1,
                segments: list[str] | None = None) -> GroundingOutput:
         """Where each text segment of `text` happens in `motion` (raw features (t, d))."""
-        from segmo.pipeline.grounding import ground
-
-        return ground(self, text, motion, window=window, stride=stride, segments=segments)
+        return grounding.ground(self, text, motion, window=window, stride=stride, segments=segments)
 
     def embed_pairs(self, texts: list[str], motions: Any, spans: Any = None, *,
                     segments: list[list[str]] | None = None, lengths: Any = None,
                     normalized: bool = False
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Paired text/motion segments in the learned space; see `grounding.embed_pairs`."""
-        from segmo.pipeline.grounding import embed_pairs
-
-        return embed_pairs(self, texts, motions, spans, segments=segments, lengths=lengths,
+        return grounding.embed_pairs(self, texts, motions, spans, segments=segments, lengths=lengths,
                            normalized=normalized)
 
     def retrieve_texts(self, motion: Any, candidates: list[str],
                        span: tuple[int, int] | None = None, top_k: int = 5
                        ) -> list[tuple[str, float]]:
         """Motion (or its frame span) → the top_k candidate texts with their scores."""
-        from segmo.pipeline.grounding import retrieve_texts
-
-        return retrieve_texts(self, motion, candidates, span=span, top_k=top_k)
+        return grounding.retrieve_texts(self, motion, candidates, span=span, top_k=top_k)
 
     def retrieve_motions(self, text: str, motions: list, top_k: int = 5
                          ) -> list[tuple[int, float]]:
         """Text → the top_k motions (indices into `motions`) with their scores."""
-        from segmo.pipeline.grounding import retrieve_motions
-
-        return retrieve_motions(self, text, motions, top_k=top_k)
+        return grounding.retrieve_motions(self, text, motions, top_k=top_k)
 
 
 def edit_drift(original: Any, edited: Any, span: tuple[int, int]) -> dict[int, float]:

@@ -112,7 +112,7 @@ class CPDSegmenter:
     model: Literal["l2", "rbf"] = "rbf"
 
     def __call__(self, features, num_segments: int, n_valid: int | None = None, seed: int = 0):
-        import ruptures
+        import ruptures  # on use (0.6 s): uniform, the training default, needs none of it
 
         valid, num_segments = _check(features, num_segments, n_valid)
         n = valid.shape[0]
@@ -142,7 +142,7 @@ class KMeansSegmenter:
     n_init: int = 2
 
     def __call__(self, features, num_segments: int, n_valid: int | None = None, seed: int = 0):
-        from sklearn.cluster import KMeans
+        from sklearn.cluster import KMeans  # on use (1 s), as ruptures above
 
         valid, num_segments = _check(features, num_segments, n_valid)
         n = valid.shape[0]
@@ -185,11 +185,11 @@ _SEGMENTERS: dict[str, Segmenter] = {
 }
 
 
-def get_segmenter(name: SegmenterName) -> Segmenter:
+def get_motion_segmenter(name: SegmenterName) -> Segmenter:
     """The segmenter called `name`: `fn(features (n, d), num_segments, n_valid, seed)`."""
     if name not in _SEGMENTERS:
         raise ValueError(
-            f"get_segmenter: unknown segmenter {name!r}; one of {get_args(SegmenterName)}"
+            f"get_motion_segmenter: unknown segmenter {name!r}; one of {get_args(SegmenterName)}"
         )
     return _SEGMENTERS[name]
 
@@ -248,7 +248,7 @@ def segment_batch(
         raise ValueError(f"segment_batch: method {method!r} needs features (b, n, d)")
     if features.ndim != 3 or features.shape[0] != len(num_segments):
         raise ValueError(f"segment_batch: features must be (b, n, d), got {tuple(features.shape)}")
-    segmenter = get_segmenter(method)
+    segmenter = get_motion_segmenter(method)
     spans = torch.zeros(len(num_segments), slots, 2, dtype=torch.long)
     array = features.detach().float().cpu().numpy()
     for i, (a, n_valid) in enumerate(zip(num_segments.tolist(), lengths.tolist())):

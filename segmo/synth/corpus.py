@@ -5,7 +5,8 @@
 Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
 not depend on how many workers build them; the normalisation statistics are merged in
 index order for the same reason. The corpus is built in `OUT.tmp-<pid>` and renamed into
-place when complete, while `OUT/.segmo-writer.lock` keeps other writers out. A folder
+place when complete (so its files, written at the paths of `segmo.data.layout`, need no
+atomic writes of their own), while `OUT/.segmo-writer.lock` keeps other writers out. A folder
 that already holds this corpus (same version, seed and size) is left as it is; one that
 holds another corpus is rebuilt only when nothing else lives in it (text segments, text
 features, runs: what a rebuild would delete) or with `--overwrite`.
@@ -20,12 +21,28 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from segmo.data.layout import (
+    GROUND_TRUTH,
+    JOINTS,
+    MOTIONS,
+    STATISTICS,
+    ground_truth_file,
+    joints_file,
+    motion_file,
+    split_file,
+    stats_files,
+    texts_file,
+)
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.files import LOCK_FILE, FolderLock
+from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.synth.actions import ACTIONS
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions, pos_tag
 from segmo.synth.sequence import sample_motion
+from segmo.text.captions import TEXTS
 
 VERSION = 1
 SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
@@ -34,8 +51,8 @@ SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
 STD_FLOOR = 1e-4
 _SPLIT_STREAM = 7_411  # extra seed word so the split shuffle differs from motion 0's stream
 # What a corpus folder holds when `build_corpus` wrote it; anything else is the user's.
-CORPUS_ENTRIES = frozenset({"new_joint_vecs", "new_joints", "texts", "segments", "train.txt",
-                            "val.txt", "test.txt", "Mean.npy", "Std.npy", "corpus.json",
+FOLDERS = (MOTIONS, JOINTS, TEXTS, GROUND_TRUTH)
+CORPUS_ENTRIES = frozenset({*FOLDERS, *(f"{s}.txt" for s in SPLITS), *STATISTICS, "corpus.json",
                             LOCK_FILE})
 
 
@@ -56,8 +73,6 @@ def motion_id(index: int) -> str:
 
 def _build_one(job: tuple[str, int, int, str]) -> dict:
     """Generate and write motion `index`; returns its statistics for the parent."""
-    from segmo.motion.features import features_to_joints, joints_to_features
-
     root, seed, index, split = job
     root = Path(root)
     rng = np.random.default_rng([seed, index])
@@ -65,11 +80,11 @@ def _build_one(job: tuple[str, int, int, str]) -> dict:
     features = joints_to_features(motion.joints.astype(np.float32), "t2m").astype(np.float32)
     joints = features_to_joints(features, "t2m").astype(np.float32)
     mid = motion_id(index)
-    np.save(root / "new_joint_vecs" / f"{mid}.npy", features)
-    np.save(root / "new_joints" / f"{mid}.npy", joints)
+    np.save(motion_file(root, mid), features)
+    np.save(joints_file(root, mid), joints)
     captions = make_captions(motion.segments, rng, held_out=split != "train")
     lines = [f"{c.text}#{pos_tag(c.text)}#0.0#0.0" for c in captions]
-    (root / "texts" / f"{mid}.txt").write_text("\n".join(lines) + "\n")
+    texts_file(root, mid).write_text("\n".join(lines) + "\n")
     actions = [{"action": s.action, "params": s.params, "start": s.start, "end": s.end}
                | ({"with": {"action": s.overlay[0], "params": s.overlay[1]}} if s.overlay else {})
                for s in motion.segments]
@@ -79,7 +94,7 @@ def _build_one(job: tuple[str, int, int, str]) -> dict:
             {"text": text, "action": s.action, "start": s.start, "end": s.end}
             for text, s in zip(c.segments, motion.segments)]} for c in captions],
     }
-    (root / "segments" / f"{mid}.json").write_text(json.dumps(truth, indent=1) + "\n")
+    ground_truth_file(root, mid).write_text(json.dumps(truth, indent=1) + "\n")
     stats = {"split": split, "frames": len(features), "segments": len(motion.segments),
              "actions": [s.action for s in motion.segments]}
     if split == "train":
@@ -89,8 +104,6 @@ def _build_one(job: tuple[str, int, int, str]) -> dict:
 
 
 def _init_worker() -> None:
-    import torch
-
     torch.set_num_threads(1)
 
 
@@ -140,12 +153,10 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
 
 
 def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool) -> Path:
-    from tqdm import tqdm
-
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
-    for sub in ("new_joint_vecs", "new_joints", "texts", "segments"):
+    for sub in FOLDERS:
         (tmp / sub).mkdir(parents=True)
     splits = split_assignment(num_motions, seed)
     jobs = [(str(tmp), seed, i, splits[i]) for i in range(num_motions)]
@@ -156,8 +167,6 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool)
                 results = list(tqdm(pool.imap(_build_one, jobs, chunksize=4), total=num_motions,
                                     desc="synth", disable=not progress))
         else:
-            import torch
-
             # One motion is too small for intra-op threads; they only spin (and restore
             # the caller's setting afterwards).
             threads = torch.get_num_threads()
@@ -180,7 +189,7 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool)
 def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int, n: int) -> None:
     for name in SPLITS:
         ids = [motion_id(i) for i in range(n) if splits[i] == name]
-        (root / f"{name}.txt").write_text("".join(f"{i}\n" for i in ids))
+        split_file(root, name).write_text("".join(f"{i}\n" for i in ids))
     # Chan et al.'s pairwise merge of (count, mean, M2), in index order.
     count, mean, m2 = 0, None, None
     for r in results:
@@ -198,8 +207,9 @@ def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int
     if mean is None:  # a corpus too small to have a train motion
         raise SegmoError("build_corpus: the train split is empty; use more motions")
     std = np.maximum(np.sqrt(m2 / count), STD_FLOOR)
-    np.save(root / "Mean.npy", mean.astype(np.float32))
-    np.save(root / "Std.npy", std.astype(np.float32))
+    mean_file, std_file = stats_files(root)
+    np.save(mean_file, mean.astype(np.float32))
+    np.save(std_file, std.astype(np.float32))
     frames = np.array([r["frames"] for r in results])
     hist = np.bincount([r["segments"] for r in results], minlength=6)[1:]
     action_counts: dict[str, int] = {}

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from segmo.errors import SegmoError
 from segmo.models.pretrained import read_config
-from segmo.models.rvq import RVQVAE
+from segmo.models.tokenizer import RVQVAE
 
 UNIT_LENGTH = 4  # frames per token
 

@@ -7,10 +7,10 @@ Data: `MotionDataModule` caption samples of whole clips (z-scored with the datas
 statistics, which are copied into the model). The text side needs `word/POS` tokens; the
 batch carries `id` and `caption_index`, so they are read from line `caption_index` of
 `ROOT/texts/<motion id>.txt`; a caption that cannot be found there (or has no tokens) is
-tagged with `segmo.evaluation.words.tag_caption`.
+tagged with `segmo.text.vocabulary.tag_caption`.
 
 Vocabulary: the released GloVe files when `glove_dir` is given (vectors frozen), otherwise
-every word of the train split's captions with learned vectors (`words.Vocabulary`). It is
+every word of the train split's captions with learned vectors (`Vocabulary`). It is
 saved in checkpoints so that `load_from_checkpoint` rebuilds the network before loading.
 
 Loss (`loss`), both over Euclidean distances d(text i, motion j) of the batch, where
@@ -28,7 +28,6 @@ pre-trained as an auto-encoder and frozen.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -36,12 +35,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.data.layout import read_split, split_file
 from segmo.errors import SegmoError
-from segmo.evaluation.evaluator import EvaluatorConfig, T2MEvaluator
-from segmo.evaluation.metrics import euclidean_distance_matrix, r_precision
-from segmo.evaluation.words import CaptionTokens, Vocabulary
+from segmo.models.evaluator import (
+    EvaluatorConfig,
+    T2MEvaluator,
+    euclidean_distance_matrix,
+    r_precision,
+)
 from segmo.motion.skeleton import get_skeleton
 from segmo.tasks.base import Task
+from segmo.text.vocabulary import CaptionTokens, Vocabulary
 
 
 def margin_contrastive_loss(text: Tensor, motion: Tensor, negative: Tensor, margin: float) -> dict[str, Tensor]:
@@ -130,10 +134,11 @@ class EvaluatorTask(Task):
             with torch.no_grad():
                 self.model.word_embedding.weight.copy_(torch.from_numpy(vectors))
         else:
-            split = Path(datamodule.root) / "train.txt"
-            lists = [t for mid in split.read_text().split() for t in self.tokens.lines(mid)]
+            ids = read_split(datamodule.root, "train")
+            lists = [t for mid in ids for t in self.tokens.lines(mid)]
             if not lists:
-                raise SegmoError(f"{split}: no captions to build the vocabulary from")
+                raise SegmoError(f"{split_file(datamodule.root, 'train')}: no captions to build "
+                                 "the vocabulary from")
             self.model = self._build(Vocabulary.from_token_lists(lists, self.hparams.min_word_count).words)
         self.model.set_statistics(datamodule.mean, datamodule.std)
 

@@ -9,7 +9,7 @@ from segmo.text.encoders import TextEncoder, TextEncoding, get_text_encoder
 from segmo.text.llm import (
     OpenAISegmenter,
     TransformersSegmenter,
-    get_segmenter,
+    get_text_segmenter,
     load_prompt,
     parse_answer,
     validate_segments,
@@ -25,7 +25,7 @@ __all__ = [
     "TextFeatureCache",
     "TextSegmenter",
     "TransformersSegmenter",
-    "get_segmenter",
+    "get_text_segmenter",
     "get_text_encoder",
     "load_prompt",
     "parse_answer",

@@ -42,7 +42,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
+from segmo import __version__
 from segmo.errors import ArgumentParser, SegmoError, positive_int
 from segmo.files import FolderLock, atomic_open, remove_temporaries, write_atomic
 from segmo.text.captions import check_data_folder, has_words, read_caption_lines, read_text
@@ -234,9 +236,7 @@ def _write_json(path: Path, obj: dict) -> None:
 
 
 def _meta(encoder: TextEncoder) -> dict:
-    import transformers
-
-    from segmo import __version__
+    import transformers  # on use: reading a cache, and an injected encoder, need none of it
 
     return {"encoder": encoder.name, "kind": type(encoder).__name__, "dim": encoder.dim,
             "max_length": encoder.max_length, "model_path": encoder.model_path,
@@ -292,8 +292,6 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
                 _write_json(folder / META, meta)
             if not (folder / INDEX).is_file():  # an empty but valid cache from the start
                 _write_json(folder / INDEX, index)
-            from tqdm.auto import tqdm
-
             bar = tqdm(total=len(todo), desc=f"encode-texts [{name}]", unit="text",
                        disable=not progress)
             for first in range(0, len(todo), shard_size):

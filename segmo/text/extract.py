@@ -47,7 +47,6 @@ from typing import Any
 
 from tqdm import tqdm
 
-from segmo.data.humanml3d import parse_text_line
 from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
 from segmo.files import FolderLock, remove_temporaries, write_atomic
 from segmo.text.captions import (
@@ -56,10 +55,12 @@ from segmo.text.captions import (
     captions_hash,
     check_data_folder,
     has_words,
+    parse_text_line,
     read_caption_lines,
     read_text,
+    texts_file,
 )
-from segmo.text.llm import check_base_url, get_segmenter
+from segmo.text.llm import check_base_url, get_text_segmenter
 from segmo.text.manifest import SegmentManifest
 from segmo.text.rules import TextSegmenter
 
@@ -230,7 +231,7 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
                     mine = {k: i for k, (owner, i) in enumerate(asked) if owner is job}
                     _write(job, {i: results[k] for k, i in mine.items()},
                            {i: fell_back[k] for k, i in mine.items() if k in fell_back},
-                           data / "texts" / f"{job.motion_id}.txt", out_dir, manifest)
+                           texts_file(data, job.motion_id), out_dir, manifest)
                     bar.update(1)
         elapsed = time.perf_counter() - t0
         ids = [p.stem for p in files]
@@ -320,7 +321,7 @@ def main(argv: list[str] | None = None) -> None:
                              "max_retries") if getattr(args, f) is not None]
         if given:
             parser.error(f"--backend rule takes none of {['--' + g.replace('_', '-') for g in given]}")
-        segmenter = get_segmenter("rule")
+        segmenter = get_text_segmenter("rule")
     elif args.backend == "openai":
         if not args.model:
             parser.error("--backend openai needs --model")
@@ -332,14 +333,16 @@ def main(argv: list[str] | None = None) -> None:
         except SegmoError as err:
             parser.error(f"argument --base-url: {err}")
         extra = {"chat_template_kwargs": {"enable_thinking": False}} if args.no_think else None
-        segmenter = get_segmenter("openai", base_url=base_url, model=args.model,
-                                  api_key_env=args.api_key_env, concurrency=args.concurrency,
-                                  timeout=args.timeout, max_retries=args.max_retries, extra_body=extra)
+        segmenter = get_text_segmenter("openai", base_url=base_url, model=args.model,
+                                       api_key_env=args.api_key_env, concurrency=args.concurrency,
+                                       timeout=args.timeout, max_retries=args.max_retries,
+                                       extra_body=extra)
     else:
         if not args.model:
             parser.error("--backend transformers needs --model")
-        segmenter = get_segmenter("transformers", model_name_or_path=args.model, device=args.device,
-                                  batch_size=args.batch_size, max_retries=args.max_retries)
+        segmenter = get_text_segmenter("transformers", model_name_or_path=args.model,
+                                       device=args.device, batch_size=args.batch_size,
+                                       max_retries=args.max_retries)
     out_dir = args.data / "text_segments" / segmenter.name
     try:
         summary = segment_folder(args.data, segmenter, args.backend, overwrite=args.overwrite,

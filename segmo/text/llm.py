@@ -35,19 +35,24 @@ import threading
 import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from segmo.errors import SegmoError
 from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
 from segmo.text.validate import parse_answer, validate_segments
 
 __all__ = ["LLMSegmenter", "LLMUnavailableError", "OpenAISegmenter", "Prompt", "TransformersSegmenter",
-           "get_segmenter", "load_prompt", "parse_answer", "validate_segments"]
+           "get_text_segmenter", "load_prompt", "parse_answer", "validate_segments"]
 
 log = logging.getLogger(__name__)
 
-PROMPT_DIR = Path(__file__).resolve().parents[2] / "prompts"
+# The top-level prompts/ folder, shipped inside the package (pyproject.toml maps it to
+# segmo._prompts), so that an installed segmo finds it as well as a source checkout.
+PROMPT_DIR = files("segmo._prompts")
 UNREADABLE = "<unreadable response"  # how a backend hands a broken answer to the re-ask loop
 
 
@@ -80,7 +85,8 @@ class Prompt:
 
 
 def load_prompt(directory: str | Path | None = None) -> Prompt:
-    """Read ``segment_system.md`` and ``segment_examples.json`` from `directory` (default prompts/)."""
+    """Read ``segment_system.md`` and ``segment_examples.json`` from `directory` (default:
+    the prompts shipped with segmo, the repository's prompts/ folder)."""
     directory = Path(directory) if directory is not None else PROMPT_DIR
     system_path, examples_path = directory / "segment_system.md", directory / "segment_examples.json"
     for path in (system_path, examples_path):
@@ -255,7 +261,7 @@ class OpenAISegmenter(LLMSegmenter):
 
     def _request(self, messages: list[dict[str, str]]) -> str | Exception:
         """The answer text, or the error that remained once the client's retries were spent."""
-        import openai
+        import openai  # on use, as in __init__
 
         if self._failures_in_a_row >= self.max_failures_in_a_row:
             return RuntimeError("not asked: the server is down")
@@ -327,8 +333,6 @@ class TransformersSegmenter(LLMSegmenter):
         self.name = f"transformers-{_slug(str(model_name_or_path))}"
 
     def _complete_many(self, conversations: list[list[dict[str, str]]]) -> list[str | Exception]:
-        import torch
-
         answers: list[str | Exception] = []
         for start in range(0, len(conversations), self.batch_size):
             chunk = conversations[start : start + self.batch_size]
@@ -347,7 +351,7 @@ class TransformersSegmenter(LLMSegmenter):
         return answers
 
 
-def get_segmenter(backend: str, **options: Any) -> TextSegmenter:
+def get_text_segmenter(backend: str, **options: Any) -> TextSegmenter:
     """Build a segmenter by backend name: "rule", "openai" or "transformers".
 
     Options are the backend's constructor arguments; None values are dropped so that
@@ -357,10 +361,10 @@ def get_segmenter(backend: str, **options: Any) -> TextSegmenter:
     if backend == "rule":
         extra = set(options) - {"max_segments"}
         if extra:
-            raise SegmoError(f"get_segmenter: the rule backend takes no option(s) {sorted(extra)}")
+            raise SegmoError(f"get_text_segmenter: the rule backend takes no option(s) {sorted(extra)}")
         return RuleSegmenter(**options)
     if backend == "openai":
         return OpenAISegmenter(**options)
     if backend == "transformers":
         return TransformersSegmenter(**options)
-    raise SegmoError(f"get_segmenter: unknown backend {backend!r} (choose rule, openai, transformers)")
+    raise SegmoError(f"get_text_segmenter: unknown backend {backend!r} (choose rule, openai, transformers)")

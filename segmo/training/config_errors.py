@@ -22,6 +22,7 @@ import re
 from pathlib import Path
 
 import yaml
+from lightning.pytorch import Trainer
 
 from segmo.errors import SegmoError
 
@@ -134,8 +135,6 @@ def _problem(message: str, subcommand: str) -> tuple[str | None, str, str | None
         key = m.group(2)
         head, _, rest = key.partition(".")
         if head == "trainer" and rest:
-            from lightning.pytorch import Trainer
-
             hint = _suggest(rest, list(inspect.signature(Trainer).parameters))
             return key, f"the Trainer has no argument {rest!r}{hint}", None
         return key, f"segmo {subcommand} has no key {head!r}{_suggest(head, list(TOP_LEVEL))}", None

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.text.captions import read_caption_lines, texts_file
 
 # The 15 POS categories of the released evaluator, in its one-hot order.
 POS_CATEGORIES: tuple[str, ...] = (
@@ -110,19 +111,17 @@ def tag_caption(caption: str) -> list[tuple[str, str]]:
 
 
 def read_text_tokens(path: str | Path) -> list[list[tuple[str, str]]]:
-    """Tagged tokens of each non-blank line of a `texts/<id>.txt` file, in line order.
+    """Tagged tokens of each caption line (`segmo.text.captions.read_caption_lines`) of a
+    `texts/<id>.txt` file, in line order.
 
     A line whose token field is empty is tagged from its caption with `tag_caption`.
     """
     out = []
-    for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        parts = line.split("#")
+    for line in read_caption_lines(path):
+        parts = line.text.split("#")
         if len(parts) < 2:
-            raise SegmoError(f"{path}:{lineno}: expected 'caption#word/POS ...#from#to'")
-        tokens = parse_tokens(parts[1])
-        out.append(tokens or tag_caption(parts[0]))
+            raise SegmoError(f"{path}:{line.lineno}: expected 'caption#word/POS ...#from#to'")
+        out.append(parse_tokens(parts[1]) or tag_caption(parts[0]))
     return out
 
 
@@ -222,7 +221,7 @@ class CaptionTokens:
     def lines(self, motion_id: str) -> list[list[tuple[str, str]]]:
         """Tokens of every caption line of one motion ([] without a text file)."""
         if motion_id not in self._files:
-            path = self.root / "texts" / f"{motion_id}.txt" if self.root is not None else None
+            path = texts_file(self.root, motion_id) if self.root is not None else None
             self._files[motion_id] = read_text_tokens(path) if path is not None and path.is_file() else []
         return self._files[motion_id]
 

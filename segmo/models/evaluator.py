@@ -18,6 +18,9 @@ generator could game). The vocabulary is kept in `meta["words"]`.
 The evaluator has its own normalisation statistics (buffers `mean`, `std`);
 `embed_motion` de-normalises with the caller's statistics and re-normalises with these.
 
+`euclidean_distance_matrix` and `r_precision` read the embedding space: the evaluator's
+own accuracy, which its training logs, and spec §9's R-precision.
+
 Example::
 
     ev = T2MEvaluator.from_pretrained("models/evaluator")
@@ -31,7 +34,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -39,8 +42,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils.rnn import pack_padded_sequence
 
-from segmo.evaluation.words import POS_CATEGORIES, Vocabulary, tag_caption
+from segmo.errors import SegmoError
 from segmo.models.pretrained import Pretrained
+from segmo.text.vocabulary import POS_CATEGORIES, Vocabulary, tag_caption
 
 
 @dataclass
@@ -123,6 +127,49 @@ class MotionEncoderBiGRUCo(nn.Module):
 
     def forward(self, movements: Tensor, lengths: Tensor) -> Tensor:
         return self.output_net(_bigru_last(self.gru, self.hidden, self.input_emb(movements), lengths))
+
+
+# -- distances in the embedding space ---------------------------------------------------------
+# Used by the evaluator's training (`segmo.tasks.evaluator`) and by the generation metrics
+# (`segmo.evaluation.metrics`), which the tasks must not import.
+
+
+def _np(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def euclidean_distance_matrix(a: Any, b: Any) -> np.ndarray:
+    """(n, d), (m, d) → (n, m) Euclidean distances."""
+    a, b = _np(a), _np(b)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
+        raise ValueError(f"euclidean_distance_matrix: shapes {a.shape} and {b.shape} are not (n, d), (m, d)")
+    sq = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
+    return np.sqrt(np.maximum(sq, 0.0))
+
+
+def r_precision(text_emb: Any, motion_emb: Any, top_k: int = 3, batch_size: int = 32) -> np.ndarray:
+    """Top-1..top_k R-precision, (top_k,), of paired text/motion embeddings (n, d).
+
+    The rows are cut into consecutive batches of `batch_size` (an incomplete last batch is
+    dropped); in each, text i ranks the batch's motions by distance, and counts a hit at k
+    when its own motion is among the k nearest. Chance level at top-1 is 1/batch_size.
+    """
+    t, m = _np(text_emb), _np(motion_emb)
+    if t.shape != m.shape:
+        raise ValueError(f"r_precision: text {t.shape} and motion {m.shape} embeddings differ in shape")
+    n = (len(t) // batch_size) * batch_size
+    if n == 0:
+        raise SegmoError(f"r_precision: fewer than batch_size={batch_size} pairs ({len(t)})")
+    hits = np.zeros(top_k)
+    for s in range(0, n, batch_size):
+        d = euclidean_distance_matrix(t[s:s + batch_size], m[s:s + batch_size])
+        # Rank of the matched motion = how many motions are strictly nearer (ties favour it).
+        rank = (d < np.diag(d)[:, None]).sum(1)
+        hits += (rank[:, None] < np.arange(1, top_k + 1)[None, :]).sum(0)
+    return hits / n
+
 
 
 class T2MEvaluator(nn.Module, Pretrained):

@@ -1,7 +1,10 @@
-"""The motion tokenizer: a 1-D convolutional auto-encoder around a residual quantizer.
+"""The motion tokenizer (`RVQVAE`): a 1-D convolutional auto-encoder around a residual
+quantizer (`segmo.models.quantizer`).
 
 Features (b, t, d) -> encoder (4x temporal downsampling) -> residual quantizer ->
 decoder (4x nearest upsampling) -> features (b, t, d). Numbers follow MoMask (spec §3).
+Model directories record it as kind "rvq"; it is trained by `segmo.tasks.tokenizer`
+(`configs/rvq/`, run directories `runs/rvq/`) and a bundle keeps it in `tokenizer/`.
 
     >>> model = RVQVAE(RVQConfig(feature_dim=263, width=64, code_dim=32, codebook_size=16))
     >>> indices = model.encode(torch.randn(2, 64, 263))   # (2, 16, 6)

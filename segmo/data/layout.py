@@ -1,0 +1,180 @@
+"""The dataset folder (HumanML3D layout, docs/design.md "Dataset folder"): one reader.
+
+Everything above `segmo.data` that reads a dataset folder goes through these functions:
+the datasets, evaluation, pipeline grounding, the demo and the tools; the built-in corpus
+(`segmo.synth`) writes its files at the paths named here. The text side of the folder
+(``texts/``, ``text_segments/``, ``text_features/``) belongs to `segmo.text`, below this
+package: caption lines are read by `segmo.text.captions` (which this module reuses), text
+segments by `segmo.text.extract` and the dataset, text features by `segmo.text.cache`.
+
+    ROOT/<split>.txt              ids, one per line          read_split
+    ROOT/Mean.npy, ROOT/Std.npy   (d,) train statistics      load_stats
+    ROOT/new_joint_vecs/<id>.npy  (t, d) raw features        read_motion
+    ROOT/segments/<id>.json       ground truth (built-in)    read_ground_truth, read_actions
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from segmo.errors import SegmoError
+from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.text.captions import read_text, texts_file
+
+MOTIONS, JOINTS, GROUND_TRUTH = "new_joint_vecs", "new_joints", "segments"
+SPLITS = ("train", "val", "test")
+STATISTICS = ("Mean.npy", "Std.npy")
+
+__all__ = ["GROUND_TRUTH", "JOINTS", "MOTIONS", "SPLITS", "STATISTICS", "caption_spans",
+           "check_stats", "ground_truth_file", "has_ground_truth", "joints_file", "load_stats",
+           "motion_file", "read_actions", "read_ground_truth", "read_motion", "read_split",
+           "resolve_stats", "split_file", "stats_files", "texts_file"]
+
+
+# ----------------------------------------------------------------------------- paths
+
+
+def split_file(root: str | Path, split: str) -> Path:
+    return Path(root) / f"{split}.txt"
+
+
+def stats_files(root: str | Path) -> tuple[Path, Path]:
+    """``ROOT/Mean.npy``, ``ROOT/Std.npy``."""
+    return Path(root) / STATISTICS[0], Path(root) / STATISTICS[1]
+
+
+def motion_file(root: str | Path, motion_id: str) -> Path:
+    return Path(root) / MOTIONS / f"{motion_id}.npy"
+
+
+def joints_file(root: str | Path, motion_id: str) -> Path:
+    return Path(root) / JOINTS / f"{motion_id}.npy"
+
+
+def ground_truth_file(root: str | Path, motion_id: str) -> Path:
+    return Path(root) / GROUND_TRUTH / f"{motion_id}.json"
+
+
+def has_ground_truth(root: str | Path) -> bool:
+    """Whether the folder carries ground-truth segments (the built-in corpus does)."""
+    return (Path(root) / GROUND_TRUTH).is_dir()
+
+
+# ----------------------------------------------------------------------------- splits, motions
+
+
+def read_split(root: str | Path, split: str) -> list[str]:
+    """Ids of ``ROOT/<split>.txt``, one per non-blank line, in file order."""
+    path = split_file(root, split)
+    if not path.is_file():
+        raise FileNotFoundError(f"split file not found: {path}")
+    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    if not ids:
+        raise SegmoError(f"split file lists no ids: {path}")
+    return ids
+
+
+def read_motion(root: str | Path, motion_id: str) -> np.ndarray:
+    """The raw (un-normalised) features (t, d) of ``ROOT/new_joint_vecs/<id>.npy``."""
+    return np.load(motion_file(root, motion_id))
+
+
+# ----------------------------------------------------------------------------- statistics
+
+
+def load_stats(root: str | Path, skeleton: str | SkeletonSpec = "t2m") -> tuple[np.ndarray, np.ndarray]:
+    """``ROOT/Mean.npy`` and ``ROOT/Std.npy`` as read-only float32 copies, each (d,)."""
+    paths = stats_files(root)
+    for path in paths:
+        if not path.is_file():
+            raise FileNotFoundError(f"normalisation statistics not found: {path}")
+    arrays = []
+    for path in paths:
+        try:
+            arrays.append(np.load(path))
+        except (OSError, ValueError, EOFError) as error:
+            raise SegmoError(f"{path}: not a readable .npy array ({error})") from None
+    return check_stats(*arrays, skeleton, *map(str, paths))
+
+
+def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_name: str = "mean",
+                std_name: str = "std") -> tuple[np.ndarray, np.ndarray]:
+    """Validated read-only float32 copies (d,) of mean and std (the inputs are never aliased)."""
+    spec = get_skeleton(skeleton)
+    out = []
+    for name, arr in ((mean_name, mean), (std_name, std)):
+        arr = np.array(arr, dtype=np.float32)  # always a copy
+        if arr.shape != (spec.feature_dim,):
+            raise SegmoError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "
+                             f"for skeleton {spec.name!r}")
+        if not np.isfinite(arr).all():
+            raise SegmoError(f"{name}: contains NaN or inf")
+        arr.setflags(write=False)
+        out.append(arr)
+    if (out[1] <= 0).any():
+        raise SegmoError(f"{std_name}: non-positive std in dims {np.flatnonzero(out[1] <= 0).tolist()[:10]}")
+    return out[0], out[1]
+
+
+def resolve_stats(root: Path, spec: SkeletonSpec, mean: Any, std: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The given statistics (validated copies), or those of ``root`` when both are None."""
+    if mean is None and std is None:
+        return load_stats(root, spec)
+    if mean is None or std is None:
+        raise SegmoError("pass both mean and std, or neither (then ROOT/Mean.npy, Std.npy are read)")
+    return check_stats(mean, std, spec)
+
+
+# ----------------------------------------------------------------------------- ground truth
+
+
+def read_ground_truth(root: str | Path, motion_id: str) -> dict[str, Any]:
+    """The record of ``ROOT/segments/<id>.json`` (docs/design.md: ``actions``, ``captions``,
+    each caption's ``segments`` with ``text``, ``action``, ``start``, ``end`` frames)."""
+    path = ground_truth_file(root, motion_id)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no ground truth (only the built-in corpus has "
+                                "segments/<id>.json)")
+    try:
+        record = json.loads(read_text(path))
+    except json.JSONDecodeError as error:
+        raise SegmoError(f"{path}:{error.lineno}: not valid JSON: {error.msg}") from None
+    if not isinstance(record, dict):
+        raise SegmoError(f"{path}: not a ground-truth file (a JSON object expected)")
+    return record
+
+
+def caption_spans(root: str | Path, motion_id: str, num_lines: int
+                  ) -> list[tuple[tuple[int, int], ...]] | None:
+    """Per caption line of ``texts/<id>.txt``, the frame spans (start, end exclusive) of its
+    ground-truth segments; None when the motion has no ground truth."""
+    path = ground_truth_file(root, motion_id)
+    if not path.is_file():
+        return None
+    record = read_ground_truth(root, motion_id)
+    try:
+        captions = record["captions"]
+        spans = [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
+    except (KeyError, TypeError, ValueError) as error:
+        raise SegmoError(f"{path}: not a ground-truth file (captions[i].segments[j].start/end "
+                         f"expected; {type(error).__name__}: {error})") from None
+    if len(captions) != num_lines:
+        raise SegmoError(f"{path} has {len(captions)} captions but {texts_file(root, motion_id)} "
+                         f"has {num_lines} lines")
+    return spans
+
+
+def read_actions(root: str | Path, motion_id: str) -> tuple[list[str], list[tuple[int, int]]]:
+    """Action names and frame spans (end exclusive) of a motion's ground truth; arm overlays
+    ("with") are left out: the main action names the span."""
+    path = ground_truth_file(root, motion_id)
+    try:
+        actions = read_ground_truth(root, motion_id)["actions"]
+        return [a["action"] for a in actions], [(int(a["start"]), int(a["end"])) for a in actions]
+    except (KeyError, TypeError, ValueError) as error:
+        raise SegmoError(f"{path}: not a ground-truth file (actions[i].action/start/end "
+                         f"expected; {type(error).__name__}: {error})") from None
