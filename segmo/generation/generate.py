@@ -145,9 +145,7 @@ def _draw(logits: torch.Tensor, select: torch.Tensor, options: SamplingOptions
           ) -> tuple[torch.Tensor, torch.Tensor]:
     """Guidance batch logits (2b, m, v), select (b, m) bool → tokens (k,), confidence (k,)
     for the k selected positions (row-major order); only those are guided and sampled."""
-    conditional, unconditional = logits.chunk(2)
-    conditional, unconditional = conditional[select].float(), unconditional[select].float()
-    guided = unconditional + options.guidance_scale * (conditional - unconditional)
+    guided = guided_logits(logits, options.guidance_scale)[select]
     return sample_tokens(guided, options.top_k_ratio, options.temperature, options.sampler,
                          options.generator)
 
