@@ -5,6 +5,8 @@ from __future__ import annotations
 import pytest
 from conftest import load_tool
 
+from segmo.generation import SamplingOptions
+
 
 def _load_tool():
     return load_tool("bench_generate")
@@ -50,7 +52,8 @@ def test_generation_macs_counts_what_the_floor_passes_compute(monkeypatch):
         return original(self, indices, token_mask, condition, positions)
 
     monkeypatch.setattr(MaskTransformer, "forward_condition", recording)
-    tool.generate_tokens(mask, residual, *text, torch.full((b,), 4 * n), steps=steps)
+    tool.generate_tokens(mask, residual, *text, torch.full((b,), 4 * n),
+                         options=SamplingOptions(steps=steps))
     assert tool.sampled_counts(n, steps) == sampled == [10, 9, 6, 1]
     with FlopCounterMode(display=False) as counter:
         tool.floor_passes(mask, residual, text, n, steps, "fp32")

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from segmo import cpu
-from segmo.generation import generate_tokens
+from segmo.generation import SamplingOptions, generate_tokens
 from segmo.generation.generate import resolve_precision
 from segmo.models import cpu_inference
 from segmo.models.cpu_inference import PackedLinear, use_cpu_kernels
@@ -69,7 +69,8 @@ def text(b: int, seed: int = 1):
 
 def generate(models, precision: str, seed: int = 0) -> torch.Tensor:
     mask, residual = models
-    return generate_tokens(mask, residual, *text(4), torch.tensor([48, 40, 24, 8]), steps=5,
+    return generate_tokens(mask, residual, *text(4), torch.tensor([48, 40, 24, 8]),
+                           options=SamplingOptions(steps=5),
                            precision=precision, generator=torch.Generator().manual_seed(seed))
 
 

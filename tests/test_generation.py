@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from segmo.generation import (
+    SamplingOptions,
     decode_tokens,
     edit_tokens,
     generate_tokens,
@@ -110,7 +111,7 @@ def test_generate_shapes_padding_and_seeds(models):
     lengths = torch.tensor([48, 20, 4])
     cond = text(3)
     rng_state = torch.random.get_rng_state()
-    out = generate_tokens(mask, residual, *cond, lengths, steps=4,
+    out = generate_tokens(mask, residual, *cond, lengths, options=SamplingOptions(steps=4),
                           generator=torch.Generator().manual_seed(0))
     assert torch.equal(torch.random.get_rng_state(), rng_state), "global RNG was used"
     assert mask.training and not residual.training
@@ -119,13 +120,13 @@ def test_generate_shapes_padding_and_seeds(models):
     valid = torch.arange(12) < (lengths // 4)[:, None]
     assert bool((out[valid] >= 0).all()) and bool((out[valid] < 16).all())
     assert bool((out[~valid] == -1).all())
-    same = generate_tokens(mask, residual, *cond, lengths, steps=4,
+    same = generate_tokens(mask, residual, *cond, lengths, options=SamplingOptions(steps=4),
                            generator=torch.Generator().manual_seed(0))
-    other = generate_tokens(mask, residual, *cond, lengths, steps=4,
+    other = generate_tokens(mask, residual, *cond, lengths, options=SamplingOptions(steps=4),
                             generator=torch.Generator().manual_seed(1))
     assert torch.equal(out, same)
     assert not torch.equal(out, other)
-    base_only = generate_tokens(mask, None, *cond, lengths, steps=4,
+    base_only = generate_tokens(mask, None, *cond, lengths, options=SamplingOptions(steps=4),
                                 generator=torch.Generator().manual_seed(0))
     assert torch.equal(base_only[..., 0], out[..., 0])
 
@@ -134,11 +135,13 @@ def test_generate_shapes_padding_and_seeds(models):
                          [("bf16", "gumbel"), ("fp32", "gumbel"), ("auto", "categorical")])
 def test_generate_precision_and_sampler(models, precision, sampler):
     mask, residual = models
-    out = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]), steps=3,
-                          sampler=sampler, precision=precision,
+    out = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]),
+                          options=SamplingOptions(steps=3, sampler=sampler),
+                          precision=precision,
                           generator=torch.Generator().manual_seed(0))
-    again = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]), steps=3,
-                            sampler=sampler, precision=precision,
+    again = generate_tokens(mask, residual, *text(2), torch.tensor([40, 12]),
+                            options=SamplingOptions(steps=3, sampler=sampler),
+                            precision=precision,
                             generator=torch.Generator().manual_seed(0))
     assert out.shape == (2, 10, 3) and torch.equal(out, again)
     assert bool((out[1, 3:] == -1).all()) and bool((out[0] >= 0).all())
@@ -157,7 +160,8 @@ def test_one_batched_guidance_pass_per_step(models, monkeypatch):
         return original(self, indices, token_mask, condition, positions)
 
     monkeypatch.setattr(MaskTransformer, "forward_condition", counting)
-    generate_tokens(mask, residual, *text(3), torch.tensor([16, 16, 8]), steps=5,
+    generate_tokens(mask, residual, *text(3), torch.tensor([16, 16, 8]),
+                    options=SamplingOptions(steps=5),
                     generator=torch.Generator().manual_seed(0))
     assert batches == [6] * 5
     # Only the sampled positions reach the last block: ⌈γ(t)·4⌉ for t = 0, ¼, ½, ¾, 1.
@@ -169,9 +173,11 @@ def test_sampling_only_the_drawn_positions_changes_no_token(models, monkeypatch)
     lengths = torch.tensor([48, 32, 20])
 
     def run():
-        tokens = generate_tokens(mask, residual, *text(3), lengths, steps=6,
+        tokens = generate_tokens(mask, residual, *text(3), lengths,
+                                 options=SamplingOptions(steps=6),
                                  generator=torch.Generator().manual_seed(3))
-        edited = edit_tokens(mask, residual, tokens, (2, 6), *text(3, seed=4), steps=3,
+        edited = edit_tokens(mask, residual, tokens, (2, 6), *text(3, seed=4),
+                             options=SamplingOptions(steps=3),
                              generator=torch.Generator().manual_seed(4))
         return torch.cat([tokens, edited])
 
@@ -190,10 +196,11 @@ def test_bad_lengths_refused(models, bad):
 def test_edit_keeps_tokens_outside_span(models):
     mask, residual = models
     lengths = torch.tensor([48, 32, 24, 48])
-    original = generate_tokens(mask, residual, *text(4), lengths, steps=4,
+    original = generate_tokens(mask, residual, *text(4), lengths, options=SamplingOptions(steps=4),
                                generator=torch.Generator().manual_seed(0))
     start, end = 3, 7
-    edited = edit_tokens(mask, residual, original, (start, end), *text(4, seed=9), steps=4,
+    edited = edit_tokens(mask, residual, original, (start, end), *text(4, seed=9),
+                         options=SamplingOptions(steps=4),
                          generator=torch.Generator().manual_seed(5))
     outside = torch.ones(12, dtype=torch.bool)
     outside[start:end] = False
@@ -205,7 +212,8 @@ def test_edit_keeps_tokens_outside_span(models):
     assert not torch.equal(inside, original[:, start:end])
     # per-sample spans; a span over padding leaves that sample untouched
     spans = torch.tensor([[0, 2], [5, 8], [10, 12], [11, 12]])
-    edited = edit_tokens(mask, residual, original, spans, *text(4, seed=9), steps=2,
+    edited = edit_tokens(mask, residual, original, spans, *text(4, seed=9),
+                         options=SamplingOptions(steps=2),
                          generator=torch.Generator().manual_seed(5))
     for i, (s, e) in enumerate(spans.tolist()):
         keep = torch.ones(12, dtype=torch.bool)
@@ -222,7 +230,7 @@ def test_decode_tokens_with_stub_tokenizer(models):
     mask, residual = models
     tokenizer = StubTokenizer()
     lengths = torch.tensor([48, 20])
-    indices = generate_tokens(mask, residual, *text(2), lengths, steps=2,
+    indices = generate_tokens(mask, residual, *text(2), lengths, options=SamplingOptions(steps=2),
                               generator=torch.Generator().manual_seed(0))
     features = decode_tokens(tokenizer, indices, lengths)
     assert features.shape == (2, 48, 5)

@@ -6,6 +6,7 @@ and the text encoder is the deterministic hash encoder of conftest.py.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -14,6 +15,8 @@ import pytest
 import torch
 from conftest import cli_failure, hash_encoder
 
+from segmo.errors import SegmoError
+from segmo.generation import SamplingOptions
 from segmo.models.alignment import AlignmentConfig
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
@@ -121,6 +124,22 @@ def test_bundle_round_trip_gives_identical_generations(model, generated, tmp_pat
     again = loaded.generate(PROMPTS, [48, 32], generator=seeded())
     assert torch.equal(again.tokens, generated.tokens)
     assert torch.equal(again.features, generated.features)
+
+
+def test_sampling_options_object_and_keywords_agree(model, generated):
+    """`sampling=` takes a whole SamplingOptions; a keyword takes one option's place."""
+    assert model.sampling == SamplingOptions(guidance_scale=4.0, residual_guidance_scale=5.0)
+    same = model.generate(PROMPTS, [48, 32], sampling=model.sampling, generator=seeded())
+    assert torch.equal(same.tokens, generated.tokens)
+    greedy = model.generate(PROMPTS, [48, 32], temperature=0.0, steps=3, generator=seeded())
+    replaced = model.generate(PROMPTS, [48, 32], generator=seeded(),
+                              sampling=dataclasses.replace(model.sampling, temperature=0.0),
+                              steps=3)
+    assert torch.equal(greedy.tokens, replaced.tokens)
+    with pytest.raises(SegmoError, match="steps"):
+        SamplingOptions(steps=0)
+    with pytest.raises(SegmoError, match="sampling must be a SamplingOptions"):
+        model.generate(PROMPTS, [48, 32], sampling={"steps": 3})
 
 
 def test_from_stages_equals_bundle(stages, generated):

@@ -66,6 +66,7 @@ from segmo.generation.generate import (
     masked_count,
     resolve_precision,
 )
+from segmo.generation.sampling import SamplingOptions
 from segmo.models.cpu_inference import PackedLinear, use_cpu_kernels
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.pretrained import load_pretrained, read_config
@@ -220,7 +221,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-size", type=int, default=1)
     parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
                         help="auto: bf16 on CPUs with native bf16, else fp32 (segmo.cpu)")
-    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--steps", type=int, default=SamplingOptions.steps)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
@@ -252,7 +253,8 @@ def main(argv: list[str] | None = None) -> None:
     lengths = torch.full((b,), 4 * n)
 
     def generate(precision: str, seed: int) -> torch.Tensor:
-        return generate_tokens(mask, residual, *text, lengths, steps=args.steps,
+        return generate_tokens(mask, residual, *text, lengths,
+                               options=SamplingOptions(steps=args.steps),
                                generator=torch.Generator().manual_seed(seed), precision=precision)
 
     if args.compare_precision:

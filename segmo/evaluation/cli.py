@@ -63,6 +63,7 @@ from segmo.evaluation.sections import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
+from segmo.generation.sampling import SamplingOptions
 from segmo.models.pretrained import load_pretrained, read_json
 from segmo.pipeline import SegMo
 
@@ -274,7 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=positive_int, help="torch CPU threads (1 avoids stalls on a busy machine)")
     p.add_argument("--text-segments", help="use DATA/text_segments/NAME instead of the bundle's segmenter")
-    p.add_argument("--steps", type=positive_int, default=10, help="mask decoding steps")
+    p.add_argument("--steps", type=positive_int, default=SamplingOptions.steps,
+                   help="mask decoding steps")
     p.add_argument("--grounding-window", default="auto",
                    help="sliding-window sizes in tokens, e.g. 5 or 4,8,16; auto = 0.5-2x the mean segment")
     p.add_argument("--retrieval-motions", type=non_negative_int, default=100,

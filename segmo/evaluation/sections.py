@@ -28,6 +28,7 @@ from segmo.evaluation.action_order import (
 from segmo.evaluation.grounding import grounding_metrics
 from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
 from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
+from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
 from segmo.models.alignment import isc_from_cosines, paired_cosine
 from segmo.pipeline.grounding import pair_scores, plot_similarity_map
@@ -58,7 +59,7 @@ class EvaluateConfig:
     precision: str = "fp32"
     device: str = "cpu"
     text_segments: str | None = None
-    steps: int = 10
+    steps: int = SamplingOptions.steps
     grounding_window: str = "auto"
     retrieval_motions: int = 100
     progress: bool = True

@@ -9,9 +9,10 @@ from segmo.generation.generate import (
     guided_logits,
     token_mask_from_lengths,
 )
-from segmo.generation.sampling import cosine_schedule, sample_tokens, top_k_count
+from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_tokens, top_k_count
 
 __all__ = [
+    "SamplingOptions",
     "cosine_schedule",
     "decode_tokens",
     "edit_tokens",

@@ -15,31 +15,19 @@ import math
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from typing import Literal
 
 import torch
 from torch import nn
 
 from segmo import cpu
-from segmo.generation.sampling import Sampler, cosine_schedule, sample_tokens
+from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_tokens
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.transformer import Condition
 
 Precision = Literal["auto", "fp32", "bf16"]
 UNIT_LENGTH = 4  # frames per token
-
-
-@dataclass
-class SamplingOptions:
-    """How tokens are drawn: CFG scale, top-k ratio, temperature, sampler, generator."""
-
-    guidance_scale: float
-    top_k_ratio: float = 0.1
-    temperature: float = 1.0
-    sampler: Sampler = "categorical"
-    generator: torch.Generator | None = None
 
 
 def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Tensor:
@@ -141,13 +129,13 @@ def _sampled_positions(select: torch.Tensor) -> tuple[torch.Tensor | None, torch
     return positions, select.gather(1, positions)
 
 
-def _draw(logits: torch.Tensor, select: torch.Tensor, options: SamplingOptions
-          ) -> tuple[torch.Tensor, torch.Tensor]:
+def _draw(logits: torch.Tensor, select: torch.Tensor, scale: float, options: SamplingOptions,
+          generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
     """Guidance batch logits (2b, m, v), select (b, m) bool → tokens (k,), confidence (k,)
-    for the k selected positions (row-major order); only those are guided and sampled."""
-    guided = guided_logits(logits, options.guidance_scale)[select]
+    for the k selected positions (row-major order), guided with `scale`."""
+    guided = guided_logits(logits, scale)[select]
     return sample_tokens(guided, options.top_k_ratio, options.temperature, options.sampler,
-                         options.generator)
+                         generator)
 
 
 def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
@@ -158,23 +146,22 @@ def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
 
 
 def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Tensor,
-                  token_mask: torch.Tensor, condition: Condition, steps: int,
-                  options: SamplingOptions) -> torch.Tensor:
+                  token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
+                  generator: torch.Generator | None = None) -> torch.Tensor:
     """Iteratively fill the `editable` base tokens; the others stay fixed and visible.
 
     ids (b, n) long, editable (b, n) bool ⊆ token_mask (b, n) bool, condition from
-    `guidance_condition` → ids (b, n). At step t ∈ linspace(0, 1, steps), the ⌈γ(t)·m⌉ (≥ 1)
-    lowest-confidence editable tokens are (re-)masked and predicted, m = editable count.
-    A token kept at one step is final (MoMask): its confidence becomes +inf.
+    `guidance_condition` → ids (b, n). At step t ∈ linspace(0, 1, options.steps), the
+    ⌈γ(t)·m⌉ (≥ 1) lowest-confidence editable tokens are (re-)masked and predicted with
+    `options.guidance_scale`, m = editable count. A token kept at one step is final (MoMask):
+    its confidence becomes +inf.
     """
-    if steps < 1:
-        raise ValueError(f"steps must be ≥ 1, got {steps}")
     counts = editable.sum(dim=1)
     if not bool(counts.any()):
         return ids
     scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
-    for t in torch.linspace(0, 1, steps).tolist():
+    for t in torch.linspace(0, 1, options.steps).tolist():
         num = masked_count(t, counts)
         ranks = scores.argsort(dim=1).argsort(dim=1)
         is_masked = ranks < num[:, None]
@@ -182,7 +169,7 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
         positions, picked = _sampled_positions(is_masked)
         twice = None if positions is None else torch.cat([positions, positions])
         logits = model.forward_condition(torch.cat([ids, ids]), mask2, condition, twice).logits
-        tokens, confidence = _draw(logits, picked, options)
+        tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator)
         ids[is_masked] = tokens  # is_masked and picked list the same positions in one order
         scores = torch.full_like(scores, math.inf)
         scores[is_masked] = confidence
@@ -190,9 +177,10 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
 
 
 def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerate: torch.Tensor,
-                    token_mask: torch.Tensor, condition: Condition, options: SamplingOptions
-                    ) -> torch.Tensor:
-    """Fill layers 1..q−1 one pass each, only where `regenerate` (b, n) is True.
+                    token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
+                    generator: torch.Generator | None = None) -> torch.Tensor:
+    """Fill layers 1..q−1 one pass each, only where `regenerate` (b, n) is True, guided with
+    `options.residual_guidance_scale`.
 
     indices (b, n, q) long (layer 0 set; other layers kept where not regenerated) →
     (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
@@ -209,7 +197,7 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     twice = None if positions is None else torch.cat([positions, positions])
     for layer in range(1, q):
         logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition, twice).logits
-        tokens, _ = _draw(logits, picked, options)
+        tokens, _ = _draw(logits, picked, options.residual_guidance_scale, options, generator)
         codes = indices[..., layer].masked_fill(~token_mask, -1)
         codes[regenerate] = tokens
         indices[..., layer] = codes
@@ -234,16 +222,12 @@ def generate_tokens(
     segments: torch.Tensor,
     segment_mask: torch.Tensor,
     lengths: torch.Tensor,
-    steps: int = 10,
-    guidance_scale: float = 4.0,
-    residual_guidance_scale: float = 5.0,
-    top_k_ratio: float = 0.1,
-    temperature: float = 1.0,
-    sampler: Sampler = "categorical",
+    *,
+    options: SamplingOptions | None = None,
     generator: torch.Generator | None = None,
     precision: Precision = "auto",
 ) -> torch.Tensor:
-    """Text → motion tokens.
+    """Text → motion tokens, drawn as `options` say (default `SamplingOptions()`).
 
     sentence (b, text_dim), segments (b, a, text_dim), segment_mask (b, a) bool,
     lengths (b,) frames (multiples of 4 in [4, 4·max_tokens]) → indices (b, n, q) long with
@@ -253,22 +237,22 @@ def generate_tokens(
     does so on CPUs with native bf16 only (`resolve_precision`).
     """
     _check_models(mask_model, residual_model)
+    options = options if options is not None else SamplingOptions()
     lengths = torch.as_tensor(lengths, device=sentence.device)
     token_mask = token_mask_from_lengths(lengths, mask_model.config.max_tokens)
     models = [mask_model] + ([residual_model] if residual_model is not None else [])
     with _inference(models, precision, sentence.device):
         condition = guidance_condition(mask_model, sentence, segments, segment_mask)
         ids = torch.full(token_mask.shape, mask_model.mask_id, device=sentence.device)
-        options = SamplingOptions(guidance_scale, top_k_ratio, temperature, sampler, generator)
-        base = masked_decode(mask_model, ids, token_mask, token_mask, condition, steps, options)
+        base = masked_decode(mask_model, ids, token_mask, token_mask, condition, options, generator)
         base = torch.where(token_mask, base, -1)
         if residual_model is None:
             return base[..., None]
         q = residual_model.config.num_quantizers
         indices = torch.cat([base[..., None], base.new_full((*base.shape, q - 1), -1)], dim=2)
         condition = guidance_condition(residual_model, sentence, segments, segment_mask)
-        options.guidance_scale = residual_guidance_scale
-        return residual_decode(residual_model, indices, token_mask, token_mask, condition, options)
+        return residual_decode(residual_model, indices, token_mask, token_mask, condition, options,
+                               generator)
 
 
 def edit_tokens(
@@ -279,12 +263,8 @@ def edit_tokens(
     sentence: torch.Tensor,
     segments: torch.Tensor,
     segment_mask: torch.Tensor,
-    steps: int = 10,
-    guidance_scale: float = 4.0,
-    residual_guidance_scale: float = 5.0,
-    top_k_ratio: float = 0.1,
-    temperature: float = 1.0,
-    sampler: Sampler = "categorical",
+    *,
+    options: SamplingOptions | None = None,
     generator: torch.Generator | None = None,
     precision: Precision = "auto",
 ) -> torch.Tensor:
@@ -297,6 +277,7 @@ def edit_tokens(
     inside the span only. Every token outside the span is returned unchanged.
     """
     _check_models(mask_model, residual_model)
+    options = options if options is not None else SamplingOptions()
     b, n, q = indices.shape
     if q > 1 and residual_model is None:
         raise ValueError(f"edit_tokens: indices have {q} layers; a residual_model is needed to "
@@ -315,16 +296,15 @@ def edit_tokens(
     models = [mask_model] + ([residual_model] if residual_model is not None else [])
     with _inference(models, precision, sentence.device):
         condition = guidance_condition(mask_model, sentence, segments, segment_mask)
-        options = SamplingOptions(guidance_scale, top_k_ratio, temperature, sampler, generator)
         ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
-        base = masked_decode(mask_model, ids, editable, token_mask, condition, steps, options)
+        base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
         out = indices.clone()
         out[..., 0] = torch.where(token_mask, base, -1)
         if residual_model is None:
             return out
         condition = guidance_condition(residual_model, sentence, segments, segment_mask)
-        options.guidance_scale = residual_guidance_scale
-        return residual_decode(residual_model, out, editable, token_mask, condition, options)
+        return residual_decode(residual_model, out, editable, token_mask, condition, options,
+                               generator)
 
 
 def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,

@@ -1,4 +1,5 @@
-"""Token sampling: top-k, temperature, categorical or Gumbel-max draws (spec §8).
+"""Token sampling: the options of a generation (`SamplingOptions`), top-k, temperature,
+categorical or Gumbel-max draws (spec §8).
 
 All randomness comes from an optional `torch.Generator`, so a seed fixes the result.
 """
@@ -6,15 +7,61 @@ All randomness comes from an optional `torch.Generator`, so a seed fixes the res
 from __future__ import annotations
 
 import math
-from typing import Literal
+import numbers
+from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 
+from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
-__all__ = ["Sampler", "cosine_schedule", "sample_tokens", "top_k_count"]
+__all__ = ["Sampler", "SamplingOptions", "cosine_schedule", "sample_tokens", "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
+
+
+@dataclass(frozen=True)
+class SamplingOptions:
+    """How a generation or an edit draws its tokens; checked when built.
+
+    guidance_scale: classifier-free guidance scale of the base tokens (spec §8: 4 for
+        HumanML3D, 2 for KIT; a bundle's own scales are `SegMo.sampling`);
+    residual_guidance_scale: the same for the residual layers;
+    steps: masked-decoding steps of the base tokens;
+    temperature: of the draws, 0 = greedy; top_k_ratio: share of the codebook a draw
+        keeps (MoMask: 0.1, 52 of 512 codes); sampler: "categorical" or "gumbel".
+
+    Raises SegmoError naming the first option a generation cannot use (NaN guidance,
+    0 steps...).
+
+        >>> SamplingOptions(steps=20, temperature=0.5)
+    """
+
+    guidance_scale: float = 4.0
+    residual_guidance_scale: float = 5.0
+    steps: int = 10
+    temperature: float = 1.0
+    top_k_ratio: float = 0.1
+    sampler: Sampler = "categorical"
+
+    def __post_init__(self) -> None:
+        for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                    or not math.isfinite(value):
+                raise SegmoError(f"SegMo: {name} must be a finite number, got {value!r}")
+        if self.temperature < 0:
+            raise SegmoError(f"SegMo: temperature must be >= 0 (0 = greedy), got "
+                             f"{self.temperature!r}")
+        if not 0 < self.top_k_ratio <= 1:
+            raise SegmoError(f"SegMo: top_k_ratio must be in (0, 1], got {self.top_k_ratio!r}")
+        steps = self.steps
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
+            raise SegmoError(f"SegMo: steps must be a whole number >= 1, got {steps!r}")
+        if self.sampler not in get_args(Sampler):
+            raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
+                             f"{self.sampler!r}")
 
 
 def top_k_count(vocabulary: int, ratio: float) -> int:

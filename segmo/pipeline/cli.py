@@ -18,9 +18,10 @@ import torch
 
 from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
 from segmo.generation.allocator import keep_freed_memory
+from segmo.generation.sampling import SamplingOptions
 from segmo.pipeline.grounding import plot_similarity_map
 from segmo.pipeline.outputs import FORMATS
-from segmo.pipeline.segmo import SegMo
+from segmo.pipeline.segmo import KIT_GUIDANCE_SCALE, SegMo
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):
@@ -74,10 +75,14 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--guidance", type=finite_float, default=None,
                         help="classifier-free guidance scale of the base tokens (bundle default)")
-    parser.add_argument("--residual-guidance", type=finite_float, default=None)
-    parser.add_argument("--steps", type=positive_int, default=10, help="masked-decoding steps")
-    parser.add_argument("--temperature", type=finite_float, default=1.0,
-                        help="sampling temperature (0 = greedy)")
+    parser.add_argument("--residual-guidance", type=finite_float, default=None,
+                        help="the same for the residual tokens (bundle default)")
+    # Unset options take the defaults of SamplingOptions (SegMo.generate).
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help=f"masked-decoding steps (default {SamplingOptions.steps})")
+    parser.add_argument("--temperature", type=finite_float, default=None,
+                        help=f"sampling temperature, 0 = greedy (default "
+                             f"{SamplingOptions.temperature:g})")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                         help="auto: bf16 on CPUs with native bf16 (AVX512-BF16, AMX), else fp32")
     parser.add_argument("--device", default="cpu")
@@ -92,7 +97,7 @@ def generate_main(argv: list[str] | None = None) -> None:
                      "give it once or once per --text")
     if lengths is not None and len(lengths) == 1:
         lengths = lengths * len(args.text)
-    if args.temperature < 0:
+    if args.temperature is not None and args.temperature < 0:
         parser.error(f"argument --temperature: expected a number >= 0, got {args.temperature:g}")
     _check_output_dir(parser, "--out", args.out)
     model = _load(parser, args.model)
@@ -161,9 +166,11 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--length", default=None, help="exported length estimator")
     parser.add_argument("--segmenter", default="rule", help="text-segmenter backend at inference")
     parser.add_argument("--guidance", type=finite_float, default=None,
-                        help="default CFG scale of the base tokens (default 4, KIT 2)")
+                        help=f"default CFG scale of the base tokens (default "
+                             f"{SamplingOptions.guidance_scale:g}, KIT {KIT_GUIDANCE_SCALE:g})")
     parser.add_argument("--residual-guidance", type=finite_float, default=None,
-                        help="default CFG scale of the residual tokens (default 5)")
+                        help=f"default CFG scale of the residual tokens (default "
+                             f"{SamplingOptions.residual_guidance_scale:g})")
     parser.add_argument("--out", required=True, help="bundle directory to write")
     args = parser.parse_args(argv)
     _check_output_dir(parser, "--out", args.out)

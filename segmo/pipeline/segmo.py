@@ -42,7 +42,7 @@ from segmo.generation.generate import (
     edit_tokens,
     generate_tokens,
 )
-from segmo.generation.sampling import Sampler
+from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
@@ -60,6 +60,7 @@ from segmo.text.llm import get_text_segmenter
 BUNDLE_FILE = "segmo.json"
 BUNDLE_FORMAT = 1
 STAGES = {"tokenizer": "rvq", "mask": "mask", "residual": "residual", "length": "length"}
+KIT_GUIDANCE_SCALE = 2.0  # spec §8: KIT's base-token guidance scale; HumanML3D's is the default
 
 
 @dataclass
@@ -70,8 +71,9 @@ class SegMoConfig:
     skeleton: str = "t2m"
     fps: float = 20.0
     text_segmenter: str = "rule"
-    guidance_scale: float = 4.0  # spec §8: 4 for HumanML3D, 2 for KIT
-    residual_guidance_scale: float = 5.0
+    # The defaults of `SamplingOptions` (KIT bundles: KIT_GUIDANCE_SCALE); `SegMo.sampling`.
+    guidance_scale: float = SamplingOptions.guidance_scale
+    residual_guidance_scale: float = SamplingOptions.residual_guidance_scale
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -87,25 +89,6 @@ def check_texts(texts: Any, what: str = "text") -> list[str]:
         if not any(c.isalnum() for c in text):
             raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) holds no words; describe a motion")
     return list(texts)
-
-
-def check_sampling(guidance_scale: float, residual_guidance_scale: float, steps: int,
-                   temperature: float, top_k_ratio: float, sampler: str) -> None:
-    """SegmoError naming the first option a generation cannot use (NaN guidance, 0 steps...)."""
-    for name, value in (("guidance_scale", guidance_scale),
-                        ("residual_guidance_scale", residual_guidance_scale),
-                        ("temperature", temperature), ("top_k_ratio", top_k_ratio)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) \
-                or not math.isfinite(value):
-            raise SegmoError(f"SegMo: {name} must be a finite number, got {value!r}")
-    if temperature < 0:
-        raise SegmoError(f"SegMo: temperature must be >= 0 (0 = greedy), got {temperature!r}")
-    if not 0 < top_k_ratio <= 1:
-        raise SegmoError(f"SegMo: top_k_ratio must be in (0, 1], got {top_k_ratio!r}")
-    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
-        raise SegmoError(f"SegMo: steps must be a whole number >= 1, got {steps!r}")
-    if sampler not in ("categorical", "gumbel"):
-        raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got {sampler!r}")
 
 
 def _warn_truncated(encoder: Any, texts: list[str]) -> None:
@@ -182,7 +165,8 @@ class SegMo:
             config = SegMoConfig(
                 text_encoder=name or getattr(text_encoder, "name", "custom"),
                 skeleton=skeleton, fps=float(meta.get("fps", get_skeleton(skeleton).fps)),
-                guidance_scale=2.0 if skeleton == "kit" else 4.0)
+                guidance_scale=(KIT_GUIDANCE_SCALE if skeleton == "kit"
+                                else SamplingOptions.guidance_scale))
         self.config = config
         self.tokenizer = tokenizer.eval()
         # Inference only: the CPU kernels (`segmo.models.cpu_inference`) are the faster
@@ -457,44 +441,62 @@ class SegMo:
         # The estimator may know longer motions than the mask transformer accepts.
         return lengths.clamp(UNIT_LENGTH, self.max_frames).long()
 
+    @property
+    def sampling(self) -> SamplingOptions:
+        """The bundle's sampling options: its guidance scales (`segmo.json`) and the defaults
+        of the other options. `dataclasses.replace(model.sampling, steps=20)` changes one."""
+        return self._sampling(None)
+
+    def _sampling(self, sampling: SamplingOptions | None, **given: Any) -> SamplingOptions:
+        """`sampling` (None: the bundle's) with each option given by keyword (not None) in
+        its place, built, and so checked, once."""
+        if sampling is None:
+            fields = {"guidance_scale": self.config.guidance_scale,
+                      "residual_guidance_scale": self.config.residual_guidance_scale}
+        elif isinstance(sampling, SamplingOptions):
+            fields = dataclasses.asdict(sampling)
+        else:
+            raise SegmoError(f"SegMo: sampling must be a SamplingOptions, got {sampling!r:.80}")
+        return SamplingOptions(**{**fields, **{k: v for k, v in given.items() if v is not None}})
+
     def generate(self, texts: list[str], lengths: Any = None, *,
-                 segments: list[list[str]] | None = None, guidance_scale: float | None = None,
-                 residual_guidance_scale: float | None = None, steps: int = 10,
-                 temperature: float = 1.0, top_k_ratio: float = 0.1,
-                 sampler: Sampler = "categorical", generator: torch.Generator | None = None,
-                 precision: Precision = "auto") -> GenerationOutput:
+                 segments: list[list[str]] | None = None, sampling: SamplingOptions | None = None,
+                 guidance_scale: float | None = None, residual_guidance_scale: float | None = None,
+                 steps: int | None = None, temperature: float | None = None,
+                 top_k_ratio: float | None = None, sampler: Sampler | None = None,
+                 generator: torch.Generator | None = None, precision: Precision = "auto"
+                 ) -> GenerationOutput:
         """Text → motions. lengths: frames per text (multiples of 4 in [4, max_frames]), an
-        int for all, or None to sample them from the length estimator. Guidance scales
-        default to the bundle's. Reproducible for a seeded `generator`."""
+        int for all, or None to sample them from the length estimator. Tokens are drawn as
+        `sampling` says (default `self.sampling`: the bundle's guidance scales), an option
+        given by keyword (guidance_scale=..., steps=...) in its place. Reproducible for a
+        seeded `generator`."""
         if isinstance(texts, str):
             texts = [texts]
         if not texts:
             raise SegmoError("SegMo.generate: texts is empty")
-        guidance_scale = self._scale(guidance_scale, "guidance_scale")
-        residual_guidance_scale = self._scale(residual_guidance_scale, "residual_guidance_scale")
-        check_sampling(guidance_scale, residual_guidance_scale, steps, temperature, top_k_ratio,
-                       sampler)
+        options = self._sampling(
+            sampling, guidance_scale=guidance_scale,
+            residual_guidance_scale=residual_guidance_scale, steps=steps,
+            temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
         sentence, vectors, segment_mask, segments = self.text_condition(texts, segments)
         if lengths is None:
             lengths = self.sample_lengths(texts, generator)
         lengths = self.check_lengths(lengths, len(texts))
-        tokens = generate_tokens(
-            self.mask, self.residual, sentence, vectors, segment_mask, lengths, steps=steps,
-            guidance_scale=guidance_scale, residual_guidance_scale=residual_guidance_scale,
-            top_k_ratio=top_k_ratio, temperature=temperature, sampler=sampler,
-            generator=generator, precision=precision)
+        tokens = generate_tokens(self.mask, self.residual, sentence, vectors, segment_mask,
+                                 lengths, options=options, generator=generator,
+                                 precision=precision)
         return self.decode(tokens, lengths, texts, segments, precision)
 
-    def _scale(self, value: float | None, name: str) -> float:
-        return getattr(self.config, name) if value is None else value
-
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
-             segments: list[str] | None = None, guidance_scale: float | None = None,
-             residual_guidance_scale: float | None = None, steps: int = 10,
-             temperature: float = 1.0, top_k_ratio: float = 0.1,
-             sampler: Sampler = "categorical", generator: torch.Generator | None = None,
-             precision: Precision = "auto") -> GenerationOutput:
-        """Regenerate frames [start, end) of a motion from `text` (temporal inpainting).
+             segments: list[str] | None = None, sampling: SamplingOptions | None = None,
+             guidance_scale: float | None = None, residual_guidance_scale: float | None = None,
+             steps: int | None = None, temperature: float | None = None,
+             top_k_ratio: float | None = None, sampler: Sampler | None = None,
+             generator: torch.Generator | None = None, precision: Precision = "auto"
+             ) -> GenerationOutput:
+        """Regenerate frames [start, end) of a motion from `text` (temporal inpainting),
+        drawing tokens as in `generate`.
 
         motion: a GenerationOutput (its tokens are edited, every sample with the same span)
         or raw features (t, d), tokenized first. The span is widened to whole tokens;
@@ -517,20 +519,18 @@ class SegMo:
         if not 0 <= start < end <= int(lengths.min()):
             raise SegmoError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
                              f"{int(lengths.min())} frames, got {(start, end)}")
-        guidance_scale = self._scale(guidance_scale, "guidance_scale")
-        residual_guidance_scale = self._scale(residual_guidance_scale, "residual_guidance_scale")
-        check_sampling(guidance_scale, residual_guidance_scale, steps, temperature, top_k_ratio,
-                       sampler)
+        options = self._sampling(
+            sampling, guidance_scale=guidance_scale,
+            residual_guidance_scale=residual_guidance_scale, steps=steps,
+            temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
         token_span = (start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH))
         b = tokens.shape[0]
         texts = [text] * b
         sentence, vectors, segment_mask, used = self.text_condition(
             texts, None if segments is None else [segments] * b)
-        edited = edit_tokens(
-            self.mask, self.residual, tokens, token_span, sentence, vectors, segment_mask,
-            steps=steps, guidance_scale=guidance_scale,
-            residual_guidance_scale=residual_guidance_scale, top_k_ratio=top_k_ratio,
-            temperature=temperature, sampler=sampler, generator=generator, precision=precision)
+        edited = edit_tokens(self.mask, self.residual, tokens, token_span, sentence, vectors,
+                             segment_mask, options=options, generator=generator,
+                             precision=precision)
         return self.decode(edited, lengths, texts, used, precision)
 
     # -- grounding and retrieval (segmo.pipeline.grounding) ----------------------------------
