@@ -1,4 +1,5 @@
-"""Masked decoding of base tokens, residual decoding, temporal editing (spec §8).
+"""Masked decoding of base tokens and residual decoding (spec §8); temporal editing,
+which refills a span with the same decoding, is `segmo.generation.editing`.
 
 Every transformer pass runs the conditional and the unconditional branch of
 classifier-free guidance as ONE batch of 2b rows (rows b..2b−1 have their text prefix
@@ -206,13 +207,40 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     return indices
 
 
-def _check_models(mask_model: MaskTransformer, residual_model: ResidualTransformer | None) -> None:
+def check_models(mask_model: MaskTransformer, residual_model: ResidualTransformer | None) -> None:
+    """ValueError unless the two transformers share codebook, text width and segments."""
     if residual_model is None:
         return
     for field in ("codebook_size", "text_dim", "max_segments"):
         a, b = getattr(mask_model.config, field), getattr(residual_model.config, field)
         if a != b:
             raise ValueError(f"mask and residual transformers disagree on {field}: {a} vs {b}")
+
+
+def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer | None,
+                indices: torch.Tensor, editable: torch.Tensor, token_mask: torch.Tensor,
+                sentence: torch.Tensor, segments: torch.Tensor, segment_mask: torch.Tensor,
+                options: SamplingOptions, generator: torch.Generator | None,
+                precision: Precision) -> torch.Tensor:
+    """Draw the `editable` tokens of `indices` under a text condition; keep the others.
+
+    indices (b, n, q) long; editable ⊆ token_mask (b, n) bool. Base tokens at the editable
+    positions are masked and refilled by masked decoding with every other position
+    visible, then residual layers 1..q−1 are drawn there (q = 1: base tokens only).
+    → (b, n, q), −1 where token_mask is False. Generation is the case editable = token_mask.
+    """
+    models = [mask_model] + ([residual_model] if residual_model is not None else [])
+    with _inference(models, precision, sentence.device):
+        condition = guidance_condition(mask_model, sentence, segments, segment_mask)
+        ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
+        base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
+        out = indices.clone()
+        out[..., 0] = torch.where(token_mask, base, -1)
+        if residual_model is None:
+            return out
+        condition = guidance_condition(residual_model, sentence, segments, segment_mask)
+        return residual_decode(residual_model, out, editable, token_mask, condition, options,
+                               generator)
 
 
 def generate_tokens(
@@ -236,75 +264,13 @@ def generate_tokens(
     is restored afterwards); precision "bf16" runs the passes under bf16 autocast, "auto"
     does so on CPUs with native bf16 only (`resolve_precision`).
     """
-    _check_models(mask_model, residual_model)
-    options = options if options is not None else SamplingOptions()
+    check_models(mask_model, residual_model)
     lengths = torch.as_tensor(lengths, device=sentence.device)
     token_mask = token_mask_from_lengths(lengths, mask_model.config.max_tokens)
-    models = [mask_model] + ([residual_model] if residual_model is not None else [])
-    with _inference(models, precision, sentence.device):
-        condition = guidance_condition(mask_model, sentence, segments, segment_mask)
-        ids = torch.full(token_mask.shape, mask_model.mask_id, device=sentence.device)
-        base = masked_decode(mask_model, ids, token_mask, token_mask, condition, options, generator)
-        base = torch.where(token_mask, base, -1)
-        if residual_model is None:
-            return base[..., None]
-        q = residual_model.config.num_quantizers
-        indices = torch.cat([base[..., None], base.new_full((*base.shape, q - 1), -1)], dim=2)
-        condition = guidance_condition(residual_model, sentence, segments, segment_mask)
-        return residual_decode(residual_model, indices, token_mask, token_mask, condition, options,
-                               generator)
-
-
-def edit_tokens(
-    mask_model: MaskTransformer,
-    residual_model: ResidualTransformer | None,
-    indices: torch.Tensor,
-    span: tuple[int, int] | torch.Tensor,
-    sentence: torch.Tensor,
-    segments: torch.Tensor,
-    segment_mask: torch.Tensor,
-    *,
-    options: SamplingOptions | None = None,
-    generator: torch.Generator | None = None,
-    precision: Precision = "auto",
-) -> torch.Tensor:
-    """Regenerate the tokens of a span under new text conditioning (temporal inpainting).
-
-    indices (b, n, q) long from `generate_tokens` (−1 marks padding in layer 0);
-    span (start_token, end_token), end exclusive, or a (b, 2) long tensor of per-sample
-    spans; new text as in `generate_tokens`. Base tokens inside the span are re-masked and
-    refilled with everything outside visible as context; residual tokens are regenerated
-    inside the span only. Every token outside the span is returned unchanged.
-    """
-    _check_models(mask_model, residual_model)
-    options = options if options is not None else SamplingOptions()
-    b, n, q = indices.shape
-    if q > 1 and residual_model is None:
-        raise ValueError(f"edit_tokens: indices have {q} layers; a residual_model is needed to "
-                         "regenerate the residual tokens inside the span")
-    if residual_model is not None and q != residual_model.config.num_quantizers:
-        raise ValueError(f"edit_tokens: indices have {q} layers, the residual model has "
-                         f"num_quantizers={residual_model.config.num_quantizers}")
-    span = torch.as_tensor(span, device=indices.device).long().reshape(-1, 2).expand(b, 2)
-    start, end = span[:, :1], span[:, 1:]
-    if bool(((start < 0) | (end > n) | (start >= end)).any()):
-        raise ValueError(f"edit_tokens: span must satisfy 0 ≤ start < end ≤ n={n}, "
-                         f"got {span.tolist()}")
-    token_mask = indices[..., 0] >= 0
-    position = torch.arange(n, device=indices.device)
-    editable = (position >= start) & (position < end) & token_mask
-    models = [mask_model] + ([residual_model] if residual_model is not None else [])
-    with _inference(models, precision, sentence.device):
-        condition = guidance_condition(mask_model, sentence, segments, segment_mask)
-        ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
-        base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
-        out = indices.clone()
-        out[..., 0] = torch.where(token_mask, base, -1)
-        if residual_model is None:
-            return out
-        condition = guidance_condition(residual_model, sentence, segments, segment_mask)
-        return residual_decode(residual_model, out, editable, token_mask, condition, options,
-                               generator)
+    q = residual_model.config.num_quantizers if residual_model is not None else 1
+    empty = torch.full((*token_mask.shape, q), -1, device=sentence.device)
+    return fill_tokens(mask_model, residual_model, empty, token_mask, token_mask, sentence,
+                       segments, segment_mask, options or SamplingOptions(), generator, precision)
 
 
 def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,

@@ -4,7 +4,8 @@
     model = SegMo.from_pretrained("runs/demo/model")
 """
 
+from segmo.generation.editing import edit_drift
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
-from segmo.pipeline.segmo import SegMo, SegMoConfig, edit_drift
+from segmo.pipeline.segmo import SegMo, SegMoConfig
 
 __all__ = ["GenerationOutput", "GroundingOutput", "SegMo", "SegMoConfig", "edit_drift"]

@@ -35,13 +35,8 @@ import torch
 
 from segmo.errors import SegmoError
 from segmo.files import write_atomic
-from segmo.generation.generate import (
-    UNIT_LENGTH,
-    Precision,
-    decode_tokens,
-    edit_tokens,
-    generate_tokens,
-)
+from segmo.generation.editing import edit_tokens, token_span
+from segmo.generation.generate import UNIT_LENGTH, Precision, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
@@ -523,14 +518,13 @@ class SegMo:
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
-        token_span = (start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH))
         b = tokens.shape[0]
         texts = [text] * b
         sentence, vectors, segment_mask, used = self.text_condition(
             texts, None if segments is None else [segments] * b)
-        edited = edit_tokens(self.mask, self.residual, tokens, token_span, sentence, vectors,
-                             segment_mask, options=options, generator=generator,
-                             precision=precision)
+        edited = edit_tokens(self.mask, self.residual, tokens, token_span((start, end)),
+                             sentence, vectors, segment_mask, options=options,
+                             generator=generator, precision=precision)
         return self.decode(edited, lengths, texts, used, precision)
 
     # -- grounding and retrieval (segmo.pipeline.grounding) ----------------------------------
@@ -559,24 +553,3 @@ class SegMo:
         """Text → the top_k motions (indices into `motions`) with their scores."""
         return grounding.retrieve_motions(self, text, motions, top_k=top_k)
 
-
-def edit_drift(original: Any, edited: Any, span: tuple[int, int]) -> dict[int, float]:
-    """How much an edit changed the frames outside its span, by distance from the span.
-
-    original, edited: (t, d) features; span: (start, end) frames, end exclusive →
-    {distance in frames (1 = adjacent to the span): mean |edited − original|}.
-    """
-    a = torch.as_tensor(np.asarray(original, dtype=np.float32))
-    b = torch.as_tensor(np.asarray(edited, dtype=np.float32))
-    if a.shape != b.shape or a.ndim != 2:
-        raise SegmoError(f"edit_drift: original {tuple(a.shape)} and edited {tuple(b.shape)} "
-                         "must both be (t, d)")
-    start, end = span
-    change = (a - b).abs().mean(dim=1)
-    frames = torch.arange(a.shape[0])
-    distance = torch.where(frames < start, start - frames, frames - end + 1)
-    outside = (frames < start) | (frames >= end)
-    out: dict[int, float] = {}
-    for d in sorted(set(distance[outside].tolist())):
-        out[int(d)] = float(change[outside & (distance == d)].mean())
-    return out
