@@ -16,11 +16,13 @@ from segmo.models.alignment import (
     batch_loss,
     global_loss,
     in_sample_loss,
-    intra_segment_consistency,
+    isc_from_cosines,
+    paired_cosine,
     segment_similarity,
     span_mask,
     token_loss,
 )
+from segmo.pipeline.space import SegmentEmbeddings
 from segmo.segmentation import segment_batch
 
 DIM = 16
@@ -196,25 +198,29 @@ def test_isc_and_similarity():
     g = gen(4)
     text = torch.randn(2, 3, 8, generator=g)
     mask = torch.tensor([[True, True, False], [True, False, False]])
-    mean, cv = intra_segment_consistency(text, 2 * text, mask)
+    mean, cv = isc_from_cosines(paired_cosine(text, 2 * text, mask))
     assert math.isclose(mean, 1.0, rel_tol=1e-5) and cv < 1e-3
     motion = torch.randn(2, 3, 8, generator=g)
     cos = torch.nn.functional.cosine_similarity(text, motion, dim=-1)[mask]
-    mean, cv = intra_segment_consistency(text, motion, mask)
+    mean, cv = isc_from_cosines(paired_cosine(text, motion, mask))
     assert math.isclose(mean, cos.mean().item(), rel_tol=1e-5)
     assert math.isclose(cv, (cos.std(unbiased=False) / cos.mean()).item(), rel_tol=1e-4)
     sim = segment_similarity(text, motion)
     assert sim.shape == (2, 3, 3)
     assert torch.allclose(sim.diagonal(dim1=1, dim2=2)[mask], cos)
     with pytest.raises(ValueError, match="no valid segment pair"):
-        intra_segment_consistency(text, motion, torch.zeros(2, 3, dtype=torch.bool))
+        isc_from_cosines(paired_cosine(text, motion, torch.zeros(2, 3, dtype=torch.bool)))
 
 
 def test_similarity_map_matches_embeddings():
     h, _, segments, _, spans, _ = batch(6)
     head = AlignmentHead(DIM, AlignmentConfig(out_dim=8))
     windows = torch.tensor([[0, 5], [3, 8], [10, 15]])
-    sim = head.similarity_map(h, segments, windows)
+    # The grounding map of the segment space (segmo.pipeline.space) over these features.
+    space = SegmentEmbeddings(segments=[["segment"] * 5] * 4, text=head.embed_text(segments),
+                              segment_mask=torch.ones(4, 5, dtype=torch.bool),
+                              num_tokens=torch.full((4,), 25), latents=h, features=h, head=head)
+    sim = space.similarity(windows)
     assert sim.shape == (4, 5, 3) and sim.abs().max() <= 1.0 + 1e-6
     text = head.embed_text(segments)[2, 1]
     motion = head.embed_motion(h[2:3], windows[None])[0, 2]

@@ -15,17 +15,6 @@ from typing import get_args
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Cycles that exist today and belong to a later wave of issue 14. When one is gone, the
-# test says so: delete its entry then.
-KNOWN_PACKAGE_CYCLES = [
-    # pipeline/grounding.py uses evaluation.grounding (windows, IoU) and evaluation uses the
-    # SegMo pipeline; issue 14 item 2 (grounding and retrieval in one place) removes it.
-    {"segmo.pipeline", "segmo.evaluation"},
-]
-KNOWN_MODULE_CYCLES = [
-    # grounding imports SegMo for its types, SegMo calls grounding; issue 14 item 2.
-    {"segmo.pipeline.segmo", "segmo.pipeline.grounding"},
-]
 # What models/ may import besides itself: the layers below it.
 BELOW_MODELS = ("segmo.errors", "segmo.files", "segmo.cpu", "segmo.motion", "segmo.text")
 
@@ -100,7 +89,7 @@ def _edges_between(component: set[str], graph: dict[str, set[str]], of=lambda m:
 def test_the_graph_sees_every_kind_of_import() -> None:
     assert "segmo.text.vocabulary" in GRAPH["segmo.models.evaluator"]  # module level
     assert "segmo.tasks.action_classifier" in GRAPH["segmo.evaluation.sections"]  # in a function
-    assert "segmo.pipeline.segmo" in GRAPH["segmo.pipeline.grounding"]  # under TYPE_CHECKING
+    assert "segmo.pipeline.segmo" in GRAPH["segmo.evaluation.grounding"]  # under TYPE_CHECKING
     assert "segmo.models.registry" in GRAPH["segmo.models"]  # a package's __init__
     assert "segmo.pipeline.grounding" in GRAPH["segmo.pipeline.segmo"]  # from package import module
 
@@ -111,22 +100,22 @@ def test_no_cycle_between_packages() -> None:
         graph.setdefault(package_of(module), set()).update(
             package_of(t) for t in targets if package_of(t) != package_of(module))
     found = cycles(graph)
-    for component in found:
-        assert component in KNOWN_PACKAGE_CYCLES, (
-            f"packages import each other: {sorted(component)}: "
-            f"{_edges_between(component, graph, package_of)}")
-    for known in KNOWN_PACKAGE_CYCLES:
-        assert known in found, f"the cycle {sorted(known)} is gone: delete it from KNOWN_PACKAGE_CYCLES"
+    assert not found, "; ".join(f"packages import each other: {sorted(c)}: "
+                                f"{_edges_between(c, graph, package_of)}" for c in found)
 
 
 def test_no_cycle_between_the_modules_of_a_package() -> None:
     graph = {m: {t for t in targets if package_of(t) == package_of(m)} for m, targets in GRAPH.items()}
     found = cycles(graph)
-    for component in found:
-        assert component in KNOWN_MODULE_CYCLES, (
-            f"modules import each other: {sorted(component)}: {_edges_between(component, graph)}")
-    for known in KNOWN_MODULE_CYCLES:
-        assert known in found, f"the cycle {sorted(known)} is gone: delete it from KNOWN_MODULE_CYCLES"
+    assert not found, "; ".join(f"modules import each other: {sorted(c)}: "
+                                f"{_edges_between(c, graph)}" for c in found)
+
+
+def test_nothing_imports_evaluation() -> None:
+    # Evaluation measures the pipeline; grounding and retrieval themselves live in pipeline/.
+    users = {f"{m} -> {t}" for m in MODULES if package_of(m) != "segmo.evaluation"
+             for t in GRAPH[m] if package_of(t) == "segmo.evaluation"}
+    assert not users, sorted(users)
 
 
 def test_models_import_nothing_above_them() -> None:

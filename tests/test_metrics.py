@@ -14,7 +14,7 @@ from segmo.evaluation.action_order import (
     normalised_edit_distance,
     sequence_accuracy,
 )
-from segmo.evaluation.grounding import best_span, grounding_metrics, sliding_windows, temporal_iou
+from segmo.evaluation.grounding import grounding_metrics, temporal_iou
 from segmo.evaluation.metrics import (
     diversity,
     euclidean_distance_matrix,
@@ -32,6 +32,7 @@ from segmo.evaluation.retrieval import (
     retrieval_metrics,
     text_to_motion_ranks,
 )
+from segmo.pipeline.grounding import best_span, sliding_windows
 
 
 def _paired(n: int = 320, d: int = 16, noise: float = 0.1, seed: int = 0):

@@ -16,6 +16,7 @@ import torch
 from conftest import cli_failure, hash_encoder
 
 from segmo.errors import SegmoError
+from segmo.evaluation.grounding import grounding_accuracy
 from segmo.generation import SamplingOptions
 from segmo.models.alignment import AlignmentConfig
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
@@ -24,7 +25,8 @@ from segmo.models.residual_transformer import ResidualTransformer, ResidualTrans
 from segmo.models.tokenizer import RVQVAE
 from segmo.pipeline import GenerationOutput, SegMo, edit_drift
 from segmo.pipeline.cli import bundle_main, generate_main, ground_main
-from segmo.pipeline.grounding import grounding_accuracy, pair_scores, plot_similarity_map
+from segmo.pipeline.grounding import plot_similarity_map
+from segmo.pipeline.retrieval import pair_scores
 
 TEXT_DIM = 8
 TINY = dict(codebook_size=16, text_dim=TEXT_DIM, max_segments=3, max_tokens=49, dim=32,

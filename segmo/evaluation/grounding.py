@@ -1,17 +1,30 @@
-"""Temporal-grounding metrics (spec §9): R@1 at temporal IoU 0.3/0.5/0.7 and mean IoU.
+"""Temporal-grounding metrics (spec §9): R@1 at temporal IoU 0.3/0.5/0.7 and mean IoU,
+and `grounding_accuracy`, which grounds the built-in corpus's captions with a model and
+scores them against the truth.
 
 A span is (start, end) with `end` exclusive, in any unit (frames, tokens, seconds), as an
-array (..., 2). The model-side similarity map lives with the alignment model; here only
-the generic window helpers and the metrics.
+array (..., 2). Grounding itself (windows, similarity map, its picture) is
+`segmo.pipeline.grounding`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+
+from segmo.data.layout import read_ground_truth, read_motion, read_split
+from segmo.errors import SegmoError
+from segmo.generation.generate import UNIT_LENGTH
+from segmo.segmentation import segment_batch
+
+if TYPE_CHECKING:
+    # For the annotation only: the metrics above need no model, and importing them should
+    # not load the pipeline.
+    from segmo.pipeline.segmo import SegMo
 
 IOU_THRESHOLDS: tuple[float, ...] = (0.3, 0.5, 0.7)
 
@@ -47,33 +60,49 @@ def grounding_metrics(pred_spans: Any, gt_spans: Any, thresholds: Sequence[float
     return out
 
 
-def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | None = None) -> np.ndarray:
-    """All spans (w, 2) of the given window size(s) stepping by `stride` (default window//2,
-    at least 1) over [0, num_tokens); a window longer than the sequence becomes the whole
-    sequence, and the last window of each size is aligned to the end so the tail is covered."""
-    if num_tokens < 1:
-        raise ValueError(f"sliding_windows: num_tokens={num_tokens} must be >= 1")
-    sizes = [window] if isinstance(window, int) else list(window)
-    spans: list[tuple[int, int]] = []
-    for w in sizes:
-        if w < 1:
-            raise ValueError(f"sliding_windows: window={w} must be >= 1")
-        w = min(w, num_tokens)
-        step = stride if stride is not None else max(1, w // 2)
-        if step < 1:
-            raise ValueError(f"sliding_windows: stride={stride} must be >= 1")
-        starts = list(range(0, num_tokens - w + 1, step))
-        if starts[-1] != num_tokens - w:
-            starts.append(num_tokens - w)
-        spans += [(s, s + w) for s in starts]
-    return np.array(sorted(set(spans)), dtype=np.int64)
+def auto_windows(num_tokens: int, num_segments: int) -> list[int]:
+    """Window sizes in tokens for grounding `num_segments` segments in `num_tokens` tokens
+    when their lengths are unknown: 0.5–2× the mean segment length (multi-scale)."""
+    mean = num_tokens / num_segments
+    return sorted({max(1, min(num_tokens, round(mean * k))) for k in (0.5, 0.75, 1, 1.5, 2)})
 
 
-def best_span(similarity: Any, windows: Any) -> np.ndarray:
-    """The window with the highest score: similarity (..., w), windows (w, 2) → (..., 2).
-    Ties go to the first window."""
-    s = similarity.detach().cpu().numpy() if isinstance(similarity, torch.Tensor) else np.asarray(similarity)
-    win = np.asarray(windows)
-    if s.shape[-1] != len(win):
-        raise ValueError(f"best_span: {s.shape[-1]} scores for {len(win)} windows")
-    return win[np.argmax(s, axis=-1)]
+def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
+                       max_motions: int | None = 50, window: int | Sequence[int] | str = "auto",
+                       stride: int = 1, threshold: float = 0.5) -> dict[str, float]:
+    """Ground every multi-segment caption of the built-in corpus and score against the truth.
+
+    For each motion of `split` (first `max_motions`) and each caption with ≥ 2 segments in
+    `segments/<id>.json`, the caption is grounded with its ground-truth segment texts; the
+    best span of each segment is compared with its true span. window "auto" = multi-scale
+    windows of 0.5–2× the mean segment length (`auto_windows`; a/n known from the query).
+    Returns the metrics of `grounding_metrics`, `rate` (fraction with IoU ≥ threshold), the
+    number of segments, and the same metrics for the uniform split (a text-free baseline).
+    """
+    root = Path(data_root)
+    pred, truth, uniform = [], [], []
+    for mid in read_split(root, split)[:max_motions]:
+        record = read_ground_truth(root, mid)
+        features = read_motion(root, mid)
+        if len(features) > model.max_frames + UNIT_LENGTH - 1:
+            continue
+        n = len(features) // UNIT_LENGTH
+        for caption in record["captions"]:
+            segs = caption["segments"]
+            if not 2 <= len(segs) <= min(model.max_segments, n):
+                continue
+            size = auto_windows(n, len(segs)) if window == "auto" else window
+            out = model.ground(caption["text"], features, size, stride,
+                               segments=[s["text"] for s in segs])
+            pred += out.best_spans_frames
+            truth += [(s["start"], s["end"]) for s in segs]
+            uniform += [(UNIT_LENGTH * s, UNIT_LENGTH * e) for s, e in segment_batch(
+                None, torch.tensor([len(segs)]), torch.tensor([n]))[0].tolist()]
+    if not pred:
+        raise SegmoError(f"grounding_accuracy: no caption with ≥ 2 segments in {root} ({split})")
+    metrics = grounding_metrics(pred, truth, thresholds=(0.3, threshold, 0.7))
+    metrics["rate"] = metrics[f"R@1,IoU={threshold:g}"]
+    metrics["segments"] = float(len(pred))
+    for key, value in grounding_metrics(uniform, truth, thresholds=(threshold,)).items():
+        metrics[f"uniform/{key}"] = value
+    return metrics

@@ -25,13 +25,14 @@ from segmo.evaluation.action_order import (
     normalised_edit_distance,
     sequence_accuracy,
 )
-from segmo.evaluation.grounding import grounding_metrics
+from segmo.evaluation.grounding import auto_windows, grounding_metrics
 from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
 from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
 from segmo.models.alignment import isc_from_cosines, paired_cosine
-from segmo.pipeline.grounding import pair_scores, plot_similarity_map
+from segmo.pipeline.grounding import plot_similarity_map
+from segmo.pipeline.retrieval import pair_scores
 from segmo.segmentation import uniform_spans
 
 SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
@@ -197,10 +198,10 @@ def ground_truth(cfg: EvaluateConfig, mid: str, caption_index: int, t: int) -> l
 
 
 def _windows(cfg: EvaluateConfig, n: int, a: int) -> int | list[int]:
-    """Window sizes in tokens: "auto" = 0.5–2× the mean segment length (multi-scale, as
-    `segmo.pipeline.grounding.grounding_accuracy`), else the given comma-separated sizes."""
+    """Window sizes in tokens: "auto" = `auto_windows` (as `grounding_accuracy`), else the
+    given comma-separated sizes."""
     if cfg.grounding_window == "auto":
-        return sorted({max(1, min(n, round(n / a * k))) for k in (0.5, 0.75, 1, 1.5, 2)})
+        return auto_windows(n, a)
     return [int(w) for w in str(cfg.grounding_window).split(",")]
 
 

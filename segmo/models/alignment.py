@@ -245,19 +245,6 @@ class AlignmentHead(nn.Module):
         """h `(b, n, dim)`, spans `(b, a, 2)` (segments or sliding windows) → `(b, a, out_dim)`."""
         return self.aggregator(h, spans)
 
-    def similarity_map(
-        self, h: torch.Tensor, segments: torch.Tensor, windows: torch.Tensor
-    ) -> torch.Tensor:
-        """Grounding map (paper §4.4, Fig. 5): cosine of each text segment vs each window.
-
-        h `(b, n, dim)`, segments `(b, a, dim)`, windows `(w, 2)` or `(b, w, 2)` token
-        spans (e.g. `segmo.evaluation.grounding.sliding_windows`) → `(b, a, w)`.
-        """
-        windows = torch.as_tensor(windows, device=h.device).long()
-        if windows.ndim == 2:
-            windows = windows.expand(h.shape[0], -1, -1)
-        return segment_similarity(self.embed_text(segments), self.embed_motion(h, windows))
-
     def forward(
         self,
         h: torch.Tensor,
@@ -316,21 +303,12 @@ def paired_cosine(text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor) 
     return F.cosine_similarity(text, motion, dim=-1)[mask]
 
 
-def intra_segment_consistency(
-    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor
-) -> tuple[float, float]:
-    """ISC (paper Fig. 4): mean cosine of paired segments, and its coefficient of variation.
-
-    CV = std / mean with the population std over all valid pairs. To pool many batches,
-    concatenate their `paired_cosine` outputs and use `isc_from_cosines`.
-    """
-    return isc_from_cosines(paired_cosine(text, motion, mask))
-
-
 def isc_from_cosines(cosines: torch.Tensor) -> tuple[float, float]:
-    """`(k,)` paired cosines → (mean, std/mean); raises on an empty set."""
+    """ISC (paper Fig. 4) of `(k,)` paired cosines (`paired_cosine`, concatenated over
+    batches) → (mean, coefficient of variation std/mean, population std); raises on an
+    empty set."""
     if cosines.numel() == 0:
-        raise ValueError("intra_segment_consistency: no valid segment pair (mask all False)")
+        raise ValueError("isc_from_cosines: no valid segment pair (mask all False)")
     mean = float(cosines.mean())
     std = float(cosines.std(unbiased=False))
     return mean, (std / mean if mean != 0 else float("inf"))

@@ -217,13 +217,25 @@ class RVQVAE(nn.Module, Pretrained):
             code_usage=out.code_usage,
         )
 
+    def latents(self, features: Tensor) -> Tensor:
+        """z-scored features (b, t, d), t a multiple of 4 -> the encoder's latents
+        (b, t // 4, code_dim) before quantization (what the cpd/kmeans motion segmenters
+        split); `quantize` turns them into indices."""
+        self._check_features(features, "latents")
+        return self.encoder(features.transpose(1, 2)).transpose(1, 2)
+
     @torch.no_grad()
     def encode(self, features: Tensor) -> Tensor:
         """z-scored features (b, t, d), t a multiple of 4 -> indices (b, t // 4, q) long."""
-        self._check_features(features, "encode")
-        latent = self.encoder(features.transpose(1, 2)).transpose(1, 2)
-        b, n, c = latent.shape
-        residual = latent.float().reshape(b * n, c)
+        self._check_features(features, "encode")  # an error names the method called
+        return self.quantize(self.latents(features))
+
+    @torch.no_grad()
+    def quantize(self, latents: Tensor) -> Tensor:
+        """Latents (b, n, code_dim) -> indices (b, n, q) long: each layer takes the code
+        nearest to what the layers before it left."""
+        b, n, c = latents.shape
+        residual = latents.float().reshape(b * n, c)
         indices = []
         for layer in range(self.num_quantizers):
             index = self.quantizer.nearest(layer, residual)

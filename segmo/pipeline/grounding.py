@@ -1,13 +1,10 @@
-"""Model-side grounding and retrieval in SegMo's learned segment space (paper §4.4).
+"""Temporal grounding (paper §4.4, Fig. 5): where each segment of a text happens in a
+motion, in SegMo's learned segment space (`segmo.pipeline.space`).
 
-The query text and the motion both go through the mask transformer, UNMASKED and
-conditioned on the text and its segments, fed as a set (without their order embeddings,
-the mode `MaskTask.order_drop_prob` trains), so that a segment is located by content.
-Text segments are the alignment head's `embed_text` of the segments' projected text
-vectors; motion segments are its `embed_motion` (mean ‖ max pooling + MLP) over token
-spans of the motion outputs. Cosine similarity compares them. Because the motion
-features depend on the text prefix, every (text, motion) pair is its own forward pass;
-pairs are batched.
+Every sliding window of the motion's tokens is embedded as a motion span and compared by
+cosine with each text segment; a segment's best window, ×4, is its frame span. The
+windows and the picture of the map live here too; how well grounding finds the truth
+(temporal IoU, `grounding_accuracy`) is `segmo.evaluation.grounding`.
 
     out = model.ground("a person walks forward, then waves", features)   # (t, 263) raw
     print(out)                       # best frame span per text segment
@@ -16,226 +13,67 @@ pairs are batched.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import SegmoError
-from segmo.evaluation.grounding import best_span, grounding_metrics, sliding_windows
 from segmo.generation.generate import UNIT_LENGTH
-from segmo.models.alignment import AlignmentHead
 from segmo.pipeline.outputs import GroundingOutput
-from segmo.segmentation import segment_batch
-
-if TYPE_CHECKING:
-    from segmo.pipeline.segmo import SegMo
-
-BATCH = 32  # pairs per forward pass in retrieval
+from segmo.pipeline.space import SegmentModel
 
 
-def alignment_head(model: SegMo) -> AlignmentHead:
-    head = model.mask.alignment
-    if head is None:
-        raise SegmoError("SegMo: this mask transformer was trained without segment alignment "
-                         "(alignment: none), so it has no shared text/motion space; grounding, "
-                         "retrieval and embed_pairs need a model trained with alignment")
-    return head
-
-
-def _as_tensor(motion: Any) -> torch.Tensor:
-    return motion.float() if isinstance(motion, torch.Tensor) else torch.as_tensor(
-        np.asarray(motion, dtype=np.float32))
-
-
-def batch_motions(model: SegMo, motions: Any, lengths: Any = None, normalized: bool = False
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Motions → z-scored (b, t, d) padded with zeros, and frames (b,) (multiples of 4).
-
-    motions: a list of (t_i, d) arrays/tensors, or a (b, t, d) tensor with `lengths` (b,)
-    frames. Raw features are z-scored with the tokenizer's statistics unless `normalized`.
-    Each motion is cut to a multiple of 4 frames (the tokenizer's unit).
-    """
-    if isinstance(motions, (torch.Tensor, np.ndarray)) and np.ndim(motions) == 3:
-        x = _as_tensor(motions)
-        frames = (torch.full((x.shape[0],), x.shape[1]) if lengths is None
-                  else torch.as_tensor(lengths).long().reshape(-1).cpu())
-        if len(frames) != x.shape[0]:
-            raise SegmoError(f"embed_pairs: {len(frames)} lengths for {x.shape[0]} motions")
-        motions = [x[i, : int(n)] for i, n in enumerate(frames)]
-    elif lengths is not None:
-        raise SegmoError("embed_pairs: lengths are only used with a (b, t, d) motion tensor")
-    rows = []
-    for motion in motions:
-        if normalized:
-            x = _as_tensor(motion)
-            if x.ndim != 2 or x.shape[1] != model.tokenizer.config.feature_dim:
-                raise SegmoError(f"embed_pairs: a motion must be (t, "
-                                 f"{model.tokenizer.config.feature_dim}), got {tuple(x.shape)}")
-            usable = x.shape[0] - x.shape[0] % UNIT_LENGTH
-            if not UNIT_LENGTH <= usable <= model.max_frames:
-                raise SegmoError(f"embed_pairs: a motion must have {UNIT_LENGTH}.."
-                                 f"{model.max_frames + 3} frames, got {x.shape[0]}")
-            rows.append(x[:usable].to(model.device))
-        else:
-            rows.append(model.normalize_motion(motion)[0][0])
-    if not rows:
-        raise SegmoError("embed_pairs: no motion given")
-    frames = torch.tensor([len(r) for r in rows], device=model.device)
-    z = torch.zeros(len(rows), int(frames.max()), rows[0].shape[1], device=model.device)
-    for i, r in enumerate(rows):
-        z[i, : len(r)] = r
-    return z, frames
-
-
-def _forward(model: SegMo, z: torch.Tensor, frames: torch.Tensor, texts: list[str],
-             segments: list[list[str]] | None):
-    """One unmasked pass: → (mask transformer output, token lengths (b,), segment_mask,
-    per-token tokenizer latents (b, n, c) for the cpd/kmeans segmenters)."""
-    sentence, vectors, segment_mask, _ = model.text_condition(texts, segments)
-    if len(texts) != z.shape[0]:
-        raise SegmoError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
-    with torch.inference_mode():
-        latents = model.tokenizer.encoder(z.transpose(1, 2)).transpose(1, 2)
-        base = model.tokenizer.encode(z)[..., 0]
-        n_valid = frames // UNIT_LENGTH
-        token_mask = torch.arange(base.shape[1], device=z.device) < n_valid[:, None]
-        # Segments as a set: the motion features must say where each segment is from what
-        # the motion does, not from where the caption put it (`TextPrefix`).
-        unordered = torch.ones(len(texts), dtype=torch.bool, device=z.device)
-        out = model.mask(base, token_mask, sentence, vectors, segment_mask, unordered=unordered)
-    return out, n_valid, segment_mask, latents
-
-
-def embed_pairs(model: SegMo, texts: list[str], motions: Any, spans: Any = None, *,
-                segments: list[list[str]] | None = None, lengths: Any = None,
-                normalized: bool = False, region: tuple[int, int] | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Text i's segments paired with spans of motion i, in the learned space.
-
-    texts (b); motions as in `batch_motions`; spans: None (the bundle's motion segmenter,
-    "uniform" by default), "uniform" / "cpd" / "kmeans" (segmo.segmentation, as many
-    spans as each text has segments), or explicit token spans (b, a, 2) with (0, 0) for
-    absent slots; region: (start, end) tokens that the generated spans must cover instead
-    of the whole motion. → text (b, a, out_dim), motion (b, a, out_dim), mask (b, a) bool
-    (slot i has a text segment and a non-empty span). Segments beyond the motion's token
-    count sit out (masked), as in training.
-    """
-    head = alignment_head(model)
-    z, frames = batch_motions(model, motions, lengths, normalized)
-    out, n_valid, segment_mask, latents = _forward(model, z, frames, list(texts), segments)
-    b, a = segment_mask.shape
-    if spans is None:
-        spans = model.config.motion_segmenter
-    if isinstance(spans, str):
-        start = torch.zeros_like(n_valid)
-        if region is not None:
-            start = torch.full_like(n_valid, region[0])
-            if bool((n_valid < region[1]).any()) or not 0 <= region[0] < region[1]:
-                raise SegmoError(f"embed_pairs: region {region} tokens is outside a motion of "
-                                 f"{n_valid.tolist()} tokens")
-            latents, n_valid = latents[:, region[0]: region[1]], torch.full_like(
-                n_valid, region[1] - region[0])
-        num = torch.minimum(segment_mask.sum(1), n_valid)
-        spans = segment_batch(None if spans == "uniform" else latents, num, n_valid, spans,
-                              max_segments=a)
-        present = spans[..., 1] > spans[..., 0]
-        spans = torch.where(present[..., None], spans + start[:, None, None], spans)
-    else:
-        spans = torch.as_tensor(spans, device=z.device).long()
-        if spans.shape != (b, a, 2):
-            raise SegmoError(f"embed_pairs: explicit spans must be (b={b}, a={a}, 2) token "
-                             f"spans, got {tuple(spans.shape)}")
-        if bool((spans[..., 1] > n_valid[:, None]).any()):
-            raise SegmoError("embed_pairs: a span ends past its motion's token count")
-    spans = spans.to(z.device)
-    with torch.inference_mode():
-        text = head.embed_text(out.segment_features)
-        motion = head.embed_motion(out.motion_features, spans)
-    mask = segment_mask & (spans[..., 1] > spans[..., 0])
-    return text, motion, mask
-
-
-def pair_scores(text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """(b,) mean cosine of each row's valid segment pairs: the retrieval score."""
-    cosine = F.cosine_similarity(text, motion, dim=-1)
-    weight = mask.to(cosine.dtype)
-    return (cosine * weight).sum(-1) / weight.sum(-1).clamp(min=1.0)
-
-
-def ground(model: SegMo, text: str, motion: Any, window: int | Sequence[int] = 5,
+def ground(model: SegmentModel, text: str, motion: Any, window: int | Sequence[int] = 5,
            stride: int = 1, segments: list[str] | None = None) -> GroundingOutput:
     """Similarity of each text segment with every sliding window of the motion.
 
     motion: raw features (t, d); window: size(s) in tokens (a list gives multi-scale
     windows); stride in tokens. The best window of each segment, ×4, is its frame span.
     """
-    head = alignment_head(model)
-    z, t = model.normalize_motion(motion)
-    frames = torch.tensor([z.shape[1]], device=z.device)
-    out, n_valid, _, _ = _forward(model, z, frames, [text],
-                                  None if segments is None else [segments])
-    used = model.segment_texts([text])[0] if segments is None else list(segments)
-    windows = torch.from_numpy(sliding_windows(int(n_valid[0]), window, stride))
-    with torch.inference_mode():
-        similarity = head.similarity_map(out.motion_features, out.segment_features,
-                                         windows.to(z.device))[0].float().cpu()
+    space = model.embed_segments([text], [motion],
+                                 segments=None if segments is None else [segments])
+    t = len(motion)  # frames given; the pass used them cut to a multiple of 4
+    windows = torch.from_numpy(sliding_windows(int(space.num_tokens[0]), window, stride))
+    similarity = space.similarity(windows)[0].float().cpu()
     best = best_span(similarity, windows) * UNIT_LENGTH
     return GroundingOutput(
-        text=text, segments=used, windows=windows, similarity=similarity,
+        text=text, segments=space.segments[0], windows=windows, similarity=similarity,
         best_spans_frames=[(int(s), int(min(e, t))) for s, e in best],
         best_scores=similarity.max(dim=-1).values.tolist(), num_frames=t)
 
 
-def _top(scores: torch.Tensor, top_k: int) -> list[tuple[int, float]]:
-    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
-        raise SegmoError(f"SegMo: top_k must be a whole number >= 1, got {top_k!r}")
-    order = scores.argsort(descending=True, stable=True)[:top_k]
-    return [(int(i), float(scores[i])) for i in order]
+def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | None = None) -> np.ndarray:
+    """All spans (w, 2) of the given window size(s) stepping by `stride` (default window//2,
+    at least 1) over [0, num_tokens); a window longer than the sequence becomes the whole
+    sequence, and the last window of each size is aligned to the end so the tail is covered."""
+    if num_tokens < 1:
+        raise ValueError(f"sliding_windows: num_tokens={num_tokens} must be >= 1")
+    sizes = [window] if isinstance(window, int) else list(window)
+    spans: list[tuple[int, int]] = []
+    for w in sizes:
+        if w < 1:
+            raise ValueError(f"sliding_windows: window={w} must be >= 1")
+        w = min(w, num_tokens)
+        step = stride if stride is not None else max(1, w // 2)
+        if step < 1:
+            raise ValueError(f"sliding_windows: stride={stride} must be >= 1")
+        starts = list(range(0, num_tokens - w + 1, step))
+        if starts[-1] != num_tokens - w:
+            starts.append(num_tokens - w)
+        spans += [(s, s + w) for s in starts]
+    return np.array(sorted(set(spans)), dtype=np.int64)
 
 
-def retrieve_texts(model: SegMo, motion: Any, candidates: list[str],
-                   span: tuple[int, int] | None = None, top_k: int = 5
-                   ) -> list[tuple[str, float]]:
-    """Rank candidate texts for a motion, or for frames [start, end) of it.
-
-    Each candidate is split into its text segments and paired with as many uniform spans
-    of the motion (or of the span); its score is the mean paired cosine.
-    """
-    if not candidates:
-        raise SegmoError("retrieve_texts: no candidate texts")
-    region = None
-    if span is not None:
-        start, end = int(span[0]), int(span[1])
-        if not 0 <= start < end:
-            raise SegmoError(f"retrieve_texts: span must satisfy 0 ≤ start < end, got {span}")
-        region = (start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH))
-    scores = []
-    for i in range(0, len(candidates), BATCH):
-        chunk = list(candidates[i: i + BATCH])
-        pairs = embed_pairs(model, chunk, [motion] * len(chunk), "uniform", region=region)
-        scores.append(pair_scores(*pairs).cpu())
-    return [(candidates[i], s) for i, s in _top(torch.cat(scores), top_k)]
-
-
-def retrieve_motions(model: SegMo, text: str, motions: list, top_k: int = 5
-                     ) -> list[tuple[int, float]]:
-    """Rank motions (raw features (t_i, d)) for a text → [(index, score)], best first."""
-    if len(motions) == 0:
-        raise SegmoError("retrieve_motions: no motions")
-    segments = model.segment_texts([text])
-    scores = []
-    for i in range(0, len(motions), BATCH):
-        chunk = list(motions[i: i + BATCH])
-        pairs = embed_pairs(model, [text] * len(chunk), chunk, "uniform",
-                            segments=segments * len(chunk))
-        scores.append(pair_scores(*pairs).cpu())
-    return _top(torch.cat(scores), top_k)
+def best_span(similarity: Any, windows: Any) -> np.ndarray:
+    """The window with the highest score: similarity (..., w), windows (w, 2) → (..., 2).
+    Ties go to the first window."""
+    s = similarity.detach().cpu().numpy() if isinstance(similarity, torch.Tensor) else np.asarray(similarity)
+    win = np.asarray(windows)
+    if s.shape[-1] != len(win):
+        raise ValueError(f"best_span: {s.shape[-1]} scores for {len(win)} windows")
+    return win[np.argmax(s, axis=-1)]
 
 
 def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = None,
@@ -280,47 +118,3 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
     ax.set_xlabel("window start (tokens)" if len(sizes) == 1 else "window start+size (tokens)")
     ax.set_title(title if title is not None else output.text, fontsize=9)
     return ax
-
-
-def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
-                       max_motions: int | None = 50, window: int | Sequence[int] | str = "auto",
-                       stride: int = 1, threshold: float = 0.5) -> dict[str, float]:
-    """Ground every multi-segment caption of the built-in corpus and score against the truth.
-
-    For each motion of `split` (first `max_motions`) and each caption with ≥ 2 segments in
-    `segments/<id>.json`, the caption is grounded with its ground-truth segment texts; the
-    best span of each segment is compared with its true span. window "auto" = multi-scale
-    windows of 0.5–2× the mean segment length (a/n known from the query). Returns the
-    metrics of `grounding_metrics`, `rate` (fraction with IoU ≥ threshold), the number of
-    segments, and the same metrics for the uniform split (a text-free baseline).
-    """
-    root = Path(data_root)
-    pred, truth, uniform = [], [], []
-    for mid in read_split(root, split)[:max_motions]:
-        record = read_ground_truth(root, mid)
-        features = read_motion(root, mid)
-        if len(features) > model.max_frames + UNIT_LENGTH - 1:
-            continue
-        n = len(features) // UNIT_LENGTH
-        for caption in record["captions"]:
-            segs = caption["segments"]
-            if not 2 <= len(segs) <= min(model.max_segments, n):
-                continue
-            size = window
-            if window == "auto":
-                mean = n / len(segs)
-                size = sorted({max(1, min(n, round(mean * k))) for k in (0.5, 0.75, 1, 1.5, 2)})
-            out = ground(model, caption["text"], features, size, stride,
-                         segments=[s["text"] for s in segs])
-            pred += out.best_spans_frames
-            truth += [(s["start"], s["end"]) for s in segs]
-            uniform += [(UNIT_LENGTH * s, UNIT_LENGTH * e) for s, e in segment_batch(
-                None, torch.tensor([len(segs)]), torch.tensor([n]))[0].tolist()]
-    if not pred:
-        raise SegmoError(f"grounding_accuracy: no caption with ≥ 2 segments in {root} ({split})")
-    metrics = grounding_metrics(pred, truth, thresholds=(0.3, threshold, 0.7))
-    metrics["rate"] = metrics[f"R@1,IoU={threshold:g}"]
-    metrics["segments"] = float(len(pred))
-    for key, value in grounding_metrics(uniform, truth, thresholds=(threshold,)).items():
-        metrics[f"uniform/{key}"] = value
-    return metrics

@@ -47,8 +47,9 @@ from segmo.models.tokenizer import RVQVAE
 from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
-from segmo.pipeline import grounding  # it imports this module for its types only
+from segmo.pipeline import grounding, retrieval
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
+from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segments
 from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
 from segmo.text.llm import get_text_segmenter
 
@@ -527,29 +528,92 @@ class SegMo:
                              generator=generator, precision=precision)
         return self.decode(edited, lengths, texts, used, precision)
 
-    # -- grounding and retrieval (segmo.pipeline.grounding) ----------------------------------
+    # -- the segment space: grounding and retrieval ------------------------------------------
 
-    def ground(self, text: str, motion: Any, window: int = 5, stride: int = 1,
+    def embed_segments(self, texts: list[str], motions: Any, *,
+                       segments: list[list[str]] | None = None, lengths: Any = None,
+                       normalized: bool = False) -> SegmentEmbeddings:
+        """Text i and motion i in the learned segment space (`segmo.pipeline.space`).
+
+        motions: a list of (t_i, d) arrays/tensors, or a (b, t, d) tensor with `lengths`
+        (b,) frames; raw features unless `normalized` (z-scored already). Each motion is
+        cut to a multiple of 4 frames (the tokenizer's unit). segments: one list per text
+        (default: the bundle's text segmenter).
+        """
+        alignment_head(self.mask)  # before any work: a model without one cannot do this
+        z, frames = self._batch_motions(motions, lengths, normalized)
+        texts = list(texts)
+        sentence, vectors, segment_mask, used = self.text_condition(texts, segments)
+        if len(texts) != z.shape[0]:
+            raise SegmoError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
+        return embed_segments(self.tokenizer, self.mask, z, frames, sentence, vectors,
+                              segment_mask, used)
+
+    def _batch_motions(self, motions: Any, lengths: Any, normalized: bool
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Motions as `embed_segments` takes them → z-scored (b, t, d) padded with zeros,
+        and frames (b,) (multiples of 4)."""
+        if isinstance(motions, (torch.Tensor, np.ndarray)) and np.ndim(motions) == 3:
+            x = _as_tensor(motions)
+            frames = (torch.full((x.shape[0],), x.shape[1]) if lengths is None
+                      else torch.as_tensor(lengths).long().reshape(-1).cpu())
+            if len(frames) != x.shape[0]:
+                raise SegmoError(f"embed_pairs: {len(frames)} lengths for {x.shape[0]} motions")
+            motions = [x[i, : int(n)] for i, n in enumerate(frames)]
+        elif lengths is not None:
+            raise SegmoError("embed_pairs: lengths are only used with a (b, t, d) motion tensor")
+        rows = []
+        for motion in motions:
+            if normalized:
+                x = _as_tensor(motion)
+                d = self.tokenizer.config.feature_dim
+                if x.ndim != 2 or x.shape[1] != d:
+                    raise SegmoError(f"embed_pairs: a motion must be (t, {d}), got "
+                                     f"{tuple(x.shape)}")
+                usable = x.shape[0] - x.shape[0] % UNIT_LENGTH
+                if not UNIT_LENGTH <= usable <= self.max_frames:
+                    raise SegmoError(f"embed_pairs: a motion must have {UNIT_LENGTH}.."
+                                     f"{self.max_frames + 3} frames, got {x.shape[0]}")
+                rows.append(x[:usable].to(self.device))
+            else:
+                rows.append(self.normalize_motion(motion)[0][0])
+        if not rows:
+            raise SegmoError("embed_pairs: no motion given")
+        frames = torch.tensor([len(r) for r in rows], device=self.device)
+        z = torch.zeros(len(rows), int(frames.max()), rows[0].shape[1], device=self.device)
+        for i, r in enumerate(rows):
+            z[i, : len(r)] = r
+        return z, frames
+
+    def ground(self, text: str, motion: Any, window: int | list[int] = 5, stride: int = 1,
                segments: list[str] | None = None) -> GroundingOutput:
-        """Where each text segment of `text` happens in `motion` (raw features (t, d))."""
-        return grounding.ground(self, text, motion, window=window, stride=stride, segments=segments)
+        """Where each text segment of `text` happens in `motion` (raw features (t, d));
+        see `segmo.pipeline.grounding.ground`."""
+        return grounding.ground(self, text, motion, window=window, stride=stride,
+                                segments=segments)
 
     def embed_pairs(self, texts: list[str], motions: Any, spans: Any = None, *,
                     segments: list[list[str]] | None = None, lengths: Any = None,
                     normalized: bool = False
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Paired text/motion segments in the learned space; see `grounding.embed_pairs`."""
-        return grounding.embed_pairs(self, texts, motions, spans, segments=segments, lengths=lengths,
-                           normalized=normalized)
+        """Paired text/motion segments in the learned space; spans default to the bundle's
+        motion segmenter. See `segmo.pipeline.retrieval.embed_pairs`."""
+        return retrieval.embed_pairs(
+            self, texts, motions, self.config.motion_segmenter if spans is None else spans,
+            segments=segments, lengths=lengths, normalized=normalized)
 
     def retrieve_texts(self, motion: Any, candidates: list[str],
                        span: tuple[int, int] | None = None, top_k: int = 5
                        ) -> list[tuple[str, float]]:
         """Motion (or its frame span) → the top_k candidate texts with their scores."""
-        return grounding.retrieve_texts(self, motion, candidates, span=span, top_k=top_k)
+        return retrieval.retrieve_texts(self, motion, candidates, span=span, top_k=top_k)
 
     def retrieve_motions(self, text: str, motions: list, top_k: int = 5
                          ) -> list[tuple[int, float]]:
         """Text → the top_k motions (indices into `motions`) with their scores."""
-        return grounding.retrieve_motions(self, text, motions, top_k=top_k)
+        return retrieval.retrieve_motions(self, text, motions, top_k=top_k)
 
+
+def _as_tensor(motion: Any) -> torch.Tensor:
+    return motion.float() if isinstance(motion, torch.Tensor) else torch.as_tensor(
+        np.asarray(motion, dtype=np.float32))
