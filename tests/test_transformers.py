@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -17,7 +19,6 @@ from segmo.models.pretrained import load_pretrained
 from segmo.models.residual_transformer import (
     ResidualTransformer,
     ResidualTransformerConfig,
-    layer_probabilities,
     sample_layers,
 )
 
@@ -366,6 +367,12 @@ def test_residual_input_uses_lower_layers_only():
                                rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="layer must be in 1..2"):
         model(indices, 0, token_mask, *cond)
+
+
+def layer_probabilities(num_quantizers: int) -> list[float]:
+    """Exact P(j) of `sample_layers` for j = 1..q−1: P(j ≤ k) = (2/π)·arccos(1 − k/(q−1))."""
+    cdf = [2 / math.pi * math.acos(1 - k / (num_quantizers - 1)) for k in range(num_quantizers)]
+    return [cdf[k] - cdf[k - 1] for k in range(1, num_quantizers)]
 
 
 def test_sample_layers_favours_low_layers():

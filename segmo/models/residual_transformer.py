@@ -18,7 +18,6 @@ Training (the task owns the loop; CFG drop probability 0.2 is the task's):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -185,9 +184,3 @@ def sample_layers(batch_size: int, num_quantizers: int,
     u = torch.rand(batch_size, generator=generator, device=device)
     s = 1.0 - cosine_schedule(u)
     return (1 + torch.floor(s * (num_quantizers - 1)).long()).clamp(max=num_quantizers - 1)
-
-
-def layer_probabilities(num_quantizers: int) -> list[float]:
-    """Exact P(j) of `sample_layers` for j = 1..q−1 (documentation and tests)."""
-    cdf = [2 / math.pi * math.acos(1 - k / (num_quantizers - 1)) for k in range(num_quantizers)]
-    return [cdf[k] - cdf[k - 1] for k in range(1, num_quantizers)]
