@@ -320,16 +320,12 @@ def test_text_cache_features_and_collate(tmp_path):
     assert s["segment_features"].shape == (4, 8) and s["segment_mask"].tolist() == [1, 1, 1, 0]
     assert torch.equal(s["segment_features"][1], cache.sentence(["waves"])[0])
     assert s["segment_features"][3].abs().sum() == 0
-    assert s["tokens"].shape == (len(s["caption"].split()), 8)
     batch = collate([ds[i] for i in range(len(ds))])
     assert batch["motion"].shape == (4, 80, D) and batch["lengths"].tolist() == [60, 60, 80, 80]
     assert batch["mask"].dtype == torch.bool and batch["mask"].sum(1).tolist() == [60, 60, 80, 80]
     assert batch["motion"][0, 60:].abs().sum() == 0
     assert batch["sentence"].shape == (4, 8) and batch["segment_features"].shape == (4, 4, 8)
     assert batch["segment_mask"].sum(1).tolist() == [3, 1, 2, 1]
-    lengths = [len(c.split()) for c in batch["caption"]]
-    assert batch["tokens"].shape == (4, max(lengths), 8)
-    assert batch["token_mask"].sum(1).tolist() == lengths
     assert batch["id"] == ["a", "a", "b", "b"] and batch["segments"][0] == ["walks", "waves", "sits"]
     assert batch["spans"] == [None] * 4 and batch["caption_index"] == [0, 1, 0, 1]
 
@@ -484,11 +480,8 @@ def test_missing_text_features_are_reported_at_setup(tmp_path):
     class Partial(FakeCache):
         folder = tmp_path / "text_features" / "fake"
 
-        def __contains__(self, text):
-            return text != "waves"
-
-        def has_tokens(self, text):
-            return text != "a person does b"
+        def __contains__(self, text):  # a caption and a segment are missing
+            return text not in ("waves", "a person does b")
 
     dm = MotionDataModule(str(tmp_path), text_segments="rule", text_features="fake")
     dm.text_cache = Partial()  # (a cached_property: the instance attribute wins)
@@ -548,4 +541,3 @@ def test_real_text_feature_cache(tmp_path):
     expected = FakeCache().sentence(batch["caption"])
     assert torch.allclose(batch["sentence"], expected, atol=1e-2)  # stored as float16
     assert batch["segment_mask"].sum(1).tolist() == [2, 1, 2, 1]
-    assert batch["token_mask"].sum(1).tolist() == [len(c.split()) for c in batch["caption"]]

@@ -6,9 +6,9 @@
   and why the bound is 1000). Such a file trains a NaN model: one
   ``new_joint_vecs/<id>.npy`` holding 1e30 made the RVQ loss inf on its first batch and
   every later one NaN.
-* Text features: every caption (sentence vector and token features) and every text
-  segment of a split must be in the text-feature cache; otherwise the run would stop with
-  a KeyError at the first batch that holds one.
+* Text features: every caption and every text segment of a split must have its sentence
+  vector in the text-feature cache; otherwise the run would stop with a KeyError at the
+  first batch that holds one.
 """
 
 from __future__ import annotations
@@ -40,14 +40,7 @@ def refuse_values(where: str, problems: list[tuple[Path, str]], total: int,
 
 def missing_texts(captions: Iterable[str], segments: Iterable[str], cache: Any
                   ) -> tuple[list[str], int]:
-    """Texts a split needs that ``cache`` lacks, in first-use order, and how many it needs.
-
-    Captions need a sentence vector and token features, segments a sentence vector."""
-    needed: dict[str, bool] = {}  # text -> needs token features
-    for text in captions:
-        needed[text] = True
-    for text in segments:
-        needed.setdefault(text, False)
-    missing = [t for t, tokens in needed.items()
-               if t not in cache or (tokens and not cache.has_tokens(t))]
-    return missing, len(needed)
+    """Texts a split needs (its captions and text segments, each a sentence vector) that
+    ``cache`` lacks, in first-use order, and how many it needs."""
+    needed = list(dict.fromkeys([*captions, *segments]))
+    return [t for t in needed if t not in cache], len(needed)

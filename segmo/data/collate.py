@@ -29,8 +29,7 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     (True = valid frame), ``lengths`` (b,) long; lists for ``caption``, ``segments``, ``id``,
     ``caption_index``, ``spans`` (whichever the samples have); and when text features are
     present ``sentence`` (b, dim), ``segment_features`` (b, A, dim), ``segment_mask``
-    (b, A) bool, ``tokens`` (b, l, dim) zero-padded with ``token_mask`` (b, l) bool; frame
-    ``labels`` (b, t) long padded with `IGNORE`.
+    (b, A) bool; frame ``labels`` (b, t) long padded with `IGNORE`.
     """
     if not samples:
         raise ValueError("collate: empty list of samples")
@@ -54,6 +53,4 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
         batch["labels"] = torch.full(mask.shape, IGNORE, dtype=torch.long)
         for i, s in enumerate(samples):
             batch["labels"][i, : len(s["labels"])] = s["labels"]
-    if "tokens" in keys:
-        batch["tokens"], batch["token_mask"] = _pad([s["tokens"] for s in samples])
     return batch

@@ -213,7 +213,7 @@ class MotionDataset(Dataset):
     (``text_segments/<name>/<id>.txt``, else ``[caption]``); ``id``; ``caption_index``;
     ``spans`` list[(start, end)] frames of the returned motion, end exclusive, or None; and
     with a text-feature cache ``sentence`` (dim,), ``segment_features`` (A, dim) zero-padded,
-    ``segment_mask`` (A,) bool, ``tokens`` (l, dim).
+    ``segment_mask`` (A,) bool.
 
     Cropping to a multiple of ``unit_length`` drops ``t % unit_length`` frames: at a random
     offset when ``random_crop`` (training), else from the end (start 0, evaluation). Spans
@@ -379,6 +379,7 @@ class MotionDataset(Dataset):
         features[: seg.shape[0]] = seg
         mask = torch.zeros(self.max_segments, dtype=torch.bool)
         mask[: seg.shape[0]] = True
+        # Per-word features (`cache.tokens(e.caption)`) come back here with word-level conditioning.
         return {"sentence": cache.sentence([e.caption])[0].float(), "segment_features": features,
-                "segment_mask": mask, "tokens": cache.tokens(e.caption).float()}
+                "segment_mask": mask}
 
