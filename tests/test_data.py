@@ -396,6 +396,20 @@ def test_datamodule(tmp_path):
         dm.dataset("dev")
 
 
+def test_unit_length_of_older_configs_is_accepted_only_as_the_token_stride(tmp_path):
+    """A token is FRAMES_PER_TOKEN frames, fixed by the tokenizer; configs written when
+    `unit_length` was a DataModule option hold `unit_length: 4` and still load."""
+    from segmo.data import MotionDataModule
+    from segmo.models.tokenizer import FRAMES_PER_TOKEN
+
+    write_dataset(tmp_path, {"a": 70, "b": 90}, splits={"train": ["a", "b"]})
+    assert FRAMES_PER_TOKEN == 4
+    old = MotionDataModule(str(tmp_path), unit_length=4)
+    assert old.dataset("train")[0]["length"] % FRAMES_PER_TOKEN == 0
+    with pytest.raises(ValueError, match=r"unit_length=8: a motion token is always 4 frames"):
+        MotionDataModule(str(tmp_path), unit_length=8)
+
+
 def test_datamodule_batches_do_not_depend_on_the_worker_count(tmp_path):
     from segmo.data import MotionDataModule
 

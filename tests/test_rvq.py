@@ -7,7 +7,7 @@ import torch
 
 from segmo.models.pretrained import load_pretrained
 from segmo.models.quantizer import ResidualQuantizer
-from segmo.models.tokenizer import RVQVAE, RVQConfig
+from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE, RVQConfig
 
 
 def tiny_config(**overrides) -> RVQConfig:
@@ -35,6 +35,16 @@ def test_shapes_and_outputs():
     assert indices.shape == (3, 8, 4)
     assert model.decode(indices).shape == (3, 32, 263)
     assert (model.codebook_size, model.num_quantizers, model.code_dim) == (16, 4, 16)
+
+
+def test_frames_per_token_is_the_encoders_stride():
+    """The one constant that data cropping, lengths and token spans read is what the
+    encoder does: n tokens from n * FRAMES_PER_TOKEN frames, and back."""
+    model = RVQVAE(tiny_config()).eval()
+    for n in (1, 5):
+        indices = model.encode(torch.randn(1, n * FRAMES_PER_TOKEN, 263))
+        assert indices.shape[1] == n
+        assert model.decode(indices).shape[1] == n * FRAMES_PER_TOKEN
 
 
 def test_bad_inputs_raise():

@@ -22,6 +22,7 @@ from segmo.data.layout import load_stats, split_file
 from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
 from segmo.errors import SegmoError
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
 
@@ -40,7 +41,9 @@ class MotionDataModule(LightningDataModule):
     that order. With ``frame_labels`` (the action classifier; built-in corpus only) every
     split is an `ActionFrameDataset`: whole clips with one action label per frame. The last incomplete batch is dropped only when a rank's share of the train
     set holds more than one batch. ``max_abs_z`` bounds the feature values
-    (`segmo.data.checks`; None checks for NaN/inf only).
+    (`segmo.data.checks`; None checks for NaN/inf only). ``unit_length`` is obsolete: a
+    motion token is `FRAMES_PER_TOKEN` frames, fixed by the tokenizer's encoder; configs
+    written when it was an option (``unit_length: 4``) still load, any other value is an error.
 
     Example::
 
@@ -59,7 +62,7 @@ class MotionDataModule(LightningDataModule):
         text_segments: str | None = None,
         text_features: str | None = None,
         max_segments: int = 5,
-        unit_length: int = 4,
+        unit_length: int | None = None,
         seed: int = 0,
         max_motions: int | None = None,
         preload: bool = True,
@@ -71,6 +74,9 @@ class MotionDataModule(LightningDataModule):
         self.save_hyperparameters()
         if batch_size <= 0:
             raise SegmoError(f"data.init_args.batch_size={batch_size} must be positive")
+        if unit_length not in (None, FRAMES_PER_TOKEN):
+            raise SegmoError(f"data.init_args.unit_length={unit_length}: a motion token is always "
+                             f"{FRAMES_PER_TOKEN} frames (the tokenizer's fixed stride); remove the option")
         if frame_labels and window is not None:
             raise SegmoError("data.init_args: frame_labels gives whole clips; it takes no window")
         self.root = Path(root)
@@ -83,7 +89,6 @@ class MotionDataModule(LightningDataModule):
         self.text_segments = text_segments
         self.text_features = text_features
         self.max_segments = max_segments
-        self.unit_length = unit_length
         self.seed = seed
         self.max_motions = max_motions
         self.preload = preload
@@ -138,9 +143,9 @@ class MotionDataModule(LightningDataModule):
                                       mean=mean, std=std, max_motions=self.max_motions,
                                       preload=self.preload, strict=self.strict,
                                       max_abs_z=self.max_abs_z)
-        common = dict(skeleton=self.skeleton, mean=mean, std=std, unit_length=self.unit_length,
-                      random_crop=train, seed=self.seed, max_motions=self.max_motions,
-                      preload=self.preload, strict=self.strict, max_abs_z=self.max_abs_z)
+        common = dict(skeleton=self.skeleton, mean=mean, std=std, random_crop=train,
+                      seed=self.seed, max_motions=self.max_motions, preload=self.preload,
+                      strict=self.strict, max_abs_z=self.max_abs_z)
         if self.window is not None:
             return MotionWindowDataset(self.root, split, window=self.window if train else None,
                                        **common)

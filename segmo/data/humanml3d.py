@@ -53,6 +53,7 @@ from segmo.data.checks import MAX_ABS_Z, refuse_values, value_problem
 from segmo.data.layout import caption_spans, motion_file, read_split, resolve_stats, split_file
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
 from segmo.text.captions import CaptionLine, parse_text_line, read_caption_lines, texts_file
@@ -209,13 +210,13 @@ class MotionDataset(Dataset):
     """One sample per caption line of a split (see the module docstring for skips/errors).
 
     A sample is a dict (docs/design.md "A sample"): ``motion`` (t, d) float32 z-scored with
-    t a multiple of ``unit_length``; ``length`` t; ``caption``; ``segments`` list[str]
+    t a multiple of `FRAMES_PER_TOKEN` (4); ``length`` t; ``caption``; ``segments`` list[str]
     (``text_segments/<name>/<id>.txt``, else ``[caption]``); ``id``; ``caption_index``;
     ``spans`` list[(start, end)] frames of the returned motion, end exclusive, or None; and
     with a text-feature cache ``sentence`` (dim,), ``segment_features`` (A, dim) zero-padded,
     ``segment_mask`` (A,) bool.
 
-    Cropping to a multiple of ``unit_length`` drops ``t % unit_length`` frames: at a random
+    Cropping to whole tokens drops ``t % FRAMES_PER_TOKEN`` frames: at a random
     offset when ``random_crop`` (training), else from the end (start 0, evaluation). Spans
     are shifted by the offset and clipped to [0, t]. Time-tagged sub-clips carry no spans
     (ground truth is only written for whole clips, by the built-in corpus). The offset is a
@@ -230,7 +231,6 @@ class MotionDataset(Dataset):
         *,
         mean: np.ndarray | None = None,
         std: np.ndarray | None = None,
-        unit_length: int = 4,
         random_crop: bool = False,
         seed: int = 0,
         text_segments: str | None = None,
@@ -247,7 +247,6 @@ class MotionDataset(Dataset):
         self.root = Path(root)
         self.split = split
         self.skeleton = get_skeleton(skeleton)
-        self.unit_length = unit_length
         self.random_crop = random_crop
         self.max_segments = max_segments
         self.mean, self.std = resolve_stats(self.root, self.skeleton, mean, std)
@@ -358,7 +357,7 @@ class MotionDataset(Dataset):
         i, epoch = split_key(key, self.epoch)
         e = self.entries[i]
         raw = self.motions.get(e.motion_id)[e.start:e.end]
-        t = raw.shape[0] - raw.shape[0] % self.unit_length
+        t = raw.shape[0] - raw.shape[0] % FRAMES_PER_TOKEN
         off = crop_offset(raw.shape[0], t, self.random_crop, sample_rng(self.seed, epoch, i))
         motion = torch.from_numpy((raw[off:off + t] - self.mean) / self.std)
         spans = None

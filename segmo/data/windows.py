@@ -18,6 +18,7 @@ from segmo.data.humanml3d import LoadReport, MotionStore, crop_offset
 from segmo.data.layout import read_split, resolve_stats, split_file
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
 
@@ -27,8 +28,8 @@ class MotionWindowDataset(Dataset):
     ``window`` frames: a window at a random offset (``random_crop``, training) or at 0;
     motions shorter than the window are skipped and counted, and the length limits of the
     skeleton do not apply. ``window=None``: the whole clip, kept if
-    ``min_frames <= t < max_frames`` and cropped to a multiple of ``unit_length`` from the
-    end (validation). A sample is ``{"motion": (w, d) z-scored, "length": w, "id": str}``;
+    ``min_frames <= t < max_frames`` and cropped to whole tokens (`FRAMES_PER_TOKEN`) from
+    the end (validation). A sample is ``{"motion": (w, d) z-scored, "length": w, "id": str}``;
     the window offset is a function of ``(seed, epoch, i)``, keys are ``i`` or ``(i, epoch)``.
     """
 
@@ -41,7 +42,6 @@ class MotionWindowDataset(Dataset):
         window: int | None = 64,
         mean: np.ndarray | None = None,
         std: np.ndarray | None = None,
-        unit_length: int = 4,
         random_crop: bool = True,
         seed: int = 0,
         max_motions: int | None = None,
@@ -49,12 +49,12 @@ class MotionWindowDataset(Dataset):
         strict: bool = False,
         max_abs_z: float | None = MAX_ABS_Z,
     ) -> None:
-        if window is not None and (window <= 0 or window % unit_length):
-            raise SegmoError(f"window={window} must be a positive multiple of unit_length={unit_length}")
+        if window is not None and (window <= 0 or window % FRAMES_PER_TOKEN):
+            raise SegmoError(f"window={window} must be a positive multiple of "
+                             f"unit_length={FRAMES_PER_TOKEN} (frames per motion token)")
         self.root = Path(root)
         self.skeleton = get_skeleton(skeleton)
         self.window = window
-        self.unit_length = unit_length
         self.random_crop = random_crop
         self.mean, self.std = resolve_stats(self.root, self.skeleton, mean, std)
         self.seed, self.epoch = seed, 0
@@ -90,7 +90,7 @@ class MotionWindowDataset(Dataset):
         i, epoch = split_key(key, self.epoch)
         mid = self.ids[i]
         raw = self.motions.get(mid)
-        size = self.window if self.window is not None else raw.shape[0] - raw.shape[0] % self.unit_length
+        size = self.window if self.window is not None else raw.shape[0] - raw.shape[0] % FRAMES_PER_TOKEN
         off = crop_offset(raw.shape[0], size, self.random_crop, sample_rng(self.seed, epoch, i))
         motion = torch.from_numpy((raw[off:off + size] - self.mean) / self.std)
         return {"motion": motion, "length": size, "id": mid}

@@ -18,7 +18,7 @@ import torch
 
 from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import SegmoError
-from segmo.generation.generate import UNIT_LENGTH
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import segment_batch
 
 if TYPE_CHECKING:
@@ -84,9 +84,9 @@ def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
     for mid in read_split(root, split)[:max_motions]:
         record = read_ground_truth(root, mid)
         features = read_motion(root, mid)
-        if len(features) > model.max_frames + UNIT_LENGTH - 1:
+        if len(features) > model.max_frames + FRAMES_PER_TOKEN - 1:
             continue
-        n = len(features) // UNIT_LENGTH
+        n = len(features) // FRAMES_PER_TOKEN
         for caption in record["captions"]:
             segs = caption["segments"]
             if not 2 <= len(segs) <= min(model.max_segments, n):
@@ -96,7 +96,7 @@ def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
                                segments=[s["text"] for s in segs])
             pred += out.best_spans_frames
             truth += [(s["start"], s["end"]) for s in segs]
-            uniform += [(UNIT_LENGTH * s, UNIT_LENGTH * e) for s, e in segment_batch(
+            uniform += [(FRAMES_PER_TOKEN * s, FRAMES_PER_TOKEN * e) for s, e in segment_batch(
                 None, torch.tensor([len(segs)]), torch.tensor([n]))[0].tolist()]
     if not pred:
         raise SegmoError(f"grounding_accuracy: no caption with ≥ 2 segments in {root} ({split})")

@@ -31,6 +31,7 @@ from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metr
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
 from segmo.models.alignment import isc_from_cosines, paired_cosine
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline.grounding import plot_similarity_map
 from segmo.pipeline.retrieval import pair_scores
 from segmo.segmentation import uniform_spans
@@ -213,7 +214,7 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
     for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
         t = int(b["lengths"][r])
         truth = ground_truth(cfg, b["id"][r], b["caption_index"][r], t)
-        n = t // 4
+        n = t // FRAMES_PER_TOKEN
         if not truth or not 2 <= len(truth) <= min(model.max_segments, n) or any(
                 s["end"] <= s["start"] for s in truth):
             continue

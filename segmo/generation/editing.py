@@ -19,16 +19,17 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
-from segmo.generation.generate import UNIT_LENGTH, Precision, check_models, fill_tokens
+from segmo.generation.generate import Precision, check_models, fill_tokens
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 
 
 def token_span(frames: tuple[int, int]) -> tuple[int, int]:
     """Frames [start, end) → the tokens [start // 4, ⌈end / 4⌉) that cover them."""
     start, end = frames
-    return start // UNIT_LENGTH, math.ceil(end / UNIT_LENGTH)
+    return start // FRAMES_PER_TOKEN, math.ceil(end / FRAMES_PER_TOKEN)
 
 
 def edit_tokens(

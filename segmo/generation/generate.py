@@ -25,10 +25,10 @@ from segmo import cpu
 from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_tokens
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.models.transformer import Condition
 
 Precision = Literal["auto", "fp32", "bf16"]
-UNIT_LENGTH = 4  # frames per token
 
 
 def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Tensor:
@@ -37,16 +37,16 @@ def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Ten
     Raises ValueError unless every length is a multiple of 4 in [4, 4·max_tokens].
     """
     lengths = torch.as_tensor(lengths)
-    limit = UNIT_LENGTH * max_tokens
+    limit = FRAMES_PER_TOKEN * max_tokens
     if lengths.dim() != 1 or lengths.numel() == 0:
         raise ValueError(f"lengths must be a non-empty (b,) tensor of frame counts, "
                          f"got shape {tuple(lengths.shape)}")
-    bad = (lengths % UNIT_LENGTH != 0) | (lengths < UNIT_LENGTH) | (lengths > limit)
+    bad = (lengths % FRAMES_PER_TOKEN != 0) | (lengths < FRAMES_PER_TOKEN) | (lengths > limit)
     if bool(bad.any()):
-        raise ValueError(f"lengths must be multiples of {UNIT_LENGTH} frames in "
-                         f"[{UNIT_LENGTH}, {limit}] (max_tokens={max_tokens}); "
+        raise ValueError(f"lengths must be multiples of {FRAMES_PER_TOKEN} frames in "
+                         f"[{FRAMES_PER_TOKEN}, {limit}] (max_tokens={max_tokens}); "
                          f"got {lengths[bad].tolist()}")
-    tokens = lengths.long() // UNIT_LENGTH
+    tokens = lengths.long() // FRAMES_PER_TOKEN
     return torch.arange(int(tokens.max()), device=lengths.device) < tokens[:, None]
 
 

@@ -12,9 +12,8 @@ import torch
 from torch import nn
 
 from segmo.models.pretrained import Pretrained
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.models.transformer import init_weights
-
-UNIT_LENGTH = 4  # frames per token
 
 
 @dataclass
@@ -53,13 +52,13 @@ class LengthEstimator(nn.Module, Pretrained):
 
     def frames_to_classes(self, lengths: torch.Tensor) -> torch.Tensor:
         """lengths (b,) in frames, multiples of 4 in [4, 4·max_tokens] → classes (b,) long."""
-        limit = UNIT_LENGTH * self.config.max_tokens
-        bad = (lengths % UNIT_LENGTH != 0) | (lengths < UNIT_LENGTH) | (lengths > limit)
+        limit = FRAMES_PER_TOKEN * self.config.max_tokens
+        bad = (lengths % FRAMES_PER_TOKEN != 0) | (lengths < FRAMES_PER_TOKEN) | (lengths > limit)
         if bool(bad.any()):
             raise ValueError(f"LengthEstimator.frames_to_classes: lengths must be multiples of "
-                             f"{UNIT_LENGTH} in [{UNIT_LENGTH}, {limit}], got "
+                             f"{FRAMES_PER_TOKEN} in [{FRAMES_PER_TOKEN}, {limit}], got "
                              f"{lengths[bad].tolist()}")
-        return (lengths // UNIT_LENGTH - 1).long()
+        return (lengths // FRAMES_PER_TOKEN - 1).long()
 
     @torch.no_grad()
     def sample(self, sentence: torch.Tensor, generator: torch.Generator | None = None,
@@ -72,4 +71,4 @@ class LengthEstimator(nn.Module, Pretrained):
         else:
             probs = torch.softmax(logits / temperature, dim=-1)
             classes = torch.multinomial(probs, 1, generator=generator)[:, 0]
-        return (classes + 1) * UNIT_LENGTH
+        return (classes + 1) * FRAMES_PER_TOKEN

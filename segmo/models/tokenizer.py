@@ -22,7 +22,12 @@ from torch import Tensor, nn
 from segmo.models.pretrained import Pretrained
 from segmo.models.quantizer import ResidualQuantizer
 
-DOWNSAMPLING = 4  # two stride-2 stages; token length n = t // 4 everywhere (design.md)
+# The encoder halves the frame rate this many times (a stride-2 convolution each), the
+# decoder doubles it as often.
+STRIDE_STAGES = 2
+# Frames per motion token: token length n = t // FRAMES_PER_TOKEN. The one definition;
+# data cropping, lengths, token spans and the length classes all read it.
+FRAMES_PER_TOKEN = 2**STRIDE_STAGES
 
 
 @dataclass
@@ -88,7 +93,7 @@ class Encoder(nn.Module):
         # Largest dilation first: wide context before the fine detail, as in MoMask.
         dilations = [config.dilation_growth**i for i in reversed(range(config.depth))]
         layers: list[nn.Module] = [nn.Conv1d(config.feature_dim, width, 3, padding=1), nn.ReLU()]
-        for _ in range(2):
+        for _ in range(STRIDE_STAGES):
             layers += [nn.Conv1d(width, width, 4, stride=2, padding=1), _resnet(width, dilations, config.dropout)]
         layers.append(nn.Conv1d(width, config.code_dim, 3, padding=1))
         self.layers = nn.Sequential(*layers)
@@ -105,7 +110,7 @@ class Decoder(nn.Module):
         width = config.width
         dilations = [config.dilation_growth**i for i in range(config.depth)]
         layers: list[nn.Module] = [nn.Conv1d(config.code_dim, width, 3, padding=1), nn.ReLU()]
-        for _ in range(2):
+        for _ in range(STRIDE_STAGES):
             layers += [
                 _resnet(width, dilations, config.dropout),
                 nn.Upsample(scale_factor=2, mode="nearest"),
@@ -187,10 +192,10 @@ class RVQVAE(nn.Module, Pretrained):
                 f"RVQVAE.{caller}: expected features (b, t, {self.config.feature_dim}), "
                 f"got {tuple(features.shape)}"
             )
-        if features.shape[1] % DOWNSAMPLING:
+        if features.shape[1] % FRAMES_PER_TOKEN:
             raise ValueError(
                 f"RVQVAE.{caller}: t={features.shape[1]} frames is not a multiple of "
-                f"{DOWNSAMPLING}; crop the motion first"
+                f"{FRAMES_PER_TOKEN}; crop the motion first"
             )
 
     def forward(
@@ -206,7 +211,7 @@ class RVQVAE(nn.Module, Pretrained):
         """
         self._check_features(features, "forward")
         latent = self.encoder(features.transpose(1, 2)).transpose(1, 2)  # (b, n, c)
-        token_mask = None if mask is None else mask[:, ::DOWNSAMPLING]
+        token_mask = None if mask is None else mask[:, ::FRAMES_PER_TOKEN]
         out = self.quantizer(latent, mask=token_mask, generator=generator)
         reconstruction = self.decoder(out.quantized.transpose(1, 2)).transpose(1, 2)
         return RVQOutput(

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
-from segmo.generation.generate import UNIT_LENGTH
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline.outputs import GroundingOutput
 from segmo.pipeline.space import SegmentModel
 
@@ -37,7 +37,7 @@ def ground(model: SegmentModel, text: str, motion: Any, window: int | Sequence[i
     t = len(motion)  # frames given; the pass used them cut to a multiple of 4
     windows = torch.from_numpy(sliding_windows(int(space.num_tokens[0]), window, stride))
     similarity = space.similarity(windows)[0].float().cpu()
-    best = best_span(similarity, windows) * UNIT_LENGTH
+    best = best_span(similarity, windows) * FRAMES_PER_TOKEN
     return GroundingOutput(
         text=text, segments=space.segments[0], windows=windows, similarity=similarity,
         best_spans_frames=[(int(s), int(min(e, t))) for s, e in best],
@@ -101,7 +101,7 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
         if len(truth) != len(output.segments):
             raise SegmoError(f"plot_similarity_map: {len(truth)} true spans for "
                              f"{len(output.segments)} segments")
-        frames = output.windows * UNIT_LENGTH
+        frames = output.windows * FRAMES_PER_TOKEN
         for row, (start, end) in enumerate(truth):
             inside = ((frames[:, 0] >= start) & (frames[:, 1] <= end)).nonzero()[:, 0]
             if len(inside):

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.bvh import joints_to_bvh
 from segmo.motion.skeleton import SkeletonSpec
 from segmo.render import save_animation
@@ -74,7 +75,7 @@ class GenerationOutput:
             stem = directory / f"{prefix}_{i:02d}"
             features, joints = self.motion(i), self.motion_joints(i)
             if "npy" in formats:
-                n = int(self.lengths[i]) // 4
+                n = int(self.lengths[i]) // FRAMES_PER_TOKEN
                 tokens = self.tokens[i, :n].cpu().numpy().astype(np.int64)
                 for suffix, array in (("features", features.astype(np.float32)),
                                       ("joints", joints.astype(np.float32)), ("tokens", tokens)):

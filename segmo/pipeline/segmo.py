@@ -36,14 +36,14 @@ import torch
 from segmo.errors import SegmoError
 from segmo.files import write_atomic
 from segmo.generation.editing import edit_tokens, token_span
-from segmo.generation.generate import UNIT_LENGTH, Precision, decode_tokens, generate_tokens
+from segmo.generation.generate import Precision, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.pretrained import load_pretrained, read_config, read_json
 from segmo.models.residual_transformer import ResidualTransformer
-from segmo.models.tokenizer import RVQVAE
+from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
 from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
@@ -268,7 +268,7 @@ class SegMo:
 
     @property
     def max_frames(self) -> int:
-        return UNIT_LENGTH * self.mask.config.max_tokens
+        return FRAMES_PER_TOKEN * self.mask.config.max_tokens
 
     @property
     def max_segments(self) -> int:
@@ -375,10 +375,10 @@ class SegMo:
         lengths = torch.tensor([int(v) for v in values], dtype=torch.long)
         if lengths.numel() != b:
             raise SegmoError(f"SegMo: {lengths.numel()} lengths for {b} texts")
-        bad = (lengths % UNIT_LENGTH != 0) | (lengths < UNIT_LENGTH) | (lengths > self.max_frames)
+        bad = (lengths % FRAMES_PER_TOKEN != 0) | (lengths < FRAMES_PER_TOKEN) | (lengths > self.max_frames)
         if bool(bad.any()):
-            raise SegmoError(f"SegMo: lengths must be multiples of {UNIT_LENGTH} frames in "
-                             f"[{UNIT_LENGTH}, {self.max_frames}] ({self.max_frames / self.fps:.1f}"
+            raise SegmoError(f"SegMo: lengths must be multiples of {FRAMES_PER_TOKEN} frames in "
+                             f"[{FRAMES_PER_TOKEN}, {self.max_frames}] ({self.max_frames / self.fps:.1f}"
                              f" s at {self.fps:g} fps); got {lengths[bad].tolist()}")
         return lengths.to(self.device)
 
@@ -395,9 +395,9 @@ class SegMo:
             raise SegmoError(f"SegMo: a motion must be raw features (t, {d}) for skeleton "
                              f"{self.skeleton.name!r}, got shape {tuple(x.shape)}")
         t = x.shape[0]
-        usable = t - t % UNIT_LENGTH
-        if usable < UNIT_LENGTH or usable > self.max_frames:
-            raise SegmoError(f"SegMo: a motion must have {UNIT_LENGTH}..{self.max_frames + 3} "
+        usable = t - t % FRAMES_PER_TOKEN
+        if usable < FRAMES_PER_TOKEN or usable > self.max_frames:
+            raise SegmoError(f"SegMo: a motion must have {FRAMES_PER_TOKEN}..{self.max_frames + FRAMES_PER_TOKEN - 1} "
                              f"frames, got {t}")
         check_motion_values(x.cpu().numpy(), self.tokenizer.mean.cpu().numpy(),
                             self.tokenizer.std.cpu().numpy(), "SegMo: the motion")
@@ -435,7 +435,7 @@ class SegMo:
         with torch.inference_mode():
             lengths = self.length.sample(self.encode_texts(texts), generator=generator)
         # The estimator may know longer motions than the mask transformer accepts.
-        return lengths.clamp(UNIT_LENGTH, self.max_frames).long()
+        return lengths.clamp(FRAMES_PER_TOKEN, self.max_frames).long()
 
     @property
     def sampling(self) -> SamplingOptions:
@@ -504,7 +504,7 @@ class SegMo:
             tokens, lengths = motion.tokens.to(self.device), motion.lengths.to(self.device)
         else:
             tokens = self.encode_motion(motion)
-            lengths = torch.tensor([tokens.shape[1] * UNIT_LENGTH], device=self.device)
+            lengths = torch.tensor([tokens.shape[1] * FRAMES_PER_TOKEN], device=self.device)
         q = self.residual.config.num_quantizers if self.residual is not None else 1
         tokens = tokens[..., :q]
         if not (isinstance(span, (tuple, list)) and len(span) == 2
@@ -570,10 +570,10 @@ class SegMo:
                 if x.ndim != 2 or x.shape[1] != d:
                     raise SegmoError(f"embed_pairs: a motion must be (t, {d}), got "
                                      f"{tuple(x.shape)}")
-                usable = x.shape[0] - x.shape[0] % UNIT_LENGTH
-                if not UNIT_LENGTH <= usable <= self.max_frames:
-                    raise SegmoError(f"embed_pairs: a motion must have {UNIT_LENGTH}.."
-                                     f"{self.max_frames + 3} frames, got {x.shape[0]}")
+                usable = x.shape[0] - x.shape[0] % FRAMES_PER_TOKEN
+                if not FRAMES_PER_TOKEN <= usable <= self.max_frames:
+                    raise SegmoError(f"embed_pairs: a motion must have {FRAMES_PER_TOKEN}.."
+                                     f"{self.max_frames + FRAMES_PER_TOKEN - 1} frames, got {x.shape[0]}")
                 rows.append(x[:usable].to(self.device))
             else:
                 rows.append(self.normalize_motion(motion)[0][0])

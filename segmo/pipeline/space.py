@@ -25,10 +25,9 @@ from typing import Any, Protocol
 import torch
 
 from segmo.errors import SegmoError
-from segmo.generation.generate import UNIT_LENGTH
 from segmo.models.alignment import AlignmentHead, segment_similarity
 from segmo.models.mask_transformer import MaskTransformer
-from segmo.models.tokenizer import RVQVAE
+from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
 
 
 @dataclass
@@ -97,7 +96,7 @@ def embed_segments(tokenizer: RVQVAE, mask: MaskTransformer, z: torch.Tensor,
     with torch.inference_mode():
         latents = tokenizer.latents(z)
         base = tokenizer.quantize(latents)[..., 0]
-        num_tokens = frames // UNIT_LENGTH
+        num_tokens = frames // FRAMES_PER_TOKEN
         token_mask = torch.arange(base.shape[1], device=z.device) < num_tokens[:, None]
         # Segments as a set: the motion features must say where each segment is from what
         # the motion does, not from where the caption put it (`TextPrefix`).

@@ -9,9 +9,7 @@ from torch import Tensor
 
 from segmo.errors import SegmoError
 from segmo.models.pretrained import read_config
-from segmo.models.tokenizer import RVQVAE
-
-UNIT_LENGTH = 4  # frames per token
+from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
 
 
 def step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
@@ -95,7 +93,7 @@ def text_condition(batch: dict) -> tuple[Tensor, Tensor, Tensor]:
 
 def token_lengths(lengths: Tensor) -> Tensor:
     """Frame lengths (b,) → token lengths (b,)."""
-    return torch.div(lengths, UNIT_LENGTH, rounding_mode="floor")
+    return torch.div(lengths, FRAMES_PER_TOKEN, rounding_mode="floor")
 
 
 def token_mask(lengths: Tensor, n: int) -> Tensor:

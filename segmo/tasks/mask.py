@@ -25,10 +25,10 @@ from segmo.models.mask_transformer import (
     mask_tokens,
     masked_token_loss,
 )
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import SegmenterName, segment_batch
 from segmo.tasks.base import Task
 from segmo.tasks.common import (
-    UNIT_LENGTH,
     adamw_with_schedule,
     check_text_features,
     load_tokenizer,
@@ -51,8 +51,8 @@ def gt_token_spans(spans: list, num_segments: Tensor, lengths: Tensor, slots: in
         a = int(num_segments[i])
         if sample_spans is None or len(sample_spans) != a or a < 2 or a > slots:
             continue
-        n = int(lengths[i]) // UNIT_LENGTH
-        tokens = [(round(s / UNIT_LENGTH), round(e / UNIT_LENGTH)) for s, e in sample_spans]
+        n = int(lengths[i]) // FRAMES_PER_TOKEN
+        tokens = [(round(s / FRAMES_PER_TOKEN), round(e / FRAMES_PER_TOKEN)) for s, e in sample_spans]
         tokens = [(min(s, n), min(e, n)) for s, e in tokens]
         if all(e > s for s, e in tokens):
             out[i, :a] = torch.tensor(tokens)
