@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
-from typing import get_args
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -123,10 +122,3 @@ def test_models_import_nothing_above_them() -> None:
              if package_of(t) != "segmo.models" and not t.startswith(BELOW_MODELS)}
     assert not above, sorted(above)
 
-
-def test_the_alignment_config_names_the_motion_segmenters() -> None:
-    # models/alignment.py spells the names out, since models/ may not import segmentation.
-    from segmo.models import alignment
-    from segmo.segmentation import segmenters
-
-    assert get_args(alignment.SegmenterName) == get_args(segmenters.SegmenterName)

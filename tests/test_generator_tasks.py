@@ -63,6 +63,24 @@ def test_alignment_ablations_train(method, segmenter, text_dataset, tokenizer_di
     assert ("train/align" in cli.trainer.callback_metrics) == (method != "none")
 
 
+def test_a_mask_config_naming_the_former_temperature_still_trains(text_dataset, tokenizer_dir,
+                                                                tmp_path):
+    """Configs (and checkpoints) written before the alignment temperature got its own name
+    hold `temperature`: it is read as alignment_temperature, with a warning."""
+    old = tmp_path / "old.yaml"
+    text = (REPO / "configs/mask/synthetic.yaml").read_text()
+    old.write_text(text.replace("    alignment_temperature: 0.1", "    temperature: 0.2"))
+    with pytest.warns(FutureWarning, match="former name of alignment_temperature"):
+        cli = cli_main(["fit", "--config", str(old),
+                        *overrides(old, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                        "--trainer.fast_dev_run=true"])
+    assert cli.trainer.state.finished and cli.model.alignment_loss.temperature == 0.2
+    assert cli.model.hparams.alignment_temperature == 0.2 and cli.model.hparams.temperature is None
+    with pytest.raises(ValueError, match="former name of alignment_temperature; set only"):
+        MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, temperature=0.2,
+                 alignment_temperature=0.3)
+
+
 def test_text_dim_mismatch_is_an_error(text_dataset, tokenizer_dir, tmp_path):
     config = REPO / "configs/mask/synthetic.yaml"
     with pytest.raises(ValueError, match="text_dim=512"):

@@ -44,7 +44,7 @@ def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=T
     tokenizer = rvq.save_pretrained(root / "tokenizer")
     config = dict(TINY, text_dim=text_dim)
     mask = MaskTransformer(MaskTransformerConfig(
-        **config, alignment=AlignmentConfig(max_segments=3, out_dim=16) if alignment else None))
+        **config, alignment=AlignmentConfig(out_dim=16) if alignment else None))
     residual = ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3))
     length = LengthEstimator(LengthEstimatorConfig(text_dim=text_dim, hidden=16, max_tokens=49))
     with torch.no_grad():  # sharper than the 0.02-std initialisation, so the text matters

@@ -327,6 +327,31 @@ def test_round_trip_gives_identical_outputs(tmp_path):
         MaskTransformer.from_pretrained(tmp_path / "residual")
 
 
+def test_a_mask_directory_with_the_former_alignment_fields_loads(tmp_path):
+    """Mask config.json files written before the alignment loss moved to the task hold its
+    settings (method, temperature, weight, segmenter) and max_segments in `alignment`: they
+    are read and ignored; the head is rebuilt from out_dim alone."""
+    import json
+
+    from segmo.models.alignment import AlignmentConfig
+
+    torch.manual_seed(0)
+    model = MaskTransformer(MaskTransformerConfig(**TINY, alignment=AlignmentConfig(out_dim=8)))
+    path = model.eval().save_pretrained(tmp_path / "mask")
+    payload = json.loads((path / "config.json").read_text())
+    assert payload["config"]["alignment"] == {"out_dim": 8}
+    payload["config"]["alignment"].update(method="in_sample", temperature=0.1, weight=1.0,
+                                          segmenter="uniform", max_segments=3)
+    (path / "config.json").write_text(json.dumps(payload))
+    loaded = load_pretrained(path)
+    assert loaded.config.alignment == AlignmentConfig(out_dim=8)
+    h, segments = torch.randn(2, 5, 32), torch.randn(2, 3, 32)
+    spans = torch.tensor([[[0, 2], [1, 5]]]).expand(2, 2, 2)
+    old, new = model.alignment, loaded.alignment
+    torch.testing.assert_close(new.embed_text(segments), old.embed_text(segments), rtol=0, atol=0)
+    torch.testing.assert_close(new.embed_motion(h, spans), old.embed_motion(h, spans), rtol=0, atol=0)
+
+
 def test_residual_output_tied_to_layer_embedding():
     model = tiny_residual()
     assert model.output_weight(2).data_ptr() == model.code_embeddings[2].data_ptr()

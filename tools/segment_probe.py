@@ -26,6 +26,7 @@ from segmo.data import MotionDataModule
 from segmo.models.alignment import AlignmentConfig, AlignmentHead
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.segmentation import segment_batch
+from segmo.tasks.alignment_loss import AlignmentLoss
 from segmo.tasks.common import load_tokenizer, text_condition, token_lengths, token_mask
 from segmo.tasks.mask import gt_token_spans, segment_top1
 
@@ -46,9 +47,8 @@ def features(mask: MaskTransformer, tokenizer, batch: dict, unordered: bool = Fa
 def fit_probe(mask: MaskTransformer, tokenizer, loader, steps: int, seed: int,
               unordered: bool = False) -> AlignmentHead:
     torch.manual_seed(seed)
-    config = AlignmentConfig(method="in_sample", out_dim=mask.config.dim,
-                             max_segments=mask.config.max_segments)
-    head = AlignmentHead(mask.config.dim, config)
+    head = AlignmentHead(mask.config.dim, AlignmentConfig(out_dim=mask.config.dim))
+    loss_fn = AlignmentLoss("in_sample")
     optimizer = torch.optim.AdamW(head.parameters(), lr=1e-3, weight_decay=1e-5)
     step = 0
     while step < steps:
@@ -57,7 +57,7 @@ def fit_probe(mask: MaskTransformer, tokenizer, loader, steps: int, seed: int,
             num_segments = torch.minimum(segment_mask.sum(1), lengths)
             spans = segment_batch(None, num_segments, lengths, "uniform",
                                   max_segments=segment_mask.shape[1])
-            loss = head(h, lengths, text, segment_mask, spans).losses["align"]
+            loss = loss_fn(head, h, lengths, text, segment_mask, spans).losses["align"]
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()

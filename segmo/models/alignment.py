@@ -1,88 +1,44 @@
-"""Segment alignment head and losses (SegMo §3.4–3.5, spec §5). Pure torch.
+"""Segment alignment head (SegMo §3.4, spec §5). Pure torch.
 
 Motion side: m_i = MLP(concat(mean(h[s_i:e_i]), max(h[s_i:e_i]))) over the mask
 transformer's output features h and token spans from `segmo.segmentation`. Text side: an
 MLP over the segment features (the mask transformer's projected text vectors, which carry
 no slot order, so that ordered slots cannot meet the loss by position alone). Both land
-in a shared `out_dim` space compared by cosine similarity / τ.
+in a shared `out_dim` space compared by cosine similarity.
 
-Losses (`AlignMethod`, Table 3 of the paper), each unweighted; the caller adds
-`config.weight * losses["align"]` to the mask loss:
-- `in_sample` (SegMo): symmetric InfoNCE within each sample, a caption's segments are
-  each other's negatives;
-- `batch`: every valid segment of the batch against every other;
-- `global`: sentence vs whole motion (aggregated over its valid tokens), CLIP-style;
-- `token`: each motion token vs the text segments of its sample, positive = the segment
-  whose span contains it (and each segment vs the tokens, positives = its span);
-- `none`: 0.
-Padded segments (mask False) are excluded from logits and targets, so whatever they
-hold changes neither the loss nor any gradient. Losses average over the contributing
-rows (segments, sentences or tokens), not over B·A padded slots as eq. 8 is written.
-With no contributing row a loss is a zero that stays attached to the graph.
+The head is part of the model (a bundle's `mask/` holds it); the losses that train it, and
+their settings (method, temperature, weight, motion segmenter), are the mask task's:
+`segmo.tasks.alignment_loss`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Literal, get_args
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-AlignMethod = Literal["in_sample", "batch", "global", "token", "none"]
-# The names of `segmo.segmentation.SegmenterName`, written out: models/ imports nothing above
-# it (tests/test_architecture.py checks both agree). The field is saved with the model but
-# read by nobody; issue 14 item 4 moves it to the task that uses it.
-SegmenterName = Literal["uniform", "cpd", "kmeans"]
+# Fields that the `alignment` entry of a mask config.json written before the loss moved to
+# the task holds: the loss's settings and a copy of the transformer's max_segments. Read
+# and ignored, so that those model directories still load.
+FORMER_FIELDS = ("method", "temperature", "weight", "segmenter", "max_segments")
 
 
 @dataclass
 class AlignmentConfig:
-    """Alignment options; `weight` is λ (1.0 HumanML3D, 0.1 KIT), `max_segments` is A."""
+    """What the head is built from: `out_dim`, the width of the shared space (512 in SegMo)."""
 
-    method: AlignMethod = "in_sample"
-    temperature: float = 0.1
-    weight: float = 1.0
-    segmenter: SegmenterName = "uniform"
-    max_segments: int = 5
     out_dim: int = 512
 
     def __post_init__(self) -> None:
-        if self.method not in get_args(AlignMethod):
-            raise ValueError(
-                f"AlignmentConfig.method={self.method!r}: one of {get_args(AlignMethod)}"
-            )
-        if self.segmenter not in get_args(SegmenterName):
-            raise ValueError(
-                f"AlignmentConfig.segmenter={self.segmenter!r}: one of {get_args(SegmenterName)}"
-            )
-        if self.temperature <= 0:
-            raise ValueError(f"AlignmentConfig.temperature={self.temperature} must be > 0")
-        if self.max_segments < 1 or self.out_dim < 1:
-            raise ValueError(
-                f"AlignmentConfig: max_segments={self.max_segments} and out_dim={self.out_dim} must be ≥ 1"
-            )
+        if self.out_dim < 1:
+            raise ValueError(f"AlignmentConfig: out_dim={self.out_dim} must be ≥ 1")
 
-
-@dataclass
-class AlignmentOutput:
-    """What `AlignmentHead.forward` returns.
-
-    losses: named scalars; "align" is the loss of the configured method (unweighted),
-        plus its parts ("align_t2m", "align_m2t") where the method has two directions.
-    text: `(b, a, out_dim)` projected text segments (`(b, 1, out_dim)` for `global`);
-        None for `none`.
-    motion: `(b, a, out_dim)` aggregated motion segments (`(b, n, out_dim)` tokens for
-        `token`, `(b, 1, out_dim)` for `global`); None for `none`.
-    mask: `(b, a)` bool, the segment pairs that took part (text and span both present).
-    """
-
-    losses: dict[str, torch.Tensor]
-    text: torch.Tensor | None = None
-    motion: torch.Tensor | None = None
-    mask: torch.Tensor | None = None
-    extras: dict[str, torch.Tensor] = field(default_factory=dict)
+    @classmethod
+    def from_dict(cls, values: dict) -> AlignmentConfig:
+        """From the `alignment` entry of a config.json (older files: `FORMER_FIELDS` ignored)."""
+        return cls(**{k: v for k, v in values.items() if k not in FORMER_FIELDS})
 
 
 def span_mask(spans: torch.Tensor, n: int) -> torch.Tensor:
@@ -119,116 +75,12 @@ class SegmentAggregator(nn.Module):
         return self.mlp(torch.cat([mean, peak], dim=-1))
 
 
-def _info_nce(logits: torch.Tensor, valid: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """Mean cross-entropy of diagonal targets over rows.
-
-    logits `(g, a, a)`; valid `(g, a, a)` bool pairs allowed as candidates; rows `(g, a)`
-    bool rows that contribute. Returns a scalar; a graph-attached 0 if no row contributes.
-    """
-    if not rows.any():
-        return torch.where(valid, logits, 0.0).sum() * 0.0  # padding may hold anything
-    logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
-    log_prob = logits.log_softmax(dim=-1).diagonal(dim1=-2, dim2=-1)  # (g, a)
-    return -log_prob[rows].mean()
-
-
-def in_sample_loss(
-    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1
-) -> dict[str, torch.Tensor]:
-    """Symmetric InfoNCE within each sample (paper eq. 8).
-
-    text, motion `(b, a, d)` paired slot by slot; mask `(b, a)` bool. Samples with fewer
-    than two valid segments contribute nothing. Returns {"align", "align_t2m", "align_m2t"}.
-    """
-    sim = torch.einsum("bid,bjd->bij", F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
-    logits = sim / temperature
-    valid = mask[:, :, None] & mask[:, None, :]
-    rows = mask & (mask.sum(-1, keepdim=True) >= 2)
-    t2m = _info_nce(logits, valid, rows)
-    m2t = _info_nce(logits.transpose(1, 2), valid, rows)
-    return {"align": 0.5 * (t2m + m2t), "align_t2m": t2m, "align_m2t": m2t}
-
-
-def batch_loss(
-    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1
-) -> dict[str, torch.Tensor]:
-    """Symmetric InfoNCE over all valid segments of the batch together (Table 3 ablation).
-
-    text, motion `(b, a, d)`, mask `(b, a)`; needs ≥ 2 valid segments in the batch.
-    """
-    return in_sample_loss(text[mask][None], motion[mask][None], mask[mask][None], temperature)
-
-
-def global_loss(
-    sentence: torch.Tensor,
-    motion: torch.Tensor,
-    keep: torch.Tensor | None = None,
-    temperature: float = 0.1,
-) -> dict[str, torch.Tensor]:
-    """CLIP-style symmetric InfoNCE between whole captions and whole motions.
-
-    sentence, motion `(b, d)`; keep `(b,)` bool samples that take part (default all).
-    """
-    keep = (
-        torch.ones(sentence.shape[0], dtype=torch.bool, device=sentence.device)
-        if keep is None
-        else keep
-    )
-    return in_sample_loss(sentence[None], motion[None], keep[None], temperature)
-
-
-def token_loss(
-    text: torch.Tensor,
-    tokens: torch.Tensor,
-    spans: torch.Tensor,
-    mask: torch.Tensor,
-    temperature: float = 0.1,
-) -> dict[str, torch.Tensor]:
-    """Token-level contrast within each sample (Table 3 ablation).
-
-    text `(b, a, d)` segments, tokens `(b, n, d)` per-token motion embeddings, spans
-    `(b, a, 2)`, mask `(b, a)` valid segments. m2t: each token inside a valid span
-    classifies its segment among the sample's valid segments; t2m: each segment against
-    the sample's covered tokens, its own span's tokens all positive. Samples with fewer
-    than two valid segments contribute nothing.
-    """
-    inside = span_mask(spans, tokens.shape[1]) & mask[..., None]  # (b, a, n)
-    sample_ok = mask.sum(-1) >= 2  # (b,)
-    covered = inside.any(1) & sample_ok[:, None]  # (b, n) tokens that take part
-    sim = torch.einsum("bad,bnd->ban", F.normalize(text, dim=-1), F.normalize(tokens, dim=-1))
-    logits = sim / temperature
-    low = torch.finfo(logits.dtype).min
-    if not covered.any():
-        zero = torch.where(inside, logits, 0.0).sum() * 0.0
-        return {"align": zero, "align_t2m": zero, "align_m2t": zero}
-    # m2t: softmax over segments for each token.
-    m2t_logits = logits.masked_fill(~mask[..., None], low).log_softmax(dim=1)
-    m2t = -torch.where(inside, m2t_logits, 0.0).sum(1)[covered].mean()
-    # t2m: multi-positive InfoNCE over the sample's covered tokens for each segment.
-    over_tokens = logits.masked_fill(~covered[:, None, :], low)
-    positives = over_tokens.masked_fill(~inside, low).logsumexp(-1)
-    rows = mask & sample_ok[:, None]
-    t2m = -(positives - over_tokens.logsumexp(-1))[rows].mean()
-    return {"align": 0.5 * (t2m + m2t), "align_t2m": t2m, "align_m2t": m2t}
-
-
-def whole_motion_spans(lengths: torch.Tensor) -> torch.Tensor:
-    """`(b,)` token lengths → `(b, 1, 2)` spans covering each whole motion."""
-    return torch.stack([torch.zeros_like(lengths), lengths], dim=-1)[:, None]
-
-
-def token_spans(n: int, batch: int, device: torch.device | None = None) -> torch.Tensor:
-    """`(batch, n, 2)` one-token spans, so the aggregator embeds each token on its own."""
-    start = torch.arange(n, device=device)
-    return torch.stack([start, start + 1], -1).expand(batch, n, 2)
-
-
 class AlignmentHead(nn.Module):
-    """Projects text segments and aggregates motion spans, then computes the loss.
+    """Projects text segments and aggregates motion spans into the shared space.
 
-    `dim` is the width of both inputs (the mask transformer's width, 384 in MoMask).
-    With method "none" the caller should not build the head at all (its parameters
-    would receive no gradient, which DDP rejects by default).
+    `dim` is the width of both inputs (the mask transformer's width, 384 in MoMask). A model
+    trained without alignment has no head at all (its parameters would receive no gradient,
+    which DDP rejects by default). Trained by `segmo.tasks.alignment_loss.AlignmentLoss`.
     """
 
     def __init__(self, dim: int, config: AlignmentConfig | None = None):
@@ -244,53 +96,6 @@ class AlignmentHead(nn.Module):
     def embed_motion(self, h: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
         """h `(b, n, dim)`, spans `(b, a, 2)` (segments or sliding windows) → `(b, a, out_dim)`."""
         return self.aggregator(h, spans)
-
-    def forward(
-        self,
-        h: torch.Tensor,
-        lengths: torch.Tensor,
-        segments: torch.Tensor,
-        segment_mask: torch.Tensor,
-        spans: torch.Tensor,
-        sentence: torch.Tensor | None = None,
-    ) -> AlignmentOutput:
-        """Alignment loss of `config.method`.
-
-        Args:
-            h: `(b, n, dim)` motion features (mask transformer outputs on motion tokens).
-            lengths: `(b,)` valid token counts.
-            segments: `(b, a, dim)` text segment features; segment_mask `(b, a)` bool.
-                To leave a sample out (e.g. its condition was dropped for CFG), set
-                its row of segment_mask to False.
-            spans: `(b, a, 2)` motion token spans (`segmo.segmentation.segment_batch`),
-                slot i paired with text segment i; `(0, 0)` = absent.
-            sentence: `(b, dim)` whole-caption features, needed by `global`.
-        """
-        cfg = self.config
-        if spans.shape[:2] != segments.shape[:2] or segment_mask.shape != segments.shape[:2]:
-            raise ValueError(
-                f"AlignmentHead: spans {tuple(spans.shape)}, segments {tuple(segments.shape)} "
-                f"and segment_mask {tuple(segment_mask.shape)} must agree on (b, a)"
-            )
-        if cfg.method == "none":
-            return AlignmentOutput(losses={"align": h.new_zeros(())})
-        mask = segment_mask & (spans[..., 1] > spans[..., 0])
-        if cfg.method == "global":
-            if sentence is None:
-                raise ValueError("AlignmentHead: method 'global' needs sentence (b, dim)")
-            text = self.embed_text(sentence[:, None])
-            motion = self.embed_motion(h, whole_motion_spans(lengths))
-            keep = segment_mask.any(-1) & (lengths > 0)
-            losses = global_loss(text[:, 0], motion[:, 0], keep, cfg.temperature)
-            return AlignmentOutput(losses, text, motion, keep[:, None])
-        text = self.embed_text(segments)
-        if cfg.method == "token":
-            tokens = self.embed_motion(h, token_spans(h.shape[1], h.shape[0], h.device))
-            losses = token_loss(text, tokens, spans, mask, cfg.temperature)
-            return AlignmentOutput(losses, text, tokens, mask)
-        motion = self.embed_motion(h, spans)
-        loss_fn = in_sample_loss if cfg.method == "in_sample" else batch_loss
-        return AlignmentOutput(loss_fn(text, motion, mask, cfg.temperature), text, motion, mask)
 
 
 def segment_similarity(text: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:

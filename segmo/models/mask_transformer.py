@@ -2,8 +2,8 @@
 
 Besides the logits, the forward pass returns the trunk's output features at the motion
 positions and the projected text vectors of the segments: the segment-alignment loss
-(spec §5, `segmo.models.alignment`) aggregates the former over motion segments and
-contrasts them with the latter.
+(spec §5, `segmo.tasks.alignment_loss` through the head of `segmo.models.alignment`)
+aggregates the former over motion segments and contrasts them with the latter.
 
 Training helpers are plain functions so that the task owns the loop:
 
@@ -58,7 +58,7 @@ class MaskTransformerConfig:
 
     def __post_init__(self) -> None:
         if isinstance(self.alignment, dict):  # read back from config.json
-            self.alignment = AlignmentConfig(**self.alignment)
+            self.alignment = AlignmentConfig.from_dict(self.alignment)
 
 
 @dataclass

@@ -12,13 +12,15 @@ text segment's most similar motion segment is its own (`segment_top1`).
 
 from __future__ import annotations
 
-from typing import ClassVar
+import warnings
+from typing import ClassVar, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from segmo.models.alignment import AlignmentConfig, AlignMethod
+from segmo.errors import SegmoError
+from segmo.models.alignment import AlignmentConfig
 from segmo.models.mask_transformer import (
     MaskTransformer,
     MaskTransformerConfig,
@@ -27,6 +29,7 @@ from segmo.models.mask_transformer import (
 )
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import SegmenterName, segment_batch
+from segmo.tasks.alignment_loss import AlignmentLoss, AlignMethod
 from segmo.tasks.base import Task
 from segmo.tasks.common import (
     adamw_with_schedule,
@@ -36,6 +39,21 @@ from segmo.tasks.common import (
     token_lengths,
     token_mask,
 )
+
+ALIGNMENT_TEMPERATURE = 0.1  # τ of the alignment loss (spec §5)
+
+
+def former_temperature(temperature: float, alignment_temperature: float) -> float:
+    """The alignment temperature of a config or checkpoint that names it `temperature`
+    (its name until it was told apart from the sampling temperature)."""
+    if alignment_temperature != ALIGNMENT_TEMPERATURE and alignment_temperature != temperature:
+        raise SegmoError(f"model.init_args.temperature={temperature} and alignment_temperature="
+                         f"{alignment_temperature}: temperature is the former name of "
+                         "alignment_temperature; set only alignment_temperature")
+    warnings.warn("model.init_args.temperature is the former name of alignment_temperature "
+                  "(the alignment loss's τ); read as alignment_temperature="
+                  f"{temperature}. Rename it in the config.", FutureWarning, stacklevel=3)
+    return temperature
 
 
 def gt_token_spans(spans: list, num_segments: Tensor, lengths: Tensor, slots: int) -> tuple[Tensor, Tensor]:
@@ -105,9 +123,9 @@ class MaskTask(Task):
         max_tokens: int = 49,
         cond_drop_prob: float = 0.1,
         order_drop_prob: float = 0.0,
-        alignment: AlignMethod = "in_sample",
+        alignment: Literal[AlignMethod, "none"] = "in_sample",
         alignment_weight: float = 1.0,
-        temperature: float = 0.1,
+        alignment_temperature: float = ALIGNMENT_TEMPERATURE,
         segmenter: SegmenterName = "uniform",
         alignment_dim: int = 512,
         lr: float = 2e-4,
@@ -115,16 +133,23 @@ class MaskTask(Task):
         warmup_steps: int = 2000,
         milestones: list[int] = [50_000],  # noqa: B006 - jsonargparse needs a plain default
         gamma: float = 0.1,
+        temperature: float | None = None,
     ) -> None:
+        """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
+        plain MoMask, without a head); `alignment_dim` the head's width. `temperature` is the
+        former name of `alignment_temperature` (configs and checkpoints written before hold
+        it): it is read as that, with a warning."""
         super().__init__()
         self.save_hyperparameters()
+        if temperature is not None:  # checkpoints of this run hold the new name only
+            alignment_temperature = former_temperature(temperature, alignment_temperature)
+            self.hparams.update(alignment_temperature=alignment_temperature, temperature=None)
         self.tokenizer = load_tokenizer(tokenizer)
-        align = None
+        align, self.alignment_loss = None, None
         if alignment != "none":
-            align = AlignmentConfig(
-                method=alignment, temperature=temperature, weight=alignment_weight,
-                segmenter=segmenter, max_segments=max_segments, out_dim=alignment_dim,
-            )
+            self.alignment_loss = AlignmentLoss(alignment, alignment_temperature,
+                                                alignment_weight, segmenter)
+            align = AlignmentConfig(out_dim=alignment_dim)
         self.model = MaskTransformer(
             MaskTransformerConfig(
                 codebook_size=self.tokenizer.codebook_size, text_dim=text_dim,
@@ -156,7 +181,7 @@ class MaskTask(Task):
 
     def spans(self, batch: dict, num_segments: Tensor, lengths: Tensor) -> Tensor:
         """Motion-segment token spans (b, A, 2) from the configured segmenter."""
-        method = self.hparams.segmenter
+        method = self.alignment_loss.segmenter
         features = None
         if method != "uniform":
             with torch.no_grad():  # the tokenizer's latents describe the motion itself
@@ -182,18 +207,18 @@ class MaskTask(Task):
         terms = {"mask_loss": mask_loss,
                  "accuracy": correct.sum() / target.sum().clamp(min=1)}
         loss = mask_loss
-        if self.model.alignment is not None:
+        if self.alignment_loss is not None:
             # Segments the motion cannot hold (a > tokens; tiny clips only) sit out.
             num_segments = torch.minimum(segment_mask.sum(1), lengths)
             keep = segment_mask & (torch.arange(segment_mask.shape[1], device=base.device)
                                    < num_segments[:, None])
             spans = self.spans(batch, num_segments, lengths).to(base.device)
-            aligned = self.model.alignment(
-                out.motion_features, lengths, out.segment_features,
+            aligned = self.alignment_loss(
+                self.model.alignment, out.motion_features, lengths, out.segment_features,
                 keep & ~drop[:, None], spans, out.sentence_features,
             )
             terms["align"] = aligned.losses["align"]
-            loss = loss + self.model.alignment.config.weight * terms["align"]
+            loss = loss + self.alignment_loss.weight * terms["align"]
         terms["loss"] = loss
         return terms
 
@@ -279,6 +304,7 @@ class MaskTask(Task):
         self.model.meta = {
             "tokenizer": str(self.hparams.tokenizer),
             "text_encoder": self.hparams.text_encoder,
+            "alignment": self.hparams.alignment,
             "segmenter": self.hparams.segmenter,
             "cond_drop_prob": self.hparams.cond_drop_prob,
         }
