@@ -28,6 +28,7 @@ from segmo.models.transformer import (
     Linear,
     TextPrefix,
     TokenHead,
+    TransformerConfig,
     Trunk,
     init_weights,
 )
@@ -41,18 +42,7 @@ def cosine_schedule(t: torch.Tensor | float) -> torch.Tensor | float:
 
 
 @dataclass
-class MaskTransformerConfig:
-    codebook_size: int = 512
-    text_dim: int = 512
-    max_segments: int = 5
-    max_tokens: int = 49
-    dim: int = 384
-    depth: int = 8
-    heads: int = 6
-    ff_dim: int = 1024
-    dropout: float = 0.2
-    # MoMask uses PyTorch's default post-norm encoder layer; pre-norm trains more stably.
-    norm_first: bool = False
+class MaskTransformerConfig(TransformerConfig):
     # SegMo's segment-alignment head (spec §5); None = plain MoMask (no alignment).
     alignment: AlignmentConfig | None = None
 

@@ -30,24 +30,15 @@ from segmo.models.transformer import (
     Condition,
     TextPrefix,
     TokenHead,
+    TransformerConfig,
     Trunk,
     init_weights,
 )
 
 
 @dataclass
-class ResidualTransformerConfig:
-    codebook_size: int = 512
-    num_quantizers: int = 6
-    text_dim: int = 512
-    max_segments: int = 5
-    max_tokens: int = 49
-    dim: int = 384
-    depth: int = 8
-    heads: int = 6
-    ff_dim: int = 1024
-    dropout: float = 0.2
-    norm_first: bool = False
+class ResidualTransformerConfig(TransformerConfig):
+    num_quantizers: int = 6  # of the tokenizer; this model predicts layers 1..q−1
 
 
 @dataclass

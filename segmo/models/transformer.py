@@ -1,6 +1,6 @@
 """The transformer trunk shared by the mask and residual transformers (spec §4, §6).
 
-Bottom-up: attention → block → trunk, plus the text-conditioning prefix. The trunk runs
+Bottom-up: the shared config, attention → block → trunk, plus the text-conditioning prefix. The trunk runs
 over `[prefix tokens, motion tokens]`; motion tokens get sinusoidal positions, the prefix
 slots get learned type embeddings and the segments a learned execution-order embedding.
 
@@ -22,6 +22,28 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from segmo.text.rules import MAX_SEGMENTS
+
+
+@dataclass
+class TransformerConfig:
+    """What the mask and the residual transformer share: the token vocabulary, the text
+    prefix (`text_dim`, `max_segments` slots A) and the trunk. Their configs extend it, so a
+    config.json stays one flat object."""
+
+    codebook_size: int = 512
+    text_dim: int = 512
+    # A: the most text segments a caption has, what the text segmenters produce at most.
+    max_segments: int = MAX_SEGMENTS
+    max_tokens: int = 49
+    dim: int = 384
+    depth: int = 8
+    heads: int = 6
+    ff_dim: int = 1024
+    dropout: float = 0.2
+    # MoMask uses PyTorch's default post-norm encoder layer; pre-norm trains more stably.
+    norm_first: bool = False
 
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
