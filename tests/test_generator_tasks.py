@@ -69,7 +69,8 @@ def test_a_mask_config_naming_the_former_temperature_still_trains(text_dataset, 
     hold `temperature`: it is read as alignment_temperature, with a warning."""
     old = tmp_path / "old.yaml"
     text = (REPO / "configs/mask/synthetic.yaml").read_text()
-    old.write_text(text.replace("    alignment_temperature: 0.1", "    temperature: 0.2"))
+    old.write_text(text.replace("    alignment_temperature: 0.1", "    temperature: 0.2")
+                   .replace("    max_tokens: 49\n", "    max_segments: 5\n    max_tokens: 49\n", 1))
     with pytest.warns(FutureWarning, match="former name of alignment_temperature"):
         cli = cli_main(["fit", "--config", str(old),
                         *overrides(old, text_dataset, tokenizer_dir, tmp_path / "runs"),
@@ -79,6 +80,46 @@ def test_a_mask_config_naming_the_former_temperature_still_trains(text_dataset, 
     with pytest.raises(ValueError, match="former name of alignment_temperature; set only"):
         MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, temperature=0.2,
                  alignment_temperature=0.3)
+
+
+def test_max_segments_is_stated_by_the_data_and_reaches_the_model(text_dataset, tokenizer_dir,
+                                                                 tmp_path):
+    """data.init_args.max_segments is linked to the transformer's. Configs written before
+    state it for the model too: they run when both agree; a model value that differs is
+    one error naming its place."""
+    import re
+
+    from segmo.errors import SegmoError
+
+    config = REPO / "configs/residual/synthetic.yaml"
+    args = [*overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+            "--trainer.fast_dev_run=true"]
+    cli = cli_main(["fit", "--config", str(config), *args, "--data.init_args.max_segments=4"])
+    assert cli.model.model.config.max_segments == 4 == cli.datamodule.max_segments
+    assert cli.datamodule.dataset("train")[0]["segment_mask"].shape == (4,)
+    old = tmp_path / "old.yaml"
+    old.write_text(config.read_text().replace("    max_tokens: 49\n",
+                                              "    max_segments: 5\n    max_tokens: 49\n", 1))
+    cli = cli_main(["fit", "--config", str(old), *args])
+    assert cli.trainer.state.finished and cli.model.model.config.max_segments == 5
+    expected = (f"{old}:" + r"\d+: model.init_args.max_segments=5, but the model takes max_segments "
+                r"from data.init_args.max_segments \(4\)")
+    with pytest.raises(SegmoError, match=expected):
+        cli_main(["fit", "--config", str(old), *args, "--data.init_args.max_segments=4"])
+    with pytest.raises(SegmoError, match=re.escape("argument --model.init_args.max_segments=3")):
+        cli_main(["fit", "--config", str(config), *args, "--model.init_args.max_segments=3"])
+
+
+def test_a_misspelt_argument_of_the_shared_transformer_task_gets_a_suggestion(
+        text_dataset, tokenizer_dir, tmp_path):
+    from segmo.errors import SegmoError
+
+    config = REPO / "configs/mask/synthetic.yaml"
+    with pytest.raises(SegmoError, match=r"MaskTask has no argument 'ff_dimm' \(did you mean "
+                                         r"'ff_dim'\?\)"):
+        cli_main(["fit", "--config", str(config),
+                  *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                  "--model.init_args.ff_dimm=3", "--trainer.fast_dev_run=true"])
 
 
 def test_text_dim_mismatch_is_an_error(text_dataset, tokenizer_dir, tmp_path):

@@ -22,7 +22,7 @@ from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import RVQVAE
 from segmo.motion.skeleton import get_skeleton
-from segmo.tasks.common import step_schedule
+from segmo.tasks.base import step_schedule
 from segmo.tasks.tokenizer import RVQTask
 from segmo.training.cli import main as cli_main
 

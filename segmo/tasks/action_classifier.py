@@ -63,13 +63,10 @@ class ActionClassifierTask(Task):
         return model
 
     def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer else None
+        datamodule = self.datamodule
         if datamodule is None:
             return
-        if get_skeleton(datamodule.skeleton).name != self.skeleton.name:
-            raise SegmoError(f"ActionClassifierTask: the data uses skeleton "
-                             f"{get_skeleton(datamodule.skeleton).name!r} but the task was built "
-                             f"for {self.skeleton.name!r}; set model.init_args.skeleton")
+        self.check_skeleton()
         if not getattr(datamodule, "frame_labels", False):
             raise SegmoError("ActionClassifierTask: the data carry no frame labels; set "
                              "data.init_args.frame_labels: true")

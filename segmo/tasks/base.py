@@ -1,5 +1,11 @@
-"""`Task`: what every training stage (rvq, mask, residual, length, evaluator) shares.
+"""`Task`: what every training stage (rvq, mask, residual, length, evaluator, action
+classifier) shares.
 
+* `datamodule`: the Trainer's DataModule or None, which `setup` hooks read; `check_skeleton`
+  refuses data of another skeleton than the task's.
+* The optimiser of the stages with `lr`, `weight_decay`, `warmup_steps`, `milestones` and
+  `gamma` hyper-parameters: AdamW with a linear warm-up and step decay per optimiser step
+  (`adamw_with_schedule`); stages with another schedule override `configure_optimizers`.
 * A non-finite training loss stops the run before its backward pass, and a non-finite
   gradient before the optimiser step, with one line naming the step and the batch's sample
   ids (`NonFiniteError`, a `SegmoError`: ``segmo fit`` prints it and exits with status 2).
@@ -25,6 +31,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from segmo.errors import SegmoError
+from segmo.motion.skeleton import get_skeleton
 
 RNG_KEY = "segmo_rng_states"
 SHOWN_IDS = 8
@@ -51,6 +58,26 @@ def set_rng_states(states: dict[str, Any]) -> None:
     kind, keys, pos, has_gauss, gauss = states["numpy"]
     np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
     random.setstate(states["python"])
+
+
+def step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
+    """Learning-rate factor of an optimiser step: linear warm-up, then ×gamma per milestone."""
+
+    def factor(step: int) -> float:
+        warm = min(1.0, (step + 1) / warmup_steps) if warmup_steps > 0 else 1.0
+        return warm * gamma ** sum(step >= m for m in milestones)
+
+    return factor
+
+
+def adamw_with_schedule(parameters, lr: float, weight_decay: float, warmup_steps: int,
+                        milestones: list[int], gamma: float, betas=(0.9, 0.99)) -> dict:
+    """AdamW with a per-step warm-up + step-decay schedule, in Lightning's format."""
+    optimizer = torch.optim.AdamW(parameters, lr=lr, betas=tuple(betas), weight_decay=weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, step_schedule(warmup_steps, list(milestones), gamma)
+    )
+    return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
 
 def non_finite_tensors(state_dict: dict[str, Any]) -> list[str]:
@@ -82,6 +109,27 @@ class Task(L.LightningModule):
         self._batch_ids: list[str] = []
         self._batch_idx = 0
         self._rng_to_restore: list[dict[str, Any]] | None = None
+
+    # -- set-up and optimiser ----------------------------------------------------------------
+
+    @property
+    def datamodule(self) -> Any | None:
+        """The Trainer's DataModule; None without a Trainer or with loaders given directly."""
+        return getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+
+    def check_skeleton(self) -> None:
+        """The data's skeleton is the task's `skeleton`, or one `SegmoError`."""
+        data_skeleton = getattr(self.datamodule, "skeleton", None)
+        if data_skeleton is not None and get_skeleton(data_skeleton).name != self.skeleton.name:
+            raise SegmoError(
+                f"{type(self).__name__}: the data uses skeleton {get_skeleton(data_skeleton).name!r} "
+                f"but the task was built for {self.skeleton.name!r}; set model.init_args.skeleton "
+                "to match")
+
+    def configure_optimizers(self):
+        h = self.hparams
+        return adamw_with_schedule(self.model.parameters(), h.lr, h.weight_decay, h.warmup_steps,
+                                   h.milestones, h.gamma, h.get("betas", (0.9, 0.99)))
 
     # -- non-finite guards -------------------------------------------------------------------
 

@@ -1,7 +1,9 @@
-"""Pieces shared by the token-level tasks (mask, residual, length)."""
+"""Pieces shared by the token-level tasks (mask, residual, length), and `TransformerTask`,
+the base of the mask and residual stages."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import torch
@@ -10,26 +12,55 @@ from torch import Tensor
 from segmo.errors import SegmoError
 from segmo.models.pretrained import read_config
 from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
+from segmo.models.transformer import TransformerConfig
+from segmo.tasks.base import Task
+
+_DEFAULT = TransformerConfig()  # the model's defaults are the task's
 
 
-def step_schedule(warmup_steps: int, milestones: list[int], gamma: float):
-    """Learning-rate factor of an optimiser step: linear warm-up, then ×gamma per milestone."""
+class TransformerTask(Task):
+    """What the mask and residual stages share: a frozen tokenizer (an exported directory)
+    whose codes the model predicts, a text-conditioned transformer built from the
+    `TransformerConfig` arguments below, the text-feature checks at `setup`, and the
+    optimiser of `Task`.
 
-    def factor(step: int) -> float:
-        warm = min(1.0, (step + 1) / warmup_steps) if warmup_steps > 0 else 1.0
-        return warm * gamma ** sum(step >= m for m in milestones)
+    Subclasses take their own arguments and pass the rest on (``**kwargs``); jsonargparse
+    follows them, so `segmo fit --help` and every YAML list all arguments flat, as before.
+    ``max_segments`` (A) comes from ``data.init_args.max_segments`` under ``segmo fit``
+    (`segmo.training.cli`).
+    """
 
-    return factor
+    def __init__(
+        self,
+        tokenizer: str,
+        cond_drop_prob: float,
+        text_dim: int = _DEFAULT.text_dim,
+        text_encoder: str | None = None,
+        dim: int = _DEFAULT.dim,
+        depth: int = _DEFAULT.depth,
+        heads: int = _DEFAULT.heads,
+        ff_dim: int = _DEFAULT.ff_dim,
+        dropout: float = _DEFAULT.dropout,
+        norm_first: bool = _DEFAULT.norm_first,
+        max_segments: int = _DEFAULT.max_segments,
+        max_tokens: int = _DEFAULT.max_tokens,
+        lr: float = 2e-4,
+        weight_decay: float = 1e-5,
+        warmup_steps: int = 2000,
+        milestones: list[int] = [50_000],  # noqa: B006 - jsonargparse needs a plain default
+        gamma: float = 0.1,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.tokenizer = load_tokenizer(tokenizer)
 
+    def transformer_config(self) -> dict:
+        """The `TransformerConfig` fields: the task's arguments, the tokenizer's codebook size."""
+        names = [f.name for f in dataclasses.fields(TransformerConfig) if f.name != "codebook_size"]
+        return {"codebook_size": self.tokenizer.codebook_size, **{k: self.hparams[k] for k in names}}
 
-def adamw_with_schedule(parameters, lr: float, weight_decay: float, warmup_steps: int,
-                        milestones: list[int], gamma: float, betas=(0.9, 0.99)) -> dict:
-    """AdamW with a per-step warm-up + step-decay schedule, in Lightning's format."""
-    optimizer = torch.optim.AdamW(parameters, lr=lr, betas=tuple(betas), weight_decay=weight_decay)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, step_schedule(warmup_steps, list(milestones), gamma)
-    )
-    return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+    def setup(self, stage: str) -> None:
+        check_text_features(self)
 
 
 def load_tokenizer(path: str) -> RVQVAE:
@@ -55,14 +86,17 @@ def load_tokenizer(path: str) -> RVQVAE:
     return tokenizer.eval()
 
 
-def check_text_features(datamodule, text_dim: int, text_encoder: str | None, task: str) -> str | None:
-    """Fail early, naming both settings, when the data's cached text features do not fit.
+def check_text_features(task: Task) -> None:
+    """Fail early, naming both settings, when the data's cached text features do not fit
+    the task's `text_dim` and `text_encoder`; then set `text_encoder` to the encoder the
+    model is trained with (recorded in the exported model so that inference encodes prompts
+    with the same encoder)."""
+    datamodule, h = task.datamodule, task.hparams
+    if datamodule is not None:
+        h.text_encoder = _text_encoder(datamodule, h.text_dim, h.text_encoder, type(task).__name__)
 
-    Returns the encoder name the model is trained with (recorded in the exported model so
-    that inference encodes prompts with the same encoder).
-    """
-    if datamodule is None:
-        return text_encoder
+
+def _text_encoder(datamodule, text_dim: int, text_encoder: str | None, task: str) -> str:
     name = getattr(datamodule, "hparams", {}).get("text_features")
     if name is None:
         raise SegmoError(

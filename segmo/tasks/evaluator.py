@@ -116,12 +116,10 @@ class EvaluatorTask(Task):
         return model
 
     def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer else None
+        datamodule = self.datamodule
         if datamodule is None:
             return
-        if get_skeleton(datamodule.skeleton).name != self.skeleton.name:
-            raise SegmoError(f"EvaluatorTask: the data uses skeleton {get_skeleton(datamodule.skeleton).name!r} "
-                             f"but the task was built for {self.skeleton.name!r}; set model.init_args.skeleton")
+        self.check_skeleton()
         self.tokens = CaptionTokens(datamodule.root)
         if self.model is not None:  # loaded from a checkpoint
             return

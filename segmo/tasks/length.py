@@ -15,7 +15,7 @@ from torch import Tensor
 
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
 from segmo.tasks.base import Task
-from segmo.tasks.common import adamw_with_schedule, check_text_features, token_lengths
+from segmo.tasks.common import check_text_features, token_lengths
 
 
 class LengthTask(Task):
@@ -43,14 +43,7 @@ class LengthTask(Task):
             text_dim=text_dim, hidden=hidden, max_tokens=max_tokens, dropout=dropout))
 
     def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer else None
-        self.hparams.text_encoder = check_text_features(
-            datamodule, self.hparams.text_dim, self.hparams.text_encoder, "LengthTask")
-
-    def configure_optimizers(self):
-        h = self.hparams
-        return adamw_with_schedule(self.model.parameters(), h.lr, h.weight_decay,
-                                   h.warmup_steps, h.milestones, h.gamma)
+        check_text_features(self)
 
     def step(self, batch: dict) -> dict[str, Tensor]:
         logits = self.model(batch["sentence"])

@@ -30,11 +30,8 @@ from segmo.models.mask_transformer import (
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import SegmenterName, segment_batch
 from segmo.tasks.alignment_loss import AlignmentLoss, AlignMethod
-from segmo.tasks.base import Task
 from segmo.tasks.common import (
-    adamw_with_schedule,
-    check_text_features,
-    load_tokenizer,
+    TransformerTask,
     text_condition,
     token_lengths,
     token_mask,
@@ -102,7 +99,7 @@ def segment_top1(text: Tensor, motion: Tensor, mask: Tensor) -> tuple[int, int]:
     return int(((pick == own) & mask).sum()), int(mask.sum())
 
 
-class MaskTask(Task):
+class MaskTask(TransformerTask):
     """Trains `MaskTransformer` (+ its alignment head) on batches with cached text features."""
 
     stage: ClassVar[str] = "mask"
@@ -111,16 +108,6 @@ class MaskTask(Task):
     def __init__(
         self,
         tokenizer: str,
-        text_dim: int = 512,
-        text_encoder: str | None = None,
-        dim: int = 384,
-        depth: int = 8,
-        heads: int = 6,
-        ff_dim: int = 1024,
-        dropout: float = 0.2,
-        norm_first: bool = False,
-        max_segments: int = 5,
-        max_tokens: int = 49,
         cond_drop_prob: float = 0.1,
         order_drop_prob: float = 0.0,
         alignment: Literal[AlignMethod, "none"] = "in_sample",
@@ -128,46 +115,25 @@ class MaskTask(Task):
         alignment_temperature: float = ALIGNMENT_TEMPERATURE,
         segmenter: SegmenterName = "uniform",
         alignment_dim: int = 512,
-        lr: float = 2e-4,
-        weight_decay: float = 1e-5,
-        warmup_steps: int = 2000,
-        milestones: list[int] = [50_000],  # noqa: B006 - jsonargparse needs a plain default
-        gamma: float = 0.1,
         temperature: float | None = None,
+        **kwargs,
     ) -> None:
         """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
         plain MoMask, without a head); `alignment_dim` the head's width. `temperature` is the
         former name of `alignment_temperature` (configs and checkpoints written before hold
-        it): it is read as that, with a warning."""
-        super().__init__()
-        self.save_hyperparameters()
+        it): it is read as that, with a warning. The other arguments (`**kwargs`) are
+        `TransformerTask`'s."""
+        super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
         if temperature is not None:  # checkpoints of this run hold the new name only
             alignment_temperature = former_temperature(temperature, alignment_temperature)
             self.hparams.update(alignment_temperature=alignment_temperature, temperature=None)
-        self.tokenizer = load_tokenizer(tokenizer)
         align, self.alignment_loss = None, None
         if alignment != "none":
             self.alignment_loss = AlignmentLoss(alignment, alignment_temperature,
                                                 alignment_weight, segmenter)
             align = AlignmentConfig(out_dim=alignment_dim)
-        self.model = MaskTransformer(
-            MaskTransformerConfig(
-                codebook_size=self.tokenizer.codebook_size, text_dim=text_dim,
-                max_segments=max_segments, max_tokens=max_tokens, dim=dim, depth=depth,
-                heads=heads, ff_dim=ff_dim, dropout=dropout, norm_first=norm_first,
-                alignment=align,
-            )
-        )
-
-    def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer else None
-        self.hparams.text_encoder = check_text_features(
-            datamodule, self.hparams.text_dim, self.hparams.text_encoder, "MaskTask")
-
-    def configure_optimizers(self):
-        h = self.hparams
-        return adamw_with_schedule(self.model.parameters(), h.lr, h.weight_decay,
-                                   h.warmup_steps, h.milestones, h.gamma)
+        self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
+                                                           alignment=align))
 
     # -- one step ----------------------------------------------------------------------------
 

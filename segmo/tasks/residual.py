@@ -19,63 +19,25 @@ from segmo.models.residual_transformer import (
     ResidualTransformerConfig,
     sample_layers,
 )
-from segmo.tasks.base import Task
 from segmo.tasks.common import (
-    adamw_with_schedule,
-    check_text_features,
-    load_tokenizer,
+    TransformerTask,
     text_condition,
     token_mask,
 )
 
 
-class ResidualTask(Task):
+class ResidualTask(TransformerTask):
     """Trains `ResidualTransformer` on batches with cached text features."""
 
     stage: ClassVar[str] = "residual"
     monitor: ClassVar[str] = "val/loss"
 
-    def __init__(
-        self,
-        tokenizer: str,
-        text_dim: int = 512,
-        text_encoder: str | None = None,
-        dim: int = 384,
-        depth: int = 8,
-        heads: int = 6,
-        ff_dim: int = 1024,
-        dropout: float = 0.2,
-        norm_first: bool = False,
-        max_segments: int = 5,
-        max_tokens: int = 49,
-        cond_drop_prob: float = 0.2,
-        lr: float = 2e-4,
-        weight_decay: float = 1e-5,
-        warmup_steps: int = 2000,
-        milestones: list[int] = [50_000],  # noqa: B006 - jsonargparse needs a plain default
-        gamma: float = 0.1,
-    ) -> None:
-        super().__init__()
-        self.save_hyperparameters()
-        self.tokenizer = load_tokenizer(tokenizer)
-        self.model = ResidualTransformer(
-            ResidualTransformerConfig(
-                codebook_size=self.tokenizer.codebook_size,
-                num_quantizers=self.tokenizer.num_quantizers, text_dim=text_dim,
-                max_segments=max_segments, max_tokens=max_tokens, dim=dim, depth=depth,
-                heads=heads, ff_dim=ff_dim, dropout=dropout, norm_first=norm_first,
-            )
-        )
-
-    def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer else None
-        self.hparams.text_encoder = check_text_features(
-            datamodule, self.hparams.text_dim, self.hparams.text_encoder, "ResidualTask")
-
-    def configure_optimizers(self):
-        h = self.hparams
-        return adamw_with_schedule(self.model.parameters(), h.lr, h.weight_decay,
-                                   h.warmup_steps, h.milestones, h.gamma)
+    def __init__(self, tokenizer: str, cond_drop_prob: float = 0.2, **kwargs) -> None:
+        """The arguments (`**kwargs`) are `TransformerTask`'s; the condition is dropped more
+        often than in the mask stage (MoMask)."""
+        super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
+        self.model = ResidualTransformer(ResidualTransformerConfig(
+            **self.transformer_config(), num_quantizers=self.tokenizer.num_quantizers))
 
     def step(self, batch: dict, generator: torch.Generator | None = None,
              drop: Tensor | None = None) -> dict[str, Tensor]:

@@ -16,12 +16,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from segmo.errors import SegmoError
 from segmo.models.tokenizer import RVQVAE, RVQConfig, RVQOutput
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import get_skeleton
 from segmo.tasks.base import Task
-from segmo.tasks.common import adamw_with_schedule
 
 
 class RVQTask(Task):
@@ -77,15 +75,10 @@ class RVQTask(Task):
     # -- set-up ------------------------------------------------------------------------------
 
     def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer else None
+        datamodule = self.datamodule
         if datamodule is None:
             return
-        data_skeleton = getattr(datamodule, "skeleton", None)
-        if data_skeleton is not None and get_skeleton(data_skeleton).name != self.skeleton.name:
-            raise SegmoError(
-                f"RVQTask: the data uses skeleton {get_skeleton(data_skeleton).name!r} but the task "
-                f"was built for {self.skeleton.name!r}; set model.init_args.skeleton to match"
-            )
+        self.check_skeleton()
         # Ranks draw different windows; offset the generator so they also differ in what
         # they would pick (rank 0's picks are the ones broadcast).
         self.generator.manual_seed(self.hparams.seed + self.global_rank)
@@ -104,11 +97,6 @@ class RVQTask(Task):
         super().on_load_checkpoint(checkpoint)
         if "rvq_generator_state" in checkpoint:
             self.generator.set_state(checkpoint["rvq_generator_state"])
-
-    def configure_optimizers(self):
-        h = self.hparams
-        return adamw_with_schedule(self.model.parameters(), h.lr, h.weight_decay, h.warmup_steps,
-                                   h.milestones, h.gamma, betas=h.betas)
 
     # -- losses ------------------------------------------------------------------------------
 

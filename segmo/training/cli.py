@@ -16,7 +16,12 @@ stage uses this same entry point. On top of Lightning's defaults it adds
   which segmo always gives, so it would be silently ignored;
 - one-line errors (`SegmoError`) for a bad config file, key, value or path
   (`segmo.training.config_errors`), which `segmo` prints as ``segmo fit: ...``, exit 2;
-- a default seed of 0 (`--seed_everything`).
+- a default seed of 0 (`--seed_everything`);
+- ``max_segments`` stated once, by the data: ``data.init_args.max_segments`` (the text
+  segments a sample carries, padded to that many slots) is linked to the transformer's
+  ``model.init_args.max_segments``. Configs written before state it for the model too;
+  they still run when both agree, and a model value that differs is an error naming its
+  place (jsonargparse would silently replace it).
 
 Example: `segmo fit --config configs/rvq/synthetic.yaml --data.root /tmp/c2000`.
 """
@@ -35,10 +40,11 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from segmo.errors import SegmoError
-from segmo.training.config_errors import check_config_files, config_error
+from segmo.training.config_errors import check_config_files, config_error, where_set
 from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step
 
 SUBCOMMANDS = ("fit", "validate", "test")
+LINKED = ("data.init_args.max_segments", "model.init_args.max_segments")
 
 
 class SegmoCLI(LightningCLI):
@@ -48,6 +54,8 @@ class SegmoCLI(LightningCLI):
             "--run_name", type=str | None, default=None,
             help="run directory name under runs_dir/<stage>/ (default: the config file's stem)",
         )
+        # Applied to the tasks that take max_segments (mask, residual); the others have none.
+        parser.link_arguments(LINKED[0], LINKED[1])
 
     @staticmethod
     def subcommands() -> dict[str, set[str]]:
@@ -58,6 +66,7 @@ class SegmoCLI(LightningCLI):
         config = self.config.get(self.config.get("subcommand") or "", None)
         if config is None:
             return
+        _check_linked(config, list(args or []))
         if config.get("trainer", {}).get("default_root_dir") is not None:
             raise SegmoError(
                 "--trainer.default_root_dir is not used by segmo: the run directory is "
@@ -113,6 +122,19 @@ class SegmoCLI(LightningCLI):
             )
         kwargs["callbacks"] = callbacks
         return super().instantiate_trainer(**kwargs)
+
+
+def _check_linked(config: Any, argv: list[str]) -> None:
+    """A value given for the link's target (configs written before the link) that is not
+    the linked one: one `SegmoError` naming where it is set."""
+    source, target = LINKED
+    linked = config.get(target)
+    if linked is None:
+        return
+    for where, given in where_set(target, argv):
+        if given is not None and given.strip() != str(linked):
+            raise SegmoError(f"{where}: {target}={given.strip()}, but the model takes "
+                             f"max_segments from {source} ({linked}); set that one instead")
 
 
 def _segmo_error(error: BaseException) -> SegmoError | None:

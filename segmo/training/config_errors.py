@@ -85,13 +85,12 @@ def _plain(path: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     return tuple(p for p in path if p != "init_args")
 
 
-def locate(key: str, argv: list[str], value: str | None = None) -> str | None:
-    """Where ``key`` (dotted) is set: ``"FILE:LINE"`` or ``"argument --ARG"``, or None.
-
-    With ``value`` (the offending value), a place that sets the key to it is preferred:
-    a bad value in a YAML file is reported before a command-line override replaces it."""
+def where_set(key: str, argv: list[str]) -> list[tuple[str, str | None]]:
+    """Every place that sets ``key`` (dotted), as ``("FILE:LINE" or "argument --ARG", the
+    value there when it is a scalar)``: command-line arguments first, then the config files
+    from the last one."""
     wanted = _plain(key.split("."))
-    places: list[tuple[str, str | None]] = []  # (where, value there)
+    places: list[tuple[str, str | None]] = []
     for i, arg in enumerate(argv):
         if arg.startswith("--") and _plain(arg[2:].split("=", 1)[0].split(".")) == wanted:
             given = arg.split("=", 1)[1] if "=" in arg else (argv[i + 1] if i + 1 < len(argv) else None)
@@ -103,14 +102,34 @@ def locate(key: str, argv: list[str], value: str | None = None) -> str | None:
             continue
         found = [(line, scalar) for path, line, scalar in _key_lines(root) if _plain(path) == wanted]
         places += [(f"{name}:{line}", scalar) for line, scalar in reversed(found)]
-    matching = [where for where, given in places if value is not None and given == value]
-    return (matching or [where for where, _ in places] or [None])[0]
+    return places
+
+
+def locate(key: str, argv: list[str], value: str | None = None) -> str | None:
+    """Where ``key`` (dotted) is set: ``"FILE:LINE"`` or ``"argument --ARG"``, or None.
+
+    With ``value`` (the offending value), a place that sets the key to it is preferred:
+    a bad value in a YAML file is reported before a command-line override replaces it."""
+    found = where_set(key, argv)
+    matching = [where for where, given in found if value is not None and given == value]
+    return (matching or [where for where, _ in found] or [None])[0]
 
 
 def _argument_names(class_path: str) -> list[str]:
+    """The constructor arguments of a class, those of the base classes that its ``**kwargs``
+    pass on included (as jsonargparse resolves them)."""
     try:
         module, _, name = class_path.rpartition(".")
-        return list(inspect.signature(getattr(importlib.import_module(module), name)).parameters)
+        cls = getattr(importlib.import_module(module), name)
+        names: list[str] = []
+        for klass in cls.__mro__:
+            if "__init__" not in vars(klass):
+                continue
+            parameters = list(inspect.signature(klass.__init__).parameters.values())[1:]
+            names += [p.name for p in parameters if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+            if not any(p.kind is p.VAR_KEYWORD for p in parameters):
+                break
+        return list(dict.fromkeys(names))
     except (ImportError, AttributeError, ValueError, TypeError):
         return []
 
