@@ -265,3 +265,11 @@ def test_mirror_twice_is_identity():
     mirrored = mirror_joints(joints)
     assert np.allclose(mirrored[:, 1, 0], -joints[:, 2, 0])  # left hip <- right hip
     assert torch.equal(mirror_features(mirror_features(torch.from_numpy(features))), torch.from_numpy(features))
+
+
+def test_the_skeleton_names_a_task_accepts_are_the_known_skeletons():
+    from typing import get_args
+
+    from segmo.motion.skeleton import SKELETONS, SkeletonName
+
+    assert get_args(SkeletonName) == tuple(SKELETONS)

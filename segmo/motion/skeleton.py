@@ -8,6 +8,7 @@ HumanML3D processing tools so that features are interchangeable with the real da
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -145,6 +146,8 @@ KIT = SkeletonSpec(
 )
 
 SKELETONS: dict[str, SkeletonSpec] = {"t2m": T2M, "kit": KIT}
+# The names, as the type of a task's `skeleton` argument (the CLI offers exactly these).
+SkeletonName = Literal["t2m", "kit"]
 
 
 def get_skeleton(skeleton: str | SkeletonSpec) -> SkeletonSpec:

@@ -17,7 +17,7 @@ Optimiser: AdamW with a one-cycle schedule (peak `lr`) over all the steps of the
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import lightning as L
 import torch
@@ -28,7 +28,7 @@ from segmo.data.collate import IGNORE
 from segmo.data.datamodule import MotionDataModule
 from segmo.errors import SegmoError
 from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig
-from segmo.motion.skeleton import get_skeleton
+from segmo.motion.skeleton import SkeletonName, get_skeleton
 from segmo.tasks.base import Task
 
 
@@ -40,7 +40,7 @@ class ActionClassifierTask(Task):
 
     def __init__(
         self,
-        skeleton: Literal["t2m", "kit"] = "t2m",
+        skeleton: SkeletonName = "t2m",
         width: int = 64,
         depth: int = 4,
         kernel: int = 5,

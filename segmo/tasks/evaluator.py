@@ -43,7 +43,7 @@ from segmo.models.evaluator import (
     euclidean_distance_matrix,
     r_precision,
 )
-from segmo.motion.skeleton import get_skeleton
+from segmo.motion.skeleton import SkeletonName, get_skeleton
 from segmo.tasks.base import Task
 from segmo.text.vocabulary import CaptionTokens, Vocabulary
 
@@ -78,7 +78,7 @@ class EvaluatorTask(Task):
 
     def __init__(
         self,
-        skeleton: Literal["t2m", "kit"] = "t2m",
+        skeleton: SkeletonName = "t2m",
         glove_dir: str | None = None,
         min_word_count: int = 1,
         word_dim: int = 300,

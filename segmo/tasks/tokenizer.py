@@ -10,7 +10,7 @@ self-sufficient, and the skeleton, which must match the task's.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -18,7 +18,7 @@ from torch import Tensor
 
 from segmo.models.tokenizer import RVQVAE, RVQConfig, RVQOutput
 from segmo.motion.features import features_to_joints
-from segmo.motion.skeleton import get_skeleton
+from segmo.motion.skeleton import SkeletonName, get_skeleton
 from segmo.tasks.base import Task
 
 
@@ -30,7 +30,7 @@ class RVQTask(Task):
 
     def __init__(
         self,
-        skeleton: Literal["t2m", "kit"] = "t2m",
+        skeleton: SkeletonName = "t2m",
         width: int = 512,
         code_dim: int = 512,
         depth: int = 3,
