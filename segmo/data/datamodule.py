@@ -25,6 +25,7 @@ from segmo.errors import SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
+from segmo.text.rules import MAX_SEGMENTS
 
 
 class MotionDataModule(LightningDataModule):
@@ -61,7 +62,7 @@ class MotionDataModule(LightningDataModule):
         window: int | None = None,
         text_segments: str | None = None,
         text_features: str | None = None,
-        max_segments: int = 5,
+        max_segments: int = MAX_SEGMENTS,
         unit_length: int | None = None,
         seed: int = 0,
         max_motions: int | None = None,

@@ -58,6 +58,7 @@ from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
 from segmo.text.captions import CaptionLine, parse_text_line, read_caption_lines, texts_file
 from segmo.text.manifest import load_manifest
+from segmo.text.rules import MAX_SEGMENTS
 
 log = logging.getLogger(__name__)
 
@@ -236,7 +237,7 @@ class MotionDataset(Dataset):
         text_segments: str | None = None,
         text_features: str | None = None,
         text_cache: Any = None,
-        max_segments: int = 5,
+        max_segments: int = MAX_SEGMENTS,
         max_motions: int | None = None,
         preload: bool = True,
         strict: bool = False,
