@@ -5,7 +5,8 @@
 """
 
 from segmo.generation.editing import edit_drift
+from segmo.pipeline.bundle import SegMoConfig
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
-from segmo.pipeline.segmo import SegMo, SegMoConfig
+from segmo.pipeline.segmo import SegMo
 
 __all__ = ["GenerationOutput", "GroundingOutput", "SegMo", "SegMoConfig", "edit_drift"]

@@ -19,9 +19,10 @@ import torch
 from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.sampling import SamplingOptions
+from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
 from segmo.pipeline.grounding import plot_similarity_map
 from segmo.pipeline.outputs import FORMATS
-from segmo.pipeline.segmo import KIT_GUIDANCE_SCALE, SegMo
+from segmo.pipeline.segmo import SegMo
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):

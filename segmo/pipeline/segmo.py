@@ -1,13 +1,9 @@
 """`SegMo`: the inference pipeline, text → tokens → motion → joints (plus grounding/retrieval).
 
-A bundle directory holds every stage needed at inference time:
-
-    DIR/segmo.json     {"format": 1, "text_encoder", "text_segmenter", "skeleton", "fps",
-                        "guidance_scale", "residual_guidance_scale", "motion_segmenter"}
-    DIR/tokenizer/     RVQ-VAE model directory (its buffers hold the feature statistics)
-    DIR/mask/          mask transformer (+ alignment head)
-    DIR/residual/      residual transformer (optional)
-    DIR/length/        length estimator (optional)
+A `SegMo` holds the stages of a bundle directory (`segmo.pipeline.bundle` says what it
+holds); the checks of what users pass live in `segmo.pipeline.inputs`, grounding and
+retrieval in `segmo.pipeline.grounding` / `retrieval` over the segment space of
+`segmo.pipeline.space`.
 
 Example:
     >>> from segmo import SegMo
@@ -21,12 +17,8 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import numbers
 import os
-import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,94 +26,37 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
-from segmo.files import write_atomic
 from segmo.generation.editing import edit_tokens, token_span
 from segmo.generation.generate import Precision, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
-from segmo.models.pretrained import load_pretrained, read_config, read_json
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
 from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.pipeline import grounding, retrieval
+from segmo.pipeline.bundle import (
+    KIT_GUIDANCE_SCALE,
+    STAGES,
+    SegMoConfig,
+    load_stage,
+    read_bundle,
+    write_bundle,
+)
+from segmo.pipeline.inputs import (
+    check_texts,
+    frame_lengths,
+    motion_array,
+    resolve_device,
+    warn_truncated,
+)
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
 from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segments
 from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
 from segmo.text.llm import get_text_segmenter
-
-BUNDLE_FILE = "segmo.json"
-BUNDLE_FORMAT = 1
-STAGES = {"tokenizer": "rvq", "mask": "mask", "residual": "residual", "length": "length"}
-KIT_GUIDANCE_SCALE = 2.0  # spec §8: KIT's base-token guidance scale; HumanML3D's is the default
-
-
-@dataclass
-class SegMoConfig:
-    """What `segmo.json` records besides the stage directories."""
-
-    text_encoder: str
-    skeleton: str = "t2m"
-    fps: float = 20.0
-    text_segmenter: str = "rule"
-    # The defaults of `SamplingOptions` (KIT bundles: KIT_GUIDANCE_SCALE); `SegMo.sampling`.
-    guidance_scale: float = SamplingOptions.guidance_scale
-    residual_guidance_scale: float = SamplingOptions.residual_guidance_scale
-    motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
-    format: int = BUNDLE_FORMAT
-
-
-def check_texts(texts: Any, what: str = "text") -> list[str]:
-    """A list of strings that each hold a word, or SegmoError naming the first that does not
-    ("text 2", or with what="text 0, segment": "text 0, segment 1")."""
-    if isinstance(texts, str) or not isinstance(texts, (list, tuple)):
-        raise SegmoError(f"SegMo: expected a list of strings ({what}s), got {texts!r:.80}")
-    for i, text in enumerate(texts):
-        if not isinstance(text, str):
-            raise SegmoError(f"SegMo: {what} {i} is a {type(text).__name__}, not a string")
-        if not any(c.isalnum() for c in text):
-            raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) holds no words; describe a motion")
-    return list(texts)
-
-
-def _warn_truncated(encoder: Any, texts: list[str]) -> None:
-    """Say so when a text is longer than the encoder reads: it encodes the start only, as
-    `segmo encode-texts` did for the training captions, so the rest cannot steer the motion."""
-    tokenizer, limit = getattr(encoder, "tokenizer", None), getattr(encoder, "max_length", None)
-    if tokenizer is None or not limit:
-        return
-    for text in texts:
-        if len(text) < limit:  # a token spans at least one character
-            continue
-        count = len(tokenizer(text, truncation=False, verbose=False)["input_ids"])
-        if count > limit:
-            warnings.warn(f"SegMo: the text {text[:60]!r}... has {count} tokens; the text encoder "
-                          f"reads the first {limit}", stacklevel=3)
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """`device` as a torch.device this build can use, or SegmoError saying why not."""
-    try:
-        device = torch.device(device)
-    except (RuntimeError, TypeError) as error:
-        raise SegmoError(f"SegMo: device {device!r} is not a torch device ({error})") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SegmoError(f"SegMo: device {str(device)!r} asked for, but this torch build sees "
-                         "no CUDA GPU; use --device cpu")
-    if device.type == "mps" and not torch.backends.mps.is_available():
-        raise SegmoError(f"SegMo: device {str(device)!r} asked for, but MPS is not available")
-    return device
-
-
-def _load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
-    directory = Path(directory)
-    found = read_config(directory)["kind"]  # FileNotFoundError names the directory
-    if found != kind:
-        raise SegmoError(f"{directory}: holds a {found!r} model, expected a {kind!r} model")
-    return load_pretrained(directory)
 
 
 class SegMo:
@@ -186,32 +121,8 @@ class SegMo:
     def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu",
                         **kwargs: Any) -> SegMo:
         """Load a bundle directory (see the module docstring); kwargs go to `__init__`."""
-        directory = Path(directory)
-        path = directory / BUNDLE_FILE
-        if not path.is_file():
-            hint = (" (it is a single model directory; assemble a bundle with `segmo bundle`)"
-                    if (directory / "config.json").is_file() else "")
-            raise FileNotFoundError(f"{path}: not a SegMo bundle (no {BUNDLE_FILE}){hint}")
         device = resolve_device(device)
-        payload = read_json(path)
-        if payload.get("format") != BUNDLE_FORMAT:
-            raise SegmoError(f"{path}: format {payload.get('format')!r} is not supported "
-                             f"(expected {BUNDLE_FORMAT})")
-        known = {f.name for f in dataclasses.fields(SegMoConfig)}
-        config = SegMoConfig(**{k: v for k, v in payload.items() if k in known})
-        if not isinstance(config.text_encoder, str):
-            raise SegmoError(f"{path}: 'text_encoder' must name the text encoder, got "
-                             f"{config.text_encoder!r}")
-        for name in ("guidance_scale", "residual_guidance_scale"):
-            value = getattr(config, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
-                    or not math.isfinite(value):
-                raise SegmoError(f"{path}: {name!r} must be a finite number, got {value!r}")
-        stages = {name: _load_stage(directory / name, kind) if (directory / name).is_dir()
-                  else None for name, kind in STAGES.items()}
-        for name in ("tokenizer", "mask"):
-            if stages[name] is None:
-                raise FileNotFoundError(f"{directory / name}: the bundle has no {name} stage")
+        config, stages = read_bundle(directory)
         return cls(**stages, config=config, **kwargs).to(device)
 
     @classmethod
@@ -220,9 +131,9 @@ class SegMo:
                     length: str | os.PathLike | None = None, segmenter: str = "rule",
                     **kwargs: Any) -> SegMo:
         """Assemble from exported stage directories (`segmo export` outputs)."""
-        stages = {"tokenizer": _load_stage(tokenizer, "rvq"), "mask": _load_stage(mask, "mask"),
-                  "residual": _load_stage(residual, "residual") if residual else None,
-                  "length": _load_stage(length, "length") if length else None}
+        stages = {"tokenizer": load_stage(tokenizer, "rvq"), "mask": load_stage(mask, "mask"),
+                  "residual": load_stage(residual, "residual") if residual else None,
+                  "length": load_stage(length, "length") if length else None}
         names = {n: (getattr(m, "meta", {}) or {}).get("text_encoder")
                  for n, m in stages.items() if m is not None and n != "tokenizer"}
         if len({v for v in names.values() if v is not None}) > 1:
@@ -234,15 +145,8 @@ class SegMo:
 
     def save_pretrained(self, directory: str | os.PathLike) -> Path:
         """Write the bundle (every stage + segmo.json) to `directory`; returns it."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        for name in STAGES:
-            module = getattr(self, name)
-            if module is not None:
-                module.save_pretrained(directory / name)
-        write_atomic(directory / BUNDLE_FILE,
-                     json.dumps(dataclasses.asdict(self.config), indent=2) + "\n")
-        return directory
+        return write_bundle(directory, self.config,
+                            {name: getattr(self, name) for name in STAGES})
 
     def modules(self) -> list[torch.nn.Module]:
         return [m for m in (self.tokenizer, self.mask, self.residual, self.length)
@@ -314,7 +218,7 @@ class SegMo:
             raise TypeError("SegMo.encode_texts(texts): texts must be a list of strings")
         missing = list(dict.fromkeys(t for t in texts if t not in self._sentence_cache))
         if missing:
-            _warn_truncated(self.text_encoder, missing)
+            warn_truncated(self.text_encoder, missing)
             sentence = self.text_encoder.encode(missing).sentence.float().cpu()
             if sentence.shape[-1] != self.mask.config.text_dim:
                 raise SegmoError(f"SegMo: text encoder {self.text_encoder_name!r} gives "
@@ -362,43 +266,14 @@ class SegMo:
 
     def check_lengths(self, lengths: Any, b: int) -> torch.Tensor:
         """User lengths (int, list or tensor of frames) → (b,) long; raise on bad values."""
-        if isinstance(lengths, (torch.Tensor, np.ndarray)):
-            lengths = lengths.tolist()
-        values = [lengths] * b if np.ndim(lengths) == 0 else np.ravel(
-            np.asarray(lengths, dtype=object)).tolist()
-        # 40.7 frames is a mistake to report, not to round; so are True, "40" and NaN.
-        whole = [not isinstance(v, bool) and (isinstance(v, numbers.Integral) or isinstance(
-            v, numbers.Real) and math.isfinite(v) and float(v).is_integer()) for v in values]
-        if not all(whole):
-            raise SegmoError(f"SegMo: lengths must be whole numbers of frames, got "
-                             f"{values[whole.index(False)]!r}")
-        lengths = torch.tensor([int(v) for v in values], dtype=torch.long)
-        if lengths.numel() != b:
-            raise SegmoError(f"SegMo: {lengths.numel()} lengths for {b} texts")
-        bad = (lengths % FRAMES_PER_TOKEN != 0) | (lengths < FRAMES_PER_TOKEN) | (lengths > self.max_frames)
-        if bool(bad.any()):
-            raise SegmoError(f"SegMo: lengths must be multiples of {FRAMES_PER_TOKEN} frames in "
-                             f"[{FRAMES_PER_TOKEN}, {self.max_frames}] ({self.max_frames / self.fps:.1f}"
-                             f" s at {self.fps:g} fps); got {lengths[bad].tolist()}")
-        return lengths.to(self.device)
+        return frame_lengths(lengths, b, self.max_frames, self.fps).to(self.device)
 
     def normalize_motion(self, motion: Any) -> tuple[torch.Tensor, int]:
         """Raw features (t, d) (numpy or torch) → z-scored (1, t', d) on the model's device
         with t' = t rounded down to a multiple of 4 (the tokenizer's unit), and t."""
-        try:
-            x = torch.as_tensor(np.asarray(motion, dtype=np.float32)
-                                if not isinstance(motion, torch.Tensor) else motion).float()
-        except (TypeError, ValueError) as error:
-            raise SegmoError(f"SegMo: a motion must be a numeric (t, d) array ({error})") from None
-        d = self.tokenizer.config.feature_dim
-        if x.ndim != 2 or x.shape[1] != d:
-            raise SegmoError(f"SegMo: a motion must be raw features (t, {d}) for skeleton "
-                             f"{self.skeleton.name!r}, got shape {tuple(x.shape)}")
+        x, usable = motion_array(motion, self.tokenizer.config.feature_dim, self.max_frames,
+                                 self.skeleton.name)
         t = x.shape[0]
-        usable = t - t % FRAMES_PER_TOKEN
-        if usable < FRAMES_PER_TOKEN or usable > self.max_frames:
-            raise SegmoError(f"SegMo: a motion must have {FRAMES_PER_TOKEN}..{self.max_frames + FRAMES_PER_TOKEN - 1} "
-                             f"frames, got {t}")
         check_motion_values(x.cpu().numpy(), self.tokenizer.mean.cpu().numpy(),
                             self.tokenizer.std.cpu().numpy(), "SegMo: the motion")
         x = x[:usable].to(self.device)
@@ -554,7 +429,8 @@ class SegMo:
         """Motions as `embed_segments` takes them → z-scored (b, t, d) padded with zeros,
         and frames (b,) (multiples of 4)."""
         if isinstance(motions, (torch.Tensor, np.ndarray)) and np.ndim(motions) == 3:
-            x = _as_tensor(motions)
+            x = torch.as_tensor(np.asarray(motions, dtype=np.float32)) \
+                if not isinstance(motions, torch.Tensor) else motions.float()
             frames = (torch.full((x.shape[0],), x.shape[1]) if lengths is None
                       else torch.as_tensor(lengths).long().reshape(-1).cpu())
             if len(frames) != x.shape[0]:
@@ -565,15 +441,8 @@ class SegMo:
         rows = []
         for motion in motions:
             if normalized:
-                x = _as_tensor(motion)
-                d = self.tokenizer.config.feature_dim
-                if x.ndim != 2 or x.shape[1] != d:
-                    raise SegmoError(f"embed_pairs: a motion must be (t, {d}), got "
-                                     f"{tuple(x.shape)}")
-                usable = x.shape[0] - x.shape[0] % FRAMES_PER_TOKEN
-                if not FRAMES_PER_TOKEN <= usable <= self.max_frames:
-                    raise SegmoError(f"embed_pairs: a motion must have {FRAMES_PER_TOKEN}.."
-                                     f"{self.max_frames + FRAMES_PER_TOKEN - 1} frames, got {x.shape[0]}")
+                x, usable = motion_array(motion, self.tokenizer.config.feature_dim,
+                                         self.max_frames, self.skeleton.name)
                 rows.append(x[:usable].to(self.device))
             else:
                 rows.append(self.normalize_motion(motion)[0][0])
@@ -613,7 +482,3 @@ class SegMo:
         """Text → the top_k motions (indices into `motions`) with their scores."""
         return retrieval.retrieve_motions(self, text, motions, top_k=top_k)
 
-
-def _as_tensor(motion: Any) -> torch.Tensor:
-    return motion.float() if isinstance(motion, torch.Tensor) else torch.as_tensor(
-        np.asarray(motion, dtype=np.float32))

@@ -1,0 +1,102 @@
+"""The bundle directory: every stage `SegMo` needs, and `segmo.json` saying how to use them.
+
+    DIR/segmo.json     {"format": 1, "text_encoder", "text_segmenter", "skeleton", "fps",
+                        "guidance_scale", "residual_guidance_scale", "motion_segmenter"}
+    DIR/tokenizer/     RVQ-VAE model directory (its buffers hold the feature statistics)
+    DIR/mask/          mask transformer (+ alignment head)
+    DIR/residual/      residual transformer (optional)
+    DIR/length/        length estimator (optional)
+
+Each stage directory is a `segmo.models.pretrained` model directory (`segmo export`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import numbers
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from segmo.errors import SegmoError
+from segmo.files import write_atomic
+from segmo.generation.sampling import SamplingOptions
+from segmo.models.pretrained import load_pretrained, read_config, read_json
+
+BUNDLE_FILE = "segmo.json"
+BUNDLE_FORMAT = 1
+STAGES = {"tokenizer": "rvq", "mask": "mask", "residual": "residual", "length": "length"}
+KIT_GUIDANCE_SCALE = 2.0  # spec §8: KIT's base-token guidance scale; HumanML3D's is the default
+
+
+@dataclass
+class SegMoConfig:
+    """What `segmo.json` records besides the stage directories."""
+
+    text_encoder: str
+    skeleton: str = "t2m"
+    fps: float = 20.0
+    text_segmenter: str = "rule"
+    # The defaults of `SamplingOptions` (KIT bundles: KIT_GUIDANCE_SCALE); `SegMo.sampling`.
+    guidance_scale: float = SamplingOptions.guidance_scale
+    residual_guidance_scale: float = SamplingOptions.residual_guidance_scale
+    motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
+    format: int = BUNDLE_FORMAT
+
+
+
+def load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
+    """The model of a stage directory, which must hold a `kind` model."""
+    directory = Path(directory)
+    found = read_config(directory)["kind"]  # FileNotFoundError names the directory
+    if found != kind:
+        raise SegmoError(f"{directory}: holds a {found!r} model, expected a {kind!r} model")
+    return load_pretrained(directory)
+
+
+def read_bundle(directory: str | os.PathLike
+                ) -> tuple[SegMoConfig, dict[str, torch.nn.Module | None]]:
+    """`segmo.json` and the stages of a bundle; one SegmoError naming the file when either
+    is not what a bundle holds."""
+    directory = Path(directory)
+    path = directory / BUNDLE_FILE
+    if not path.is_file():
+        hint = (" (it is a single model directory; assemble a bundle with `segmo bundle`)"
+                if (directory / "config.json").is_file() else "")
+        raise FileNotFoundError(f"{path}: not a SegMo bundle (no {BUNDLE_FILE}){hint}")
+    payload = read_json(path)
+    if payload.get("format") != BUNDLE_FORMAT:
+        raise SegmoError(f"{path}: format {payload.get('format')!r} is not supported "
+                         f"(expected {BUNDLE_FORMAT})")
+    known = {f.name for f in dataclasses.fields(SegMoConfig)}
+    config = SegMoConfig(**{k: v for k, v in payload.items() if k in known})
+    if not isinstance(config.text_encoder, str):
+        raise SegmoError(f"{path}: 'text_encoder' must name the text encoder, got "
+                         f"{config.text_encoder!r}")
+    for name in ("guidance_scale", "residual_guidance_scale"):
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                or not math.isfinite(value):
+            raise SegmoError(f"{path}: {name!r} must be a finite number, got {value!r}")
+    stages = {name: load_stage(directory / name, kind) if (directory / name).is_dir()
+              else None for name, kind in STAGES.items()}
+    for name in ("tokenizer", "mask"):
+        if stages[name] is None:
+            raise FileNotFoundError(f"{directory / name}: the bundle has no {name} stage")
+    return config, stages
+
+
+def write_bundle(directory: str | os.PathLike, config: SegMoConfig,
+                 stages: dict[str, torch.nn.Module | None]) -> Path:
+    """Write every stage given and `segmo.json` to `directory`; returns it."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, module in stages.items():
+        if module is not None:
+            module.save_pretrained(directory / name)
+    write_atomic(directory / BUNDLE_FILE, json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+    return directory

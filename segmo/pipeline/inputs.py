@@ -1,0 +1,105 @@
+"""What a user hands the `SegMo` API, turned into tensors, or one clear error.
+
+Every check of a text, a length, a motion array or a device lives here, so that the API's
+methods read as what they do; each failure is a `SegmoError` naming what is wrong
+(docs/hostile-inputs.md lists the cases the tests try).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+
+from segmo.errors import SegmoError
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
+
+
+def check_texts(texts: Any, what: str = "text") -> list[str]:
+    """A list of strings that each hold a word, or SegmoError naming the first that does not
+    ("text 2", or with what="text 0, segment": "text 0, segment 1")."""
+    if isinstance(texts, str) or not isinstance(texts, (list, tuple)):
+        raise SegmoError(f"SegMo: expected a list of strings ({what}s), got {texts!r:.80}")
+    for i, text in enumerate(texts):
+        if not isinstance(text, str):
+            raise SegmoError(f"SegMo: {what} {i} is a {type(text).__name__}, not a string")
+        if not any(c.isalnum() for c in text):
+            raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) holds no words; describe a motion")
+    return list(texts)
+
+
+def warn_truncated(encoder: Any, texts: list[str]) -> None:
+    """Say so when a text is longer than the encoder reads: it encodes the start only, as
+    `segmo encode-texts` did for the training captions, so the rest cannot steer the motion."""
+    tokenizer, limit = getattr(encoder, "tokenizer", None), getattr(encoder, "max_length", None)
+    if tokenizer is None or not limit:
+        return
+    for text in texts:
+        if len(text) < limit:  # a token spans at least one character
+            continue
+        count = len(tokenizer(text, truncation=False, verbose=False)["input_ids"])
+        if count > limit:
+            warnings.warn(f"SegMo: the text {text[:60]!r}... has {count} tokens; the text encoder "
+                          f"reads the first {limit}", stacklevel=4)
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """`device` as a torch.device this build can use, or SegmoError saying why not."""
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise SegmoError(f"SegMo: device {device!r} is not a torch device ({error})") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SegmoError(f"SegMo: device {str(device)!r} asked for, but this torch build sees "
+                         "no CUDA GPU; use --device cpu")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise SegmoError(f"SegMo: device {str(device)!r} asked for, but MPS is not available")
+    return device
+
+
+def frame_lengths(lengths: Any, b: int, max_frames: int, fps: float) -> torch.Tensor:
+    """User lengths (int, list or tensor of frames) for b texts → (b,) long on the CPU."""
+    if isinstance(lengths, (torch.Tensor, np.ndarray)):
+        lengths = lengths.tolist()
+    values = [lengths] * b if np.ndim(lengths) == 0 else np.ravel(
+        np.asarray(lengths, dtype=object)).tolist()
+    # 40.7 frames is a mistake to report, not to round; so are True, "40" and NaN.
+    whole = [not isinstance(v, bool) and (isinstance(v, numbers.Integral) or isinstance(
+        v, numbers.Real) and math.isfinite(v) and float(v).is_integer()) for v in values]
+    if not all(whole):
+        raise SegmoError(f"SegMo: lengths must be whole numbers of frames, got "
+                         f"{values[whole.index(False)]!r}")
+    out = torch.tensor([int(v) for v in values], dtype=torch.long)
+    if out.numel() != b:
+        raise SegmoError(f"SegMo: {out.numel()} lengths for {b} texts")
+    unit = FRAMES_PER_TOKEN
+    bad = (out % unit != 0) | (out < unit) | (out > max_frames)
+    if bool(bad.any()):
+        raise SegmoError(f"SegMo: lengths must be multiples of {unit} frames in [{unit}, "
+                         f"{max_frames}] ({max_frames / fps:.1f} s at {fps:g} fps); got "
+                         f"{out[bad].tolist()}")
+    return out
+
+
+def motion_array(motion: Any, feature_dim: int, max_frames: int, skeleton: str
+                 ) -> tuple[torch.Tensor, int]:
+    """A (t, d) motion (numpy, torch or nested lists) → float32 (t, d) tensor and the frames
+    the tokenizer can use (t rounded down to a multiple of its frames per token)."""
+    try:
+        x = torch.as_tensor(np.asarray(motion, dtype=np.float32)
+                            if not isinstance(motion, torch.Tensor) else motion).float()
+    except (TypeError, ValueError) as error:
+        raise SegmoError(f"SegMo: a motion must be a numeric (t, d) array ({error})") from None
+    if x.ndim != 2 or x.shape[1] != feature_dim:
+        raise SegmoError(f"SegMo: a motion must be raw features (t, {feature_dim}) for skeleton "
+                         f"{skeleton!r}, got shape {tuple(x.shape)}")
+    t = x.shape[0]
+    usable = t - t % FRAMES_PER_TOKEN
+    if usable < FRAMES_PER_TOKEN or usable > max_frames:
+        raise SegmoError(f"SegMo: a motion must have {FRAMES_PER_TOKEN}.."
+                         f"{max_frames + FRAMES_PER_TOKEN - 1} frames, got {t}")
+    return x, usable
