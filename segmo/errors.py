@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+from pathlib import Path
 
 
 class SegmoError(ValueError):
@@ -52,23 +54,40 @@ def finite_float(text: str) -> float:
     return value
 
 
-def positive_int(text: str) -> int:
-    """argparse type: a whole number >= 1."""
+def _whole_number(text: str, minimum: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number >= 1."""
+    return _whole_number(text, 1)
 
 
 def non_negative_int(text: str) -> int:
     """argparse type: a whole number >= 0 (seeds, counts that may be zero)."""
+    return _whole_number(text, 0)
+
+
+def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.PathLike):
+    """The numeric array of the .npy file an argument names, or the one-line error of
+    `parser` naming the argument and the file (missing, a folder, a pickle, not numbers)."""
+    import numpy as np  # commands that take no arrays start without it
+
+    path = Path(path)
+    if path.is_dir():
+        parser.error(f"{flag} {path}: is a directory, not a .npy file")
+    if not path.is_file():
+        parser.error(f"{flag} {path}: no such file")
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return value
+        array = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as error:
+        parser.error(f"{flag} {path}: not a .npy array ({error})")
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        parser.error(f"{flag} {path}: holds {array.dtype} values, not numbers")
+    return array

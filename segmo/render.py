@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from segmo.errors import ArgumentParser, SegmoError, finite_float, positive_int
+from segmo.errors import ArgumentParser, SegmoError, finite_float, npy_argument, positive_int
 from segmo.files import atomic_open
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
@@ -270,9 +270,9 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"argument --fps: expected a positive number, got {args.fps:g}")
     if args.out.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--out {args.out}: the name must end in .gif or .mp4")
-    motion = _load_npy(parser, "FILE", args.file)
-    mean = None if args.mean is None else _load_npy(parser, "--mean", args.mean)
-    std = None if args.std is None else _load_npy(parser, "--std", args.std)
+    motion = npy_argument(parser, "FILE", args.file)
+    mean = None if args.mean is None else npy_argument(parser, "--mean", args.mean)
+    std = None if args.std is None else npy_argument(parser, "--std", args.std)
     try:
         out = save_animation(motion, args.out, args.skeleton, args.title, args.fps, mean, std,
                              stride=args.stride)
@@ -280,15 +280,3 @@ def main(argv: list[str] | None = None) -> None:
         raise SegmoError(f"{args.file}: {error}") from None
     print(f"wrote {out}")
 
-
-def _load_npy(parser: ArgumentParser, name: str, path: Path) -> np.ndarray:
-    """A numeric .npy array, or one line naming the argument and the file."""
-    if not path.is_file():
-        parser.error(f"{name} {str(path)!r}: no such file")
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as error:
-        parser.error(f"{name} {path}: not a .npy array ({error})")
-    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
-        parser.error(f"{name} {path}: holds {array.dtype} values, not numbers")
-    return array

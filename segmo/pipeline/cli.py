@@ -13,10 +13,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from segmo.errors import ArgumentParser, SegmoError, finite_float, non_negative_int, positive_int
+from segmo.errors import (
+    ArgumentParser,
+    SegmoError,
+    finite_float,
+    non_negative_int,
+    npy_argument,
+    positive_int,
+)
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.sampling import SamplingOptions
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
@@ -39,21 +45,6 @@ def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str) ->
     path = Path(value)
     if path.exists() and not path.is_dir():
         parser.error(f"{flag} {value}: exists and is not a directory")
-
-
-def load_array(parser: argparse.ArgumentParser, flag: str, value: str):
-    """A .npy file as a numeric array, or one line naming the flag and the file."""
-    if Path(value).is_dir():
-        parser.error(f"{flag} {value}: is a directory, not a .npy file")
-    if not Path(value).is_file():
-        parser.error(f"{flag} {value}: no such file")
-    try:
-        array = np.load(value, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as error:
-        parser.error(f"{flag} {value}: not a .npy array ({error})")
-    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
-        parser.error(f"{flag} {value}: holds {array.dtype} values, not numbers")
-    return array
 
 
 def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
@@ -131,7 +122,7 @@ def ground_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--stride", type=positive_int, default=1, help="window stride in tokens")
     parser.add_argument("--out", default=None, help="save the similarity map (e.g. map.png)")
     args = parser.parse_args(argv)
-    motion = load_array(parser, "--motion", args.motion)
+    motion = npy_argument(parser, "--motion", args.motion)
     if motion.ndim == 3:
         parser.error(f"--motion {args.motion}: holds joints {motion.shape}; pass the raw "
                      "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
