@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import build_tokenizer, cli_failure, hash_encoder
+from conftest import build_tokenizer, cli_failure, hash_encoder, load_tool
 
 from segmo.evaluation import report
 from segmo.evaluation.cli import main
@@ -194,3 +194,26 @@ def test_ablation_dry_run(tmp_path: Path) -> None:
     assert any("--model.init_args.segmenter cpd" in line and "alignment in_sample" in line for line in fits)
     assert sum(" evaluate " in line for line in lines) == 3
     assert any("configs/residual/" in line for line in lines)  # trained once when not given
+
+
+def test_ablation_dry_run_with_seeds(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "ablation_grid.py"), "--data", "D", "--tokenizer", "T",
+         "--evaluator", "E", "--variants", "in_sample,none", "--seeds", "0,1,2", "--parallel", "2",
+         "--residual", "R", "--length", "L", "--out", str(tmp_path), "--dry-run"],
+        capture_output=True, text=True, cwd=REPO, check=True)
+    fits = [line for line in result.stdout.splitlines() if " fit " in line]
+    assert len(fits) == 6
+    for variant in ("in_sample", "none"):
+        for seed in (0, 1, 2):
+            assert sum(f"--seed_everything {seed}" in line and f"mask_{variant}_s{seed}" in line
+                       for line in fits) == 1
+
+
+def test_seeds_report_has_a_table_per_bucket() -> None:
+    grid = load_tool("ablation_grid")
+    run = {"generation": {"generated": {"top1": {"mean": 0.7, "interval": 0.01}}},
+           "by_num_segments": {"1": {"generated": {"top1": {"mean": 0.8, "interval": 0.02}}}}}
+    text = grid.seeds_report({"in_sample": [run, run]})
+    assert "| in_sample | 2 | 0.700±0.000 |" in text
+    assert "Captions with 1 segment(s):" in text and "| in_sample | 2 | 0.800±0.000 |" in text

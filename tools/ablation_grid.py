@@ -4,7 +4,8 @@ the same tokenizer, residual transformer and length estimator, evaluated the sam
     python tools/ablation_grid.py --data data/synth --tokenizer models/rvq \\
         --evaluator models/evaluator --out runs/ablation [--steps 2000] \\
         [--variants in_sample,none,batch,global,token,cpd,kmeans] \\
-        [--residual models/residual --length models/length] [--dry-run]
+        [--residual models/residual --length models/length] [--seeds 0,1,2] \\
+        [--parallel 2] [--dry-run]
 
 For each variant: `segmo fit --config configs/mask/<dataset>.yaml` with
 `--model.init_args.alignment X --model.init_args.segmenter Y` (and `--trainer.max_steps N`
@@ -13,16 +14,26 @@ shared stages, `segmo evaluate`. The residual transformer and length estimator a
 trained once when not given. Every step whose output exists is skipped, so an interrupted
 grid resumes. Writes OUT/table3.md (Real row + one row per variant, the paper's format).
 --dry-run prints the commands without running anything.
+
+With --seeds, each variant's mask transformer is trained once per seed
+(`--seed_everything S`, runs named `mask_<variant>_s<S>`), and OUT/seeds.md holds each
+variant's mean ± 95 % interval over its seeds (`segmo.evaluation.seeds`), overall and by
+number of caption segments where `segmo evaluate` reports them. --parallel N runs N
+variant/seed jobs side by side, each at one thread (on two cores, two one-thread runs
+finish sooner than one after the other at two threads: the small model's matmuls do not
+use two threads well).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 # variant → (alignment method, motion segmenter, row name in the paper's Table 3)
@@ -37,6 +48,18 @@ VARIANTS: dict[str, tuple[str, str, str]] = {
 }
 REPO = Path(__file__).resolve().parents[1]
 SEGMO = [sys.executable, "-m", "segmo"]
+# The figures of OUT/seeds.md: (metrics.json path, column title).
+SEED_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("generation/generated/top1", "Top-1"), ("generation/generated/fid", "FID"),
+    ("generation/generated/matching", "MM-Dist"), ("generation/generated/diversity", "Diversity"),
+    ("action_order/generated/sequence_accuracy", "action order (sequence)"),
+)
+
+
+def say(line: str) -> None:
+    """One whole line on stdout (jobs side by side must not interleave within a line)."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
 
 
 class Grid:
@@ -46,18 +69,20 @@ class Grid:
         self.args = args
         self.out = Path(args.out)
         self.runs = self.out / "runs"
+        # Side by side, each job gets one thread (see the module docstring).
+        self.env = {**os.environ, "OMP_NUM_THREADS": "1"} if args.parallel > 1 else None
 
     def run(self, command: list[str], done: Path | None = None) -> None:
         line = shlex.join(command)
         if done is not None and done.exists():
-            print(f"# done, skipped: {line}", flush=True)
+            say(f"# done, skipped: {line}")
             return
-        print(line, flush=True)
+        say(line)
         if self.args.dry_run:
             return
         start = time.perf_counter()
-        subprocess.run(command, check=True, cwd=REPO)
-        print(f"# {time.perf_counter() - start:.0f} s", flush=True)
+        subprocess.run(command, check=True, cwd=REPO, env=self.env)
+        say(f"# {time.perf_counter() - start:.0f} s: {line[:120]}")
 
     def ckpt(self, run_name: str) -> str:
         if self.args.dry_run:
@@ -72,7 +97,7 @@ class Grid:
         """Train one stage from configs/<stage>/<dataset>.yaml and export it; → model dir."""
         target = self.out / "models" / run_name
         if (target / "config.json").is_file():
-            print(f"# done, skipped: training of {target}", flush=True)
+            say(f"# done, skipped: training of {target}")
             return target
         steps = [] if self.args.steps is None else ["--trainer.max_steps", str(self.args.steps)]
         self.run([*SEGMO, "fit", "--config", f"configs/{stage}/{self.args.dataset}.yaml",
@@ -96,12 +121,23 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--dataset", default="synthetic", help="config name: configs/<stage>/<dataset>.yaml")
     p.add_argument("--action-classifier", help="passed to segmo evaluate")
     p.add_argument("--eval-args", default="", help="extra `segmo evaluate` flags, e.g. '--repeats 5'")
+    p.add_argument("--seeds", help="training seeds of the mask transformer, e.g. 0,1,2 "
+                   "(default: the config's seed, one run per variant)")
+    p.add_argument("--parallel", type=int, default=1, help="jobs side by side, one thread each")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     args = p.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
     unknown = set(variants) - set(VARIANTS)
     if unknown:
         p.error(f"--variants: unknown {sorted(unknown)}; choose from {list(VARIANTS)}")
+    try:
+        seeds = [None] if args.seeds is None else [int(x) for x in args.seeds.split(",") if x]
+    except ValueError:
+        p.error(f"--seeds {args.seeds!r}: expected whole numbers separated by commas, e.g. 0,1,2")
+    if not seeds:
+        p.error("--seeds: no seed given")
+    if args.parallel < 1:
+        p.error(f"--parallel {args.parallel}: must be at least 1")
     if not args.dry_run:
         for flag in ("data", "tokenizer", "evaluator"):
             if not Path(getattr(args, flag)).exists():
@@ -111,31 +147,55 @@ def main(argv: list[str] | None = None) -> None:
     tokenizer = ["--model.init_args.tokenizer", args.tokenizer]
     residual = args.residual or str(grid.fit_and_export("residual", "residual", tokenizer))
     length = args.length or str(grid.fit_and_export("length", "length", []))
-    rows = []
-    for variant in variants:
+    extra = ["--action-classifier", args.action_classifier] if args.action_classifier else []
+
+    def job(variant: str, seed: int | None) -> tuple[str, int | None, Path]:
         alignment, segmenter, title = VARIANTS[variant]
-        mask = grid.fit_and_export("mask", f"mask_{variant}", [
+        name = variant if seed is None else f"{variant}_s{seed}"
+        seeded = [] if seed is None else ["--seed_everything", str(seed)]
+        mask = grid.fit_and_export("mask", f"mask_{name}", [
             *tokenizer, "--model.init_args.alignment", alignment,
-            "--model.init_args.segmenter", segmenter])
-        bundle = grid.out / "bundles" / variant
+            "--model.init_args.segmenter", segmenter, *seeded])
+        bundle = grid.out / "bundles" / name
         grid.run([*SEGMO, "bundle", "--tokenizer", args.tokenizer, "--mask", str(mask),
                   "--residual", residual, "--length", length, "--out", str(bundle)],
                  done=bundle / "segmo.json")
-        evaluation = grid.out / "eval" / variant
-        extra = ["--action-classifier", args.action_classifier] if args.action_classifier else []
+        evaluation = grid.out / "eval" / name
         grid.run([*SEGMO, "evaluate", "--model", str(bundle), "--data", args.data,
                   "--evaluator", args.evaluator, "--name", title, "--out", str(evaluation),
                   *extra, *shlex.split(args.eval_args)], done=evaluation / "metrics.json")
-        rows.append((title, evaluation / "metrics.json"))
+        return variant, seed, evaluation / "metrics.json"
+
+    jobs = [(v, s) for v in variants for s in seeds]
+    with ThreadPoolExecutor(max_workers=args.parallel) as pool:
+        done = list(pool.map(lambda vs: job(*vs), jobs))
     if args.dry_run:
         return
     sys.path.insert(0, str(REPO))
     from segmo.evaluation.report import compare_table
 
-    table = compare_table([(title, json.loads(path.read_text())) for title, path in rows])
+    first = {v: path for v, s, path in done if s == seeds[0]}
+    table = compare_table([(VARIANTS[v][2], json.loads(first[v].read_text())) for v in variants])
     (grid.out / "table3.md").write_text(table + "\n")
     print(table)
+    if seeds != [None]:
+        runs = {v: [json.loads(path.read_text()) for vv, _, path in done if vv == v] for v in variants}
+        (grid.out / "seeds.md").write_text(seeds_report(runs) + "\n")
+        print(seeds_report(runs))
 
+
+def seeds_report(runs: dict[str, list[dict]]) -> str:
+    """OUT/seeds.md: the overall table and one per number of caption segments."""
+    from segmo.evaluation.seeds import seed_table
+
+    columns, titles = [c for c, _ in SEED_COLUMNS], [t for _, t in SEED_COLUMNS]
+    parts = ["Mean ± 95 % interval over training seeds (Student t).", "", "Overall:", "",
+             seed_table(runs, columns, titles)]
+    first = next(iter(runs.values()))[0]
+    for bucket in first.get("by_num_segments", {}):
+        per = [f"by_num_segments/{bucket}/{c.removeprefix('generation/')}" for c in columns]
+        parts += ["", f"Captions with {bucket} segment(s):", "", seed_table(runs, per, titles)]
+    return "\n".join(parts)
 
 if __name__ == "__main__":
     main()
