@@ -5,7 +5,12 @@
     >>> recovered = features_to_joints(features)       # (t - 1, 263) -> (t - 1, 22, 3)
 """
 
-from segmo.motion.features import features_to_joints, joint_errors, joints_to_features, process_joints
+from segmo.motion.features import (
+    features_to_joints,
+    joint_errors,
+    joints_to_features,
+    process_joints,
+)
 from segmo.motion.kinematics import (
     bone_lengths,
     forward_kinematics,
