@@ -13,7 +13,9 @@ plus `evaluate_generation`, which runs the whole protocol for any generator:
   `mm_prompts` prompts (10 pairs each);
 - `repeats` (20) repetitions with different seeds, reported as mean ± 1.96·std/√repeats.
 A "real" row evaluates the ground-truth motions the same way (its FID is against itself
-under a different caption draw, ≈ 0).
+under a different caption draw, ≈ 0), a "reconstruction" row the tokenizer's round trip of
+them, and `by_num_segments` every row again per bucket of the captions' number of text
+segments, all through `row_metrics`.
 """
 
 from __future__ import annotations
