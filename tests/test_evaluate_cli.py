@@ -15,6 +15,7 @@ from conftest import build_tokenizer, cli_failure, hash_encoder, load_tool
 
 from segmo.evaluation import report
 from segmo.evaluation.cli import main
+from segmo.pipeline import SegMo
 
 REPO = Path(__file__).resolve().parents[1]
 ENCODER = "hash16"
@@ -90,6 +91,22 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     _check_repeated(generation["generated"], (*GENERATION, "multimodality"))
     assert 0 <= generation["generated"]["top1"]["mean"] <= generation["generated"]["top3"]["mean"] <= 1
     assert generation["real"]["fid"]["mean"] < 1e-6 + generation["real"]["fid"]["interval"] * 10
+    reconstruction = generation["reconstruction"]
+    _check_repeated(reconstruction, GENERATION)
+    assert 0 < reconstruction["mpjpe_mm"] < 1e6 and reconstruction["motions"] == 10
+    assert reconstruction["mpjpe_global_mm"] >= reconstruction["mpjpe_mm"] * 0.5
+    buckets = generation["by_num_segments"]
+    assert sum(v["count"] for v in buckets.values()) == metrics["config"]["captions"]
+    model = SegMo.from_pretrained(setup["segmo"])
+    captions = _split_captions(setup["data"], model)
+    counts = [len(s) for s in model.segment_texts(captions)]
+    assert ("1" in buckets) == (1 in counts) and ("2" in buckets) == (2 in counts)
+    assert set(buckets) <= {"1", "2", "3", "4-5"} and {k for k in buckets if buckets[k]["count"]} == set(buckets)
+    for entry in buckets.values():
+        assert {"real", "generated", "reconstruction"} <= set(entry)
+        _check_repeated(entry["generated"], ("matching",))
+        # Batches of 8 within a bucket: R-precision only where a bucket fills one every repeat.
+        assert ("top1" in entry["real"]) == ("top1" not in entry["left_out"])
     retrieval = metrics["retrieval"]
     assert set(retrieval) == {"evaluator", "segmo"}
     assert set(retrieval["evaluator"]) == {"full", "batches of 8"}
@@ -105,6 +122,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     order = metrics["action_order"]
     assert order["real"]["motions"] == 10 and order["generated"]["motions"] == 10
     assert 0 <= order["generated"]["sequence_accuracy"] <= 1
+    assert order["reconstruction"]["motions"] == 10
+    assert sum(v["count"] for v in order["by_num_segments"].values()) == 10
     config = metrics["config"]
     assert config["repeats"] == 2 and config["seed"] == 0 and config["timings"]["total"] > 0
     assert config["model"] == str(setup["segmo"]) and config["motions"] == 10
@@ -112,6 +131,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert "| Method | Top-1 | Top-2 | Top-3 | FID | MM-Dist | Diversity | MModality |" in text
     real_cell = f"{generation['real']['top1']['mean']:.3f}±{generation['real']['top1']['interval']:.3f}"
     assert f"| Real | {real_cell} |" in text and "| segmo |" in text
+    assert "| segmo tokenizer (reconstruction) |" in text and "### By number of text segments" in text
+    assert f"MPJPE {reconstruction['mpjpe_mm']:.1f} mm" in text
     for title in ("## Retrieval", "## Grounding", "## Intra-segment consistency", "## Action order"):
         assert title in text
     assert (out / "isc.png").stat().st_size > 0
@@ -120,12 +141,14 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     # Same seed, same numbers: generation is seeded per batch.
     again = tmp_path / "again"
     main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]),
-          "--mm-prompts", "0", "--skip", "retrieval,grounding,isc", "--action-classifier", "train",
+          "--mm-prompts", "0", "--skip", "reconstruction,retrieval,grounding,isc", "--action-classifier", "train",
           "--out", str(again), *COMMON])
     repeat = json.loads((again / "metrics.json").read_text())
     assert repeat["generation"]["generated"]["top1"] == generation["generated"]["top1"]
     assert "multimodality" not in repeat["generation"]["generated"]
     assert not {"retrieval", "grounding", "isc"} & set(repeat)
+    assert "reconstruction" not in repeat["generation"] and "reconstruction" not in repeat["action_order"]
+    assert repeat["generation"]["by_num_segments"]["2"]["generated"] == buckets["2"]["generated"]
     # `--action-classifier train` fits one on the train split and keeps it.
     assert (again / "action_classifier" / "config.json").is_file()
     assert repeat["action_order"]["real"]["motions"] == 10
@@ -142,7 +165,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     main(["--compare", str(out), str(plain / "metrics.json"), "--out", str(tmp_path / "cmp")])
     table = (tmp_path / "cmp" / "compare.md").read_text().splitlines()
     assert table[0].startswith("| Method | Top-1") and [r.split(" |")[0] for r in table[2:]] == [
-        "| Real", "| segmo", "| no_align"]
+        "| Real", "| segmo tokenizer (reconstruction)", "| segmo", "| no_align tokenizer (reconstruction)",
+        "| no_align"]
 
 
 def test_real_only(setup, tmp_path: Path) -> None:
@@ -150,11 +174,48 @@ def test_real_only(setup, tmp_path: Path) -> None:
     main(["--real-only", "--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]),
           "--out", str(out), *COMMON])
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["generation"]) == {"real"}
+    assert set(metrics["generation"]) == {"real", "by_num_segments"}
+    # Without a model nor --text-segments, the data give each caption one segment.
+    assert list(metrics["generation"]["by_num_segments"]) == ["1"]
+    assert metrics["generation"]["by_num_segments"]["1"]["count"] == metrics["config"]["captions"]
     _check_repeated(metrics["generation"]["real"], GENERATION)
     assert set(metrics["retrieval"]) == {"evaluator"}
     text = (out / "report.md").read_text()
     assert "| Real |" in text and "## Grounding" not in text
+
+
+def _split_captions(data: Path, model) -> list[str]:
+    from segmo.evaluation.sections import EvaluateConfig, load_batches
+
+    cfg = EvaluateConfig(data=str(data), evaluator="", out="", split="train", max_motions=10)
+    _, batches = load_batches(cfg, model.skeleton.name)
+    return [c for b in batches for c in b["caption"]]
+
+
+def test_reconstruction_is_decode_of_encode(setup) -> None:
+    """Each row of the reconstruction is the tokenizer's decode(encode(motion)) at the
+    motion's length, in the dataset's z-score, and zero past it."""
+    from segmo.evaluation.cli import Reconstructor
+    from segmo.evaluation.sections import EvaluateConfig, load_batches
+
+    model = SegMo.from_pretrained(setup["segmo"])
+    cfg = EvaluateConfig(data=str(setup["data"]), evaluator="", out="", split="train", max_motions=3,
+                         progress=False)
+    ds, batches = load_batches(cfg, model.skeleton.name)
+    reconstruct = Reconstructor(model, cfg, ds, batches)
+    b = batches[0]
+    got = reconstruct(b["motion"], b["lengths"], b["id"])
+    assert got.shape == b["motion"].shape and reconstruct.errors["motions"] == 3
+    tok = model.tokenizer
+    mean, std = torch.as_tensor(ds.mean), torch.as_tensor(ds.std)
+    for r in range(len(b["id"])):
+        t = int(b["lengths"][r])
+        raw = b["motion"][r, :t] * std + mean
+        with torch.no_grad():
+            want = tok.denormalize(tok.decode(tok.encode(tok.normalize(raw)[None])))[0]
+        torch.testing.assert_close(got[r, :t], (want - mean) / std, atol=1e-4, rtol=1e-4)
+        assert not got[r, t:].any()
+    assert not torch.allclose(got[0, :int(b["lengths"][0])], b["motion"][0, :int(b["lengths"][0])])
 
 
 def test_errors_name_the_flag(setup, tmp_path: Path, capsys) -> None:

@@ -25,6 +25,7 @@ from segmo.evaluation.metrics import (
     mean_and_interval,
     multimodality,
     r_precision,
+    segment_bucket,
 )
 from segmo.evaluation.retrieval import (
     batched_retrieval_metrics,
@@ -149,6 +150,50 @@ def test_evaluate_generation_protocol() -> None:
     assert res["generated"]["multimodality"]["mean"] > 1.0
     real_only = evaluate_generation(embed_text, embed_motion, None, batches, repeats=2, diversity_pairs=50)
     assert set(real_only) == {"real"} and real_only["real"]["top1"]["mean"] == 1.0
+
+
+def test_evaluate_generation_reconstruction_and_segment_buckets() -> None:
+    """A perfect reconstruction scores as the real motions; buckets by number of segments
+    add up, appear only when captions have them, and leave R-precision out of a bucket
+    smaller than a batch; the overall rows do not change with buckets."""
+    n, d, t = 64, 6, 4
+    codes = torch.tensor(np.random.default_rng(1).normal(size=(n, d)), dtype=torch.float32)
+    batches = [{"motion": codes[s:s + 16][:, None, :].expand(-1, t, -1).clone(), "lengths": torch.full((16,), t),
+                "id": [f"{r:03d}" for r in range(s, s + 16)], "caption": [f"c{r}" for r in range(s, s + 16)]}
+               for s in range(0, n, 16)]
+    num_segments = {f"c{r}": 1 if r < 48 else 2 + r % 3 for r in range(n)}  # 48 × 1; 16 in 2, 3, 4
+
+    def embed_text(captions, rows):
+        return np.stack([codes[int(c[1:])].numpy() for c in captions])
+
+    def embed_motion(motion, lengths):
+        return motion[:, 0].numpy()
+
+    def reconstruct(motion, lengths, ids):
+        assert [int(i) for i in ids] == [int(torch.nonzero((codes == m[0]).all(1))) for m in motion]
+        return motion.clone()
+
+    kwargs = dict(repeats=2, batch_size=16, diversity_pairs=20)
+    plain = evaluate_generation(embed_text, embed_motion, None, batches, **kwargs)
+    res = evaluate_generation(embed_text, embed_motion, None, batches, reconstruct=reconstruct,
+                              num_segments=num_segments, **kwargs)
+    assert res["real"] == plain["real"]
+    assert res["reconstruction"]["top1"]["mean"] == 1.0 and res["reconstruction"]["fid"]["mean"] == pytest.approx(0, abs=1e-6)
+    buckets = res["by_num_segments"]
+    assert list(buckets) == ["1", "2", "3", "4-5"] and sum(v["count"] for v in buckets.values()) == n
+    assert buckets["1"]["count"] == 48 and buckets["1"]["per_repeat"] == 48
+    assert buckets["1"]["reconstruction"]["top1"]["mean"] == 1.0 and buckets["1"]["left_out"] == []
+    assert "top1" not in buckets["2"]["real"] and {"top1", "top2", "top3"} <= set(buckets["2"]["left_out"])
+    assert buckets["2"]["real"]["matching"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    only_many = evaluate_generation(embed_text, embed_motion, None, batches, num_segments=dict.fromkeys(num_segments, 2),
+                                    **kwargs)["by_num_segments"]
+    # One bucket holding every caption: the overall numbers (Diversity draws its own pairs).
+    assert list(only_many) == ["2"] and only_many["2"]["count"] == n
+    assert {k: v for k, v in only_many["2"]["real"].items() if k != "diversity"} == {
+        k: v for k, v in plain["real"].items() if k != "diversity"}
+    with pytest.raises(ValueError, match="at least one segment"):
+        segment_bucket(0)
+    assert [segment_bucket(k) for k in (1, 2, 3, 4, 5)] == ["1", "2", "3", "4-5", "4-5"]
 
 
 # ---------------------------------------------------------------------------- retrieval

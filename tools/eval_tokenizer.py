@@ -25,7 +25,7 @@ import torch
 
 from segmo.data import MotionWindowDataset
 from segmo.models.tokenizer import RVQVAE
-from segmo.motion.features import features_to_joints
+from segmo.motion.features import features_to_joints, joint_errors
 from segmo.motion.skeleton import get_skeleton
 
 
@@ -54,9 +54,9 @@ def evaluate(model: RVQVAE, dataset: MotionWindowDataset, batch_size: int = 32,
             real = features_to_joints(model.denormalize(motion).double(), skeleton)
             for depth in range(1, q + 1):
                 fake = features_to_joints(model.denormalize(model.decode(indices[..., :depth])).double(), skeleton)
-                aligned = (real - real[..., :1, :]) - (fake - fake[..., :1, :])
-                aligned_sum[depth - 1] += aligned.norm(dim=-1).mean(-1).sum().cpu()
-                global_sum[depth - 1] += (real - fake).norm(dim=-1).mean(-1).sum().cpu()
+                aligned, drift = joint_errors(real, fake)  # (b, t) each
+                aligned_sum[depth - 1] += aligned.sum().cpu()
+                global_sum[depth - 1] += drift.sum().cpu()
             frames += motion.shape[0] * motion.shape[1]
     if frames == 0:
         raise ValueError(f"{dataset.root}: no clips to evaluate (summary: {dataset.summary})")

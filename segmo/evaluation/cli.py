@@ -10,6 +10,9 @@ Sections (spec §9, paper §4):
   model's row, mean ± 95 % interval over `--repeats`; the generator gets the ground-truth
   lengths and a seeded `torch.Generator` per batch. MultiModality runs `--mm-runs` times
   (not once per repeat: 20 × 100 prompts × 30 generations is out of reach on a CPU).
+  A reconstruction row (`Reconstructor`: real motion → the bundle's tokenizer → decoded,
+  the generator's ceiling, with its MPJPE; `--skip reconstruction` leaves it out), and every
+  row again per bucket of the caption's number of text segments ("1", "2", "3", "4-5").
 - retrieval (TMR protocols, full split and batches of 32), in the evaluator's space and in
   SegMo's learned segment space, where a (caption, motion) score is the mean cosine of the
   caption's text segments with as many uniform spans of the motion (`SegMo.retrieve_motions`'s
@@ -53,18 +56,22 @@ from segmo.evaluation.sections import (
     action_order_section,
     all_rows,
     evaluator_retrieval,
+    first_rows,
     ground_truth,
     grounding_section,
     isc_section,
     known_segments,
     load_batches,
     load_classifier,
+    raw_features,
     segmo_retrieval,
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.pretrained import load_pretrained, read_json
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
+from segmo.motion.features import features_to_joints, joint_errors
 from segmo.pipeline import SegMo
 
 # ------------------------------------------------------------------------- generation
@@ -106,11 +113,68 @@ class Generator:
         return z
 
 
-def generation_section(cfg: EvaluateConfig, evaluator: Any, ds: Any, batches: list[dict],
-                       generate: Any) -> dict[str, Any]:
+class Reconstructor:
+    """The tokenizer's row, the generator's ceiling: each real motion → the bundle's
+    tokenizer (every residual layer) → decoded motion, at its length cropped to whole tokens
+    as the generator's lengths are (`SegMo.encode_motion`, `SegMo.decode`).
+
+    A reconstruction depends on the motion only, not on the caption a repeat draws, so each
+    motion of the split is reconstructed once, here, and kept (z-scored with the dataset's
+    statistics, as `Generator` returns motions); `errors` holds the MPJPE (mm) over the
+    split's frames, root-aligned and global (`segmo.motion.joint_errors`)."""
+
+    def __init__(self, model: Any, cfg: EvaluateConfig, ds: Any, batches: list[dict]) -> None:
+        self.mean, self.std = torch.as_tensor(ds.mean).float(), torch.as_tensor(ds.std).float()
+        self.features: dict[str, torch.Tensor] = {}  # id → (t, d)
+        aligned = drift = 0.0
+        frames = 0
+        for b, r in tqdm(first_rows(batches), desc="reconstruct", disable=not cfg.progress):
+            real = torch.as_tensor(raw_features(ds, b, r))  # (t, d) raw
+            tokens = model.encode_motion(real)  # (1, n, q), every layer
+            t = tokens.shape[1] * FRAMES_PER_TOKEN
+            out = model.decode(tokens, torch.tensor([t], device=tokens.device), [b["caption"][r]],
+                               [[b["caption"][r]]], cfg.precision)
+            fake = out.features[0].float().cpu()  # (t, d) raw
+            self.features[b["id"][r]] = (fake - self.mean) / self.std
+            a, g = joint_errors(features_to_joints(real[:t].double(), model.skeleton),
+                                features_to_joints(fake.double(), model.skeleton))  # (t,) each
+            aligned, drift, frames = aligned + float(a.sum()), drift + float(g.sum()), frames + t
+        to_mm = model.skeleton.unit * 1000.0 / max(frames, 1)
+        self.errors = {"mpjpe_mm": aligned * to_mm, "mpjpe_global_mm": drift * to_mm,
+                       "motions": float(len(self.features))}
+
+    def raw(self, mid: str) -> np.ndarray:
+        """Raw reconstructed features (t, d) of motion `mid`."""
+        return (self.features[mid] * self.std + self.mean).numpy()
+
+    def __call__(self, motion: torch.Tensor, lengths: torch.Tensor, ids: list[str]) -> torch.Tensor:
+        """The reconstructions of motions `ids`, padded as `motion` (b, t, d)."""
+        out = torch.zeros_like(motion)
+        for k, mid in enumerate(ids):
+            x = self.features[mid][: int(lengths[k])]
+            out[k, : len(x)] = x
+        return out
+
+
+def num_segments_of(model: Any, batches: list[dict], segments_of: dict[str, list[str]] | None
+                    ) -> dict[str, int]:
+    """caption → its number of text segments as the model is conditioned: the data's
+    (`--text-segments`, or one per caption without a model), else the bundle's segmenter's."""
+    if model is None or segments_of:
+        return {c: len(s) for b in batches for c, s in zip(b["caption"], b["segments"], strict=True)}
+    captions = list(dict.fromkeys(c for b in batches for c in b["caption"]))
+    return {c: len(s) for c, s in zip(captions, model.segment_texts(captions), strict=True)}
+
+
+def generation_section(cfg: EvaluateConfig, evaluator: Any, ds: Any, batches: list[dict], generate: Any,
+                       reconstruct: Reconstructor | None = None,
+                       num_segments: dict[str, int] | None = None) -> dict[str, Any]:
     embed_text, embed_motion = t2m_embedders(evaluator, cfg.data, ds.mean, ds.std)
     result = evaluate_generation(embed_text, embed_motion, generate, batches, repeats=cfg.repeats,
-                                 batch_size=cfg.batch_size, mm_prompts=0, seed=cfg.seed)
+                                 batch_size=cfg.batch_size, mm_prompts=0, seed=cfg.seed,
+                                 reconstruct=reconstruct, num_segments=num_segments)
+    if reconstruct is not None:
+        result["reconstruction"] |= reconstruct.errors
     if generate is not None and cfg.mm_prompts > 0 and cfg.mm_runs > 0:
         runs = multimodality_runs(embed_motion, generate, batches, cfg.mm_runs, cfg.mm_prompts,
                                    cfg.mm_repeats, 10, cfg.seed)
@@ -158,8 +222,14 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     metrics: dict[str, Any] = {"notes": {}}
     if model is not None:
         _timed(cfg, "text_encoding", _encode_texts, cfg, model, batches, segments_of, has_truth)
+    reconstruct = None
+    if model is not None and "reconstruction" not in skip:
+        _log(cfg, "tokenizer reconstruction")
+        reconstruct = _timed(cfg, "reconstruction", Reconstructor, model, cfg, ds, batches)
+    num_segments = num_segments_of(model, batches, segments_of)
     _log(cfg, f"generation metrics: {cfg.repeats} repeats of {sum(len(b['id']) for b in batches)} captions")
-    metrics["generation"] = _timed(cfg, "generation", generation_section, cfg, evaluator, ds, batches, generate)
+    metrics["generation"] = _timed(cfg, "generation", generation_section, cfg, evaluator, ds, batches, generate,
+                                   reconstruct, num_segments)
     notes = metrics["notes"]
 
     def unavailable(section: str, need_truth: bool = False) -> str | None:
@@ -203,7 +273,7 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
             _log(cfg, "action order")
             clf = load_classifier(cfg, out)
             metrics["action_order"] = _timed(cfg, "action_order", action_order_section, cfg, clf, ds, batches,
-                                             generate)
+                                             generate, reconstruct, num_segments)
             notes["action_order"] = report.NOTES["action_order"]
         else:
             notes["action_order"] = "Skipped: the dataset has no segments/ ground truth."

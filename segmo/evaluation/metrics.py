@@ -13,7 +13,9 @@ plus `evaluate_generation`, which runs the whole protocol for any generator:
   `mm_prompts` prompts (10 pairs each);
 - `repeats` (20) repetitions with different seeds, reported as mean ± 1.96·std/√repeats.
 A "real" row evaluates the ground-truth motions the same way (its FID is against itself
-under a different caption draw, ≈ 0).
+under a different caption draw, ≈ 0), a "reconstruction" row the tokenizer's round trip of
+them, and `by_num_segments` every row again per bucket of the captions' number of text
+segments, all through `row_metrics`.
 """
 
 from __future__ import annotations
@@ -181,6 +183,40 @@ def t2m_embedders(evaluator: Any, dataset_root: Any, mean: Any, std: Any
     return embed_text, embed_motion
 
 
+Reconstruct = Callable[[torch.Tensor, torch.Tensor, list[str]], torch.Tensor]
+ROWS: tuple[str, ...] = ("real", "generated", "reconstruction")
+# Buckets of the number of text segments of a caption (as HumanML3D-E splits real data).
+SEGMENT_BUCKETS: tuple[str, ...] = ("1", "2", "3", "4-5")
+
+
+def segment_bucket(num_segments: int) -> str:
+    """The `SEGMENT_BUCKETS` name of a caption with `num_segments` (≥ 1) text segments."""
+    if num_segments < 1:
+        raise ValueError(f"segment_bucket: a caption has at least one segment, got {num_segments}")
+    return str(num_segments) if num_segments <= 3 else "4-5"
+
+
+def row_metrics(text_e: np.ndarray, emb: np.ndarray, reference: np.ndarray, rng: np.random.Generator,
+                top_k: int = 3, batch_size: int = 32, diversity_pairs: int = 300) -> dict[str, float]:
+    """One repeat's metrics of paired text/motion embeddings (n, e), FID against `reference`
+    (m, e). A metric the rows are too few for is left out: R-precision below `batch_size`
+    rows, FID and Diversity below 2; Diversity uses min(diversity_pairs, n − 1) pairs."""
+    out: dict[str, float] = {}
+    if len(emb) >= batch_size:
+        out |= {f"top{k}": float(p) for k, p in enumerate(r_precision(text_e, emb, top_k, batch_size), 1)}
+    out["matching"] = matching_score(text_e, emb)
+    if len(emb) >= 2 and len(reference) >= 2:
+        out["fid"] = fid(reference, emb)
+        out["diversity"] = diversity(emb, min(diversity_pairs, len(emb) - 1), generator=rng)
+    return out
+
+
+def _summary(values: dict[str, list[float]], repeats: int) -> dict[str, dict[str, float]]:
+    """{metric: {"mean", "interval"}} of the metrics measured in every one of `repeats`."""
+    return {k: dict(zip(("mean", "interval"), mean_and_interval(v), strict=True))
+            for k, v in values.items() if len(v) == repeats}
+
+
 def evaluate_generation(
     embed_text: Callable[[list[str], list[tuple[dict, int]]], Any],
     embed_motion: EmbedMotion,
@@ -194,56 +230,101 @@ def evaluate_generation(
     mm_repeats: int = 30,
     mm_pairs: int = 10,
     seed: int = 0,
-) -> dict[str, dict[str, dict[str, float]]]:
+    reconstruct: Reconstruct | None = None,
+    num_segments: dict[str, int] | None = None,
+) -> dict[str, Any]:
     """The spec §9 protocol for one generator, with a "real" row; returns
-    {"real": {metric: {"mean", "interval"}}, "generated": {...}}.
+    {"real": {metric: {"mean", "interval"}}, "generated": {...}, "reconstruction": {...}}
+    and, given `num_segments`, "by_num_segments": {bucket: {"real": ..., "generated": ...,
+    "reconstruction": ..., "count", "per_repeat", "left_out"}}.
 
     embed_text(captions, rows) → (b, e): `rows` are (collated batch, row) pairs the captions
     came from, so an embedder can read e.g. word/POS tokens stored alongside.
     embed_motion(motion (b, t, d) as in the dataloader, lengths (b,)) → (b, e).
     generate(captions, lengths (b,), seed) → motion (b, t, d) in the dataloader's
-    normalisation, or None for the real row only. The dataloader yields collated caption
-    samples of the test split (all captions); it is read once and kept in memory.
+    normalisation, or None for the real row only. reconstruct(motion (b, t, d), lengths (b,),
+    ids) → motion (b, t, d) likewise: the tokenizer's row (the generator's ceiling), or None.
+    The dataloader yields collated caption samples of the test split (all captions); it is
+    read once and kept in memory.
     Metrics: "top1".."top{top_k}", "matching", "fid", "diversity", and "multimodality"
-    when mm_prompts > 0 and generate is given.
+    when mm_prompts > 0 and generate is given; all by `row_metrics`.
+    num_segments: caption → its number of text segments. Each repeat's rows are then also
+    measured per `SEGMENT_BUCKETS` bucket by `row_metrics` (R-precision in consecutive
+    batches of the bucket's shuffled rows; FID against the real motions of the bucket); a
+    metric missing from any repeat is left out of the bucket and named in "left_out".
+    "count" is the bucket's captions in the split, "per_repeat" its mean rows per repeat.
     """
     batches = list(dataloader)
-    rows_out: dict[str, dict[str, list[float]]] = {"real": {}, "generated": {}}
+    names = ["real"] + (["generated"] if generate is not None else []) + (
+        ["reconstruction"] if reconstruct is not None else [])
+    rows_out: dict[str, dict[str, list[float]]] = {name: {} for name in names}
+    buckets_out: dict[str, dict[str, dict[str, list[float]]]] = {
+        k: {name: {} for name in names} for k in SEGMENT_BUCKETS}
+    sizes: dict[str, list[int]] = {k: [] for k in SEGMENT_BUCKETS}
     real_reference: np.ndarray | None = None
+    bucket_reference: dict[str, np.ndarray] = {}
     for rep in range(repeats):
         rng = np.random.default_rng([seed, rep])
         groups = _one_caption_per_motion(batches, rng, batch_size)
         if not groups:
             raise SegmoError(f"evaluate_generation: fewer than batch_size={batch_size} motions "
                              "in the split; lower --batch-size")
-        text, real, fake = [], [], []
+        text, real, fake, recon = [], [], [], []
         for g_index, g in enumerate(groups):
             text.append(_np(embed_text(g["caption"], g["rows"])))
             real.append(_np(embed_motion(g["motion"], g["lengths"])))
             if generate is not None:
                 gen_seed = int(seed * 1_000_003 + rep * 10_007 + g_index)
                 fake.append(_np(embed_motion(generate(g["caption"], g["lengths"], gen_seed), g["lengths"])))
+            if reconstruct is not None:
+                recon.append(_np(embed_motion(reconstruct(g["motion"], g["lengths"], g["id"]), g["lengths"])))
         text_e, real_e = np.concatenate(text), np.concatenate(real)
         if real_reference is None:
             real_reference = real_e
-        sets = {"real": real_e} | ({"generated": np.concatenate(fake)} if fake else {})
+        sets = {"real": real_e} | ({"generated": np.concatenate(fake)} if fake else {}) | (
+            {"reconstruction": np.concatenate(recon)} if recon else {})
+        if rep == 0 and len(real_e) <= diversity_pairs:
+            warnings.warn(f"evaluate_generation: {len(real_e)} motions per repeat; Diversity uses "
+                          f"{len(real_e) - 1} pairs instead of {diversity_pairs}", stacklevel=2)
         for name, emb in sets.items():
-            values = rows_out[name]
-            for k, p in enumerate(r_precision(text_e, emb, top_k, batch_size), 1):
-                values.setdefault(f"top{k}", []).append(float(p))
-            values.setdefault("matching", []).append(matching_score(text_e, emb))
-            values.setdefault("fid", []).append(fid(real_reference if name == "real" and rep > 0 else real_e, emb))
-            pairs = min(diversity_pairs, len(emb) - 1)
-            if pairs < diversity_pairs and rep == 0 and name == "real":
-                warnings.warn(f"evaluate_generation: {len(emb)} motions per repeat; Diversity uses "
-                              f"{pairs} pairs instead of {diversity_pairs}", stacklevel=2)
-            values.setdefault("diversity", []).append(diversity(emb, pairs, generator=rng))
+            reference = real_reference if name == "real" and rep > 0 else real_e
+            for k, v in row_metrics(text_e, emb, reference, rng, top_k, batch_size, diversity_pairs).items():
+                rows_out[name].setdefault(k, []).append(v)
+        if num_segments is None:
+            continue
+        bucket = np.array([segment_bucket(num_segments[c]) for g in groups for c in g["caption"]])
+        for b_index, k in enumerate(SEGMENT_BUCKETS):
+            rows = np.flatnonzero(bucket == k)
+            sizes[k].append(len(rows))
+            if len(rows) == 0:
+                continue
+            bucket_reference.setdefault(k, real_e[rows])
+            for name, emb in sets.items():
+                reference = bucket_reference[k] if name == "real" else real_e[rows]
+                # A generator per bucket and row: the overall rows draw what they drew without
+                # buckets, and a row's numbers do not depend on which other rows ran.
+                row_rng = np.random.default_rng([seed, rep, 2, b_index, ROWS.index(name)])
+                for m, v in row_metrics(text_e[rows], emb[rows], reference, row_rng, top_k, batch_size,
+                                        diversity_pairs).items():
+                    buckets_out[k][name].setdefault(m, []).append(v)
     if generate is not None and mm_prompts > 0:
         rows_out["generated"]["multimodality"] = multimodality_runs(
             embed_motion, generate, batches, repeats, mm_prompts, mm_repeats, mm_pairs, seed)
-    return {name: {k: dict(zip(("mean", "interval"), mean_and_interval(v), strict=True))
-                   for k, v in values.items()}
-            for name, values in rows_out.items() if values}
+    result: dict[str, Any] = {name: _summary(values, repeats) for name, values in rows_out.items()}
+    if num_segments is not None:
+        counts = {k: 0 for k in SEGMENT_BUCKETS}
+        for b in batches:
+            for c in b["caption"]:
+                counts[segment_bucket(num_segments[c])] += 1
+        result["by_num_segments"] = {}
+        for k in SEGMENT_BUCKETS:
+            if counts[k] == 0:
+                continue
+            entry = {name: _summary(values, repeats) for name, values in buckets_out[k].items()}
+            entry |= {"count": counts[k], "per_repeat": float(np.mean(sizes[k])),
+                      "left_out": sorted(set(result["real"]) - set(entry["real"]))}
+            result["by_num_segments"][k] = entry
+    return result
 
 
 def multimodality_runs(embed_motion: EmbedMotion, generate: Generate, batches: list[dict], repeats: int,

@@ -40,6 +40,16 @@ NOTES: dict[str, str] = {
         "uniform split = the text-free uniform spans, a baseline."),
     "isc": ("Mean cosine of the paired text/motion segments of every caption of the split "
             "(CV = std/mean), motion spans from each segmenter."),
+    "reconstruction": (
+        "Tokenizer (reconstruction): each real motion through the bundle's tokenizer, every "
+        "residual layer, at its length (whole tokens): the generator's ceiling. MPJPE "
+        "{mpjpe_mm:.1f} mm with each frame's root joints aligned, {mpjpe_global_mm:.1f} mm "
+        "global, over {motions:.0f} motions."),
+    "by_num_segments": (
+        "Rows of each repeat split by the caption's number of text segments (as the model is "
+        "conditioned). FID is against the bucket's real motions and is noisy on small buckets; "
+        "R-precision uses batches within the bucket and is '-' where a bucket has fewer motions "
+        "than a batch in some repeat."),
     "action_order": (
         "real: the classifier on the real motions (its ceiling); generated: one motion per "
         "motion of the split, from its first caption at the true length, vs that caption's "
@@ -69,13 +79,33 @@ def generation_table(rows: Sequence[tuple[str, dict[str, Any]]]) -> str:
                            for name, values in rows])
 
 
+def _row_names(metrics: dict[str, Any], name: str | None = None) -> dict[str, str]:
+    """metrics.json row key → its name in the tables."""
+    model = name or metrics.get("config", {}).get("name") or "model"
+    return {"real": "Real", "reconstruction": f"{model} tokenizer (reconstruction)", "generated": model}
+
+
 def _generation_rows(metrics: dict[str, Any], name: str | None = None, real: bool = True
                      ) -> list[tuple[str, dict[str, Any]]]:
+    """(name, row) of the Real (if `real`), reconstruction and generated rows present."""
     generation = metrics.get("generation") or {}
-    rows = [("Real", generation["real"])] if real and "real" in generation else []
-    if "generated" in generation:
-        rows.append((name or metrics.get("config", {}).get("name") or "model", generation["generated"]))
-    return rows
+    return [(title, generation[key]) for key, title in _row_names(metrics, name).items()
+            if key in generation and (real or key != "real")]
+
+
+def segments_table(metrics: dict[str, Any]) -> str:
+    """The generation rows of each number-of-segments bucket (`by_num_segments`): bucket,
+    its captions in the split, the mean motions per repeat it gets, then the metrics."""
+    columns = [c for c in GENERATION_COLUMNS if c[0] != "multimodality"]
+    header = ["Segments", "Captions", "Per repeat", "Method"] + [title for _, title in columns]
+    names = _row_names(metrics)
+    rows = []
+    for bucket, entry in metrics["generation"]["by_num_segments"].items():
+        for key, title in names.items():
+            if key in entry:
+                rows.append([bucket, str(int(entry["count"])), f"{entry['per_repeat']:.1f}", title]
+                            + [cell(entry[key].get(k)) for k, _ in columns])
+    return _table(header, rows)
 
 
 def retrieval_table(retrieval: dict[str, Any]) -> str:
@@ -112,10 +142,21 @@ def isc_table(isc: dict[str, Any]) -> str:
 
 
 def action_order_table(action_order: dict[str, Any]) -> str:
-    rows = [[name, cell(v.get("sequence_accuracy")), cell(v.get("normalised_edit_distance")),
-             cell(v.get("frame_accuracy")), str(int(v.get("motions", 0)))]
-            for name, v in action_order.items() if isinstance(v, dict)]
-    return _table(["Motions", "Sequence acc.", "Norm. edit dist.", "Frame acc.", "n"], rows)
+    """Rows: real, generated, reconstruction; then, given `by_num_segments`, the same per
+    number-of-segments bucket of the first captions."""
+    header = ["Motions", "Sequence acc.", "Norm. edit dist.", "Frame acc.", "n"]
+
+    def row(name: str, v: dict[str, Any]) -> list[str]:
+        return [name, cell(v.get("sequence_accuracy")), cell(v.get("normalised_edit_distance")),
+                cell(v.get("frame_accuracy")), str(int(v.get("motions", 0)))]
+
+    table = _table(header, [row(name, v) for name, v in action_order.items() if name != "by_num_segments"])
+    buckets = action_order.get("by_num_segments")
+    if buckets:
+        table += "\n\nBy number of text segments of the first caption:\n\n" + _table(
+            ["Segments"] + header, [[bucket] + row(name, v) for bucket, entry in buckets.items()
+                                    for name, v in entry.items() if isinstance(v, dict)])
+    return table
 
 
 def render_report(metrics: dict[str, Any]) -> str:
@@ -134,6 +175,11 @@ def render_report(metrics: dict[str, Any]) -> str:
                    f"× {config.get('mm_repeats')} generations"
                    if config.get("mm_prompts") and "generated" in metrics["generation"] else "") + ".", "",
                 generation_table(_generation_rows(metrics)), ""]
+        reconstruction = metrics["generation"].get("reconstruction")
+        if reconstruction:
+            out += [NOTES["reconstruction"].format(**reconstruction), ""]
+        if metrics["generation"].get("by_num_segments"):
+            out += ["### By number of text segments", "", NOTES["by_num_segments"], "", segments_table(metrics), ""]
     notes = metrics.get("notes", {})
     sections = (("retrieval", "Retrieval", retrieval_table), ("grounding", "Grounding", grounding_table),
                 ("isc", "Intra-segment consistency (paper Fig. 4)", isc_table),
@@ -155,7 +201,7 @@ def render_report(metrics: dict[str, Any]) -> str:
 
 def compare_table(runs: Sequence[tuple[str, dict[str, Any]]]) -> str:
     """Several evaluations side by side (e.g. SegMo vs no alignment, paper Table 3): the Real
-    row of the first run that has one, then the generated row of each run."""
+    row of the first run that has one, then the reconstruction and generated rows of each run."""
     rows: list[tuple[str, dict[str, Any]]] = []
     for name, metrics in runs:
         if not rows:

@@ -26,7 +26,12 @@ from segmo.evaluation.action_order import (
     sequence_accuracy,
 )
 from segmo.evaluation.grounding import auto_windows, grounding_metrics
-from segmo.evaluation.metrics import euclidean_distance_matrix, t2m_embedders
+from segmo.evaluation.metrics import (
+    SEGMENT_BUCKETS,
+    euclidean_distance_matrix,
+    segment_bucket,
+    t2m_embedders,
+)
 from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
@@ -37,7 +42,7 @@ from segmo.pipeline.retrieval import pair_scores
 from segmo.segmentation import uniform_spans
 
 SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
-SECTIONS: tuple[str, ...] = ("retrieval", "grounding", "isc", "action_order")
+SECTIONS: tuple[str, ...] = ("reconstruction", "retrieval", "grounding", "isc", "action_order")
 
 
 @dataclass
@@ -270,26 +275,47 @@ def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
     return ActionClassifier.from_pretrained(cfg.action_classifier)
 
 
-def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict],
-                         generate: Any) -> dict[str, dict[str, float]]:
+def _order_metrics(preds: list[list[str]], trues: list[list[str]]) -> dict[str, float]:
+    return {"sequence_accuracy": sequence_accuracy(preds, trues),
+            "normalised_edit_distance": normalised_edit_distance(preds, trues), "motions": float(len(preds))}
+
+
+def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict], generate: Any,
+                         reconstruct: Any = None, num_segments: dict[str, int] | None = None
+                         ) -> dict[str, Any]:
+    """Action order of the real motions (`evaluate_action_order`, with frame accuracy), and of
+    the motions generated from / reconstructed (`cli.Reconstructor`) for each motion's first
+    caption, vs that caption's actions; with `num_segments` (caption → its text segments)
+    also per `SEGMENT_BUCKETS` bucket of the first captions, real motions included."""
     result = {"real": evaluate_action_order(clf, cfg.data, cfg.split, max_motions=cfg.max_motions)}
     if generate is None:
         return result
     firsts = [(b, r) for b, r in first_rows(batches) if ground_truth(cfg, b["id"][r], b["caption_index"][r], 1)]
-    preds, trues = [], []
+    trues = [collapse([seg["action"] for seg in ground_truth(cfg, b["id"][r], b["caption_index"][r],
+                                                             int(b["lengths"][r]))])
+             for b, r in firsts]
+    preds: dict[str, list[list[str]]] = {"generated": []}
     for s in range(0, len(firsts), cfg.batch_size):
         chunk = firsts[s:s + cfg.batch_size]
         captions = [b["caption"][r] for b, r in chunk]
         lengths = torch.stack([b["lengths"][r] for b, r in chunk])
         features, got = generate.raw(captions, lengths, cfg.seed * 1_000_003 + 9_000_000 + s)
-        for k, (b, r) in enumerate(chunk):
-            preds.append(clf.predict_sequence(features[k, : int(got[k])].numpy()))
-            truth = ground_truth(cfg, b["id"][r], b["caption_index"][r], int(lengths[k]))
-            trues.append(collapse([seg["action"] for seg in truth]))
-    if preds:
-        result["generated"] = {"sequence_accuracy": sequence_accuracy(preds, trues),
-                               "normalised_edit_distance": normalised_edit_distance(preds, trues),
-                               "motions": float(len(preds))}
+        preds["generated"] += [clf.predict_sequence(features[k, : int(got[k])].numpy()) for k in range(len(chunk))]
+    if reconstruct is not None:
+        preds["reconstruction"] = [clf.predict_sequence(reconstruct.raw(b["id"][r])) for b, r in firsts]
+    if not firsts:
+        return result
+    result |= {name: _order_metrics(p, trues) for name, p in preds.items()}
+    if num_segments is not None:
+        preds = {"real": [clf.predict_sequence(raw_features(ds, b, r)) for b, r in firsts]} | preds
+        bucket = [segment_bucket(num_segments[b["caption"][r]]) for b, r in firsts]
+        result["by_num_segments"] = {}
+        for k in SEGMENT_BUCKETS:
+            rows = [i for i, x in enumerate(bucket) if x == k]
+            if rows:
+                result["by_num_segments"][k] = {
+                    name: _order_metrics([p[i] for i in rows], [trues[i] for i in rows])
+                    for name, p in preds.items()} | {"count": len(rows)}
     return result
 
 

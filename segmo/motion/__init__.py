@@ -5,7 +5,12 @@
     >>> recovered = features_to_joints(features)       # (t - 1, 263) -> (t - 1, 22, 3)
 """
 
-from segmo.motion.features import features_to_joints, joints_to_features, process_joints
+from segmo.motion.features import (
+    features_to_joints,
+    joint_errors,
+    joints_to_features,
+    process_joints,
+)
 from segmo.motion.kinematics import (
     bone_lengths,
     forward_kinematics,
@@ -17,7 +22,7 @@ from segmo.motion.skeleton import KIT, T2M, SkeletonSpec, get_skeleton
 
 __all__ = [
     "SkeletonSpec", "get_skeleton", "T2M", "KIT",
-    "joints_to_features", "features_to_joints", "process_joints",
+    "joints_to_features", "features_to_joints", "process_joints", "joint_errors",
     "forward_kinematics", "inverse_kinematics", "rest_offsets", "bone_lengths",
     "mirror_joints", "mirror_features",
 ]

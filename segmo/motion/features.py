@@ -179,3 +179,12 @@ def features_to_joints(features: Any, skeleton: str | SkeletonSpec = "t2m") -> A
     ric = qrot(qinv(r_rot)[..., None, :], ric)
     ric = ric + torch.stack([root[..., 0], zeros, root[..., 2]], dim=-1)[..., None, :]
     return back(torch.cat([root[..., None, :], ric], dim=-2))
+
+
+def joint_errors(real: Tensor, fake: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-frame mean joint distance of two joint sequences (..., t, j, 3), in the joints'
+    unit, as two (..., t) tensors: root-aligned (each frame's root joints put on each other
+    first: the pose error MoMask reports as MPJPE) and global (the root trajectory, which
+    the features integrate from velocities, so its drift counts too)."""
+    aligned = (real - real[..., :1, :]) - (fake - fake[..., :1, :])
+    return aligned.norm(dim=-1).mean(-1), (real - fake).norm(dim=-1).mean(-1)

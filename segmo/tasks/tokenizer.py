@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from segmo.models.tokenizer import RVQVAE, RVQConfig, RVQOutput
-from segmo.motion.features import features_to_joints
+from segmo.motion.features import features_to_joints, joint_errors
 from segmo.motion.skeleton import SkeletonName, get_skeleton
 from segmo.tasks.base import Task
 
@@ -169,11 +169,8 @@ class RVQTask(Task):
         real = features_to_joints(self.model.denormalize(motion.float()), self.skeleton)
         fake = features_to_joints(self.model.denormalize(reconstruction.float()), self.skeleton)
         to_mm = self.skeleton.unit * 1000.0
-        aligned = (real - real[..., :1, :]) - (fake - fake[..., :1, :])
-        return {
-            "mpjpe_mm": aligned.norm(dim=-1).mean(-1)[mask].mean() * to_mm,  # (b, t) -> ()
-            "mpjpe_global_mm": (real - fake).norm(dim=-1).mean(-1)[mask].mean() * to_mm,
-        }
+        aligned, drift = joint_errors(real, fake)  # (b, t) each
+        return {"mpjpe_mm": aligned[mask].mean() * to_mm, "mpjpe_global_mm": drift[mask].mean() * to_mm}
 
     # -- export ------------------------------------------------------------------------------
 
