@@ -273,8 +273,12 @@ def test_ablation_dry_run_with_seeds(tmp_path: Path) -> None:
 
 def test_seeds_report_has_a_table_per_bucket() -> None:
     grid = load_tool("ablation_grid")
-    run = {"generation": {"generated": {"top1": {"mean": 0.7, "interval": 0.01}}},
-           "by_num_segments": {"1": {"generated": {"top1": {"mean": 0.8, "interval": 0.02}}}}}
+    entry = {"mean": 0.7, "interval": 0.01}
+    run = {"generation": {"real": {"top1": entry}, "generated": {"top1": {"mean": 0.6}},
+                          "by_num_segments": {"1": {"generated": {"top1": {"mean": 0.8}}}}},
+           "action_order": {"by_num_segments": {"1": {"generated": {"sequence_accuracy": 0.9}}}}}
     text = grid.seeds_report({"in_sample": [run, run]})
-    assert "| in_sample | 2 | 0.700±0.000 |" in text
-    assert "Captions with 1 segment(s):" in text and "| in_sample | 2 | 0.800±0.000 |" in text
+    assert "| real motions | 1 | 0.700 |" in text
+    assert "| SegMo | 2 | 0.600±0.000 |" in text
+    assert "Captions with 1 text segment(s):" in text
+    assert "| SegMo | 2 | 0.800±0.000 | – | – | – | 0.900±0.000 |" in text

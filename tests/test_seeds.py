@@ -48,12 +48,13 @@ def test_differ_only_when_the_intervals_are_apart():
 
 
 def test_seed_table_rows_and_cells():
-    table = seed_table({"in_sample": [_run(0.70, 2.0), _run(0.72, 2.2)], "none": [_run(0.71, 1.9)]},
-                       ["generation/generated/top1", "generation/generated/missing"], ["Top-1", "X"])
+    columns = ["generation/generated/top1", "generation/generated/missing"]
+    table = seed_table([("in_sample", [_run(0.70, 2.0), _run(0.72, 2.2)], columns),
+                        ("none", [_run(0.71, 1.9)], columns)], ["Top-1", "X"])
     lines = table.splitlines()
-    assert lines[0] == "| variant | seeds | Top-1 | X |"
+    assert lines[0] == "| | seeds | Top-1 | X |"
     assert lines[2].startswith("| in_sample | 2 | 0.710±0.")
     assert lines[2].endswith("| – |")
     assert lines[3] == "| none | 1 | 0.710 | – |"
-    with pytest.raises(ValueError, match="2 titles for 1 columns"):
-        seed_table({}, ["a"], ["a", "b"])
+    with pytest.raises(ValueError, match="row 'a' has 1 figures for 2 titles"):
+        seed_table([("a", [_run(0.7, 2.0)], ["x"])], ["a", "b"])

@@ -185,16 +185,31 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def seeds_report(runs: dict[str, list[dict]]) -> str:
-    """OUT/seeds.md: the overall table and one per number of caption segments."""
+    """OUT/seeds.md: real, reconstruction and each variant's generated row over its seeds,
+    overall and per number of caption segments (`segmo evaluate`'s `by_num_segments`)."""
     from segmo.evaluation.seeds import seed_table
 
-    columns, titles = [c for c, _ in SEED_COLUMNS], [t for _, t in SEED_COLUMNS]
-    parts = ["Mean ± 95 % interval over training seeds (Student t).", "", "Overall:", "",
-             seed_table(runs, columns, titles)]
-    first = next(iter(runs.values()))[0]
-    for bucket in first.get("by_num_segments", {}):
-        per = [f"by_num_segments/{bucket}/{c.removeprefix('generation/')}" for c in columns]
-        parts += ["", f"Captions with {bucket} segment(s):", "", seed_table(runs, per, titles)]
+    titles = [t for _, t in SEED_COLUMNS]
+    first = next(iter(runs.values()))
+
+    def paths(row: str, bucket: str | None) -> list[str]:
+        out = []
+        for path, _ in SEED_COLUMNS:
+            section, _, metric = path.split("/")
+            where = f"{section}/by_num_segments/{bucket}" if bucket else section
+            out.append(f"{where}/{row}/{metric}")
+        return out
+
+    def table(bucket: str | None) -> str:
+        rows = [("real motions", first[:1], paths("real", bucket)),
+                ("tokenizer reconstruction", first[:1], paths("reconstruction", bucket))]
+        rows += [(VARIANTS[v][2], r, paths("generated", bucket)) for v, r in runs.items()]
+        return seed_table(rows, titles)
+
+    parts = ["Mean ± 95 % interval over training seeds (Student t); the real and reconstruction "
+             "rows do not depend on the mask transformer's seed.", "", "All captions:", "", table(None)]
+    for bucket in first[0].get("generation", {}).get("by_num_segments", {}):
+        parts += ["", f"Captions with {bucket} text segment(s):", "", table(bucket)]
     return "\n".join(parts)
 
 if __name__ == "__main__":

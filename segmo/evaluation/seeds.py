@@ -8,8 +8,9 @@ gives, for every figure they all hold, the mean over seeds and the half-width of
 2.48 standard deviations of the mean's estimate, not 1.96). `differ` says whether two
 such intervals are apart; overlapping intervals are reported as "no difference".
 
-    runs = {"in_sample": [json.loads(p.read_text()) for p in in_sample_paths], "none": [...]}
-    print(seed_table(runs, ["generation/generated/top1", "generation/generated/fid"]))
+    in_sample = [json.loads(p.read_text()) for p in in_sample_paths]
+    columns = ["generation/generated/top1", "generation/generated/fid"]
+    print(seed_table([("in_sample", in_sample, columns), ("none", none, columns)], ["Top-1", "FID"]))
 """
 
 from __future__ import annotations
@@ -80,15 +81,14 @@ def _cell(entry: Mapping[str, float] | None, digits: int) -> str:
     return f"{entry['mean']:.{digits}f}±{entry['interval']:.{digits}f}"
 
 
-def seed_table(variants: Mapping[str, Sequence[Mapping[str, Any]]], columns: Sequence[str],
-               titles: Sequence[str] | None = None, digits: int = 3) -> str:
-    """Markdown: one row per variant (with its number of seeds), one column per figure path,
-    cells "mean±interval" over the variant's seeds."""
-    titles = list(titles or columns)
-    if len(titles) != len(columns):
-        raise ValueError(f"seed_table: {len(titles)} titles for {len(columns)} columns")
-    lines = ["| variant | seeds | " + " | ".join(titles) + " |", "| --- | --- |" + " --- |" * len(columns)]
-    for name, runs in variants.items():
+def seed_table(rows: Sequence[tuple[str, Sequence[Mapping[str, Any]], Sequence[str]]],
+               titles: Sequence[str], digits: int = 3) -> str:
+    """Markdown: one line per (name, runs, figure paths) with its number of seeds, cells
+    "mean±interval" over the runs; the paths of each row line up with `titles`."""
+    lines = ["| | seeds | " + " | ".join(titles) + " |", "| --- | --- |" + " --- |" * len(titles)]
+    for name, runs, columns in rows:
+        if len(columns) != len(titles):
+            raise ValueError(f"seed_table: row {name!r} has {len(columns)} figures for {len(titles)} titles")
         summary = summarise(runs)
         lines.append(f"| {name} | {len(runs)} | " + " | ".join(
             _cell(summary.get(c), digits) for c in columns) + " |")
