@@ -129,7 +129,7 @@ def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | 
 
 def all_spans(num_tokens: int, min_tokens: int = MIN_TOKENS) -> np.ndarray:
     """Every span [s, e) of at least `min_tokens` tokens in [0, num_tokens), sorted by
-    start then end: (k, 2), k = (n − m + 1)(n − m + 2)/2 (1,128 for n = 49, m = 2)."""
+    start then end: (k, 2), k = (n − m + 1)(n − m + 2)/2 (1,176 for n = 49, m = 2)."""
     if not 1 <= min_tokens <= num_tokens:
         raise ValueError(f"all_spans: min_tokens={min_tokens} must be in 1..num_tokens={num_tokens}")
     return np.array([(s, e) for s in range(num_tokens)
