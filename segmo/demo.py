@@ -29,7 +29,6 @@ import torch
 from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import ArgumentParser, non_negative_int
 from segmo.export import export
-from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
 from segmo.pipeline.grounding import plot_similarity_map
 from segmo.synth import build_corpus
@@ -176,10 +175,9 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
         if len(caption["segments"]) >= 2:
             break
     features = read_motion(root, motion_id)
-    # One window the size of an average segment: the paper's 5 tokens are far shorter than
-    # the corpus's segments, so no window could overlap a true span well.
-    window = max(1, len(features) // FRAMES_PER_TOKEN // len(caption["segments"]))
-    grounding = model.ground(caption["text"], features, window=window,
+    # The default search, one span per segment in caption order: the paper's 5-token window
+    # is far shorter than the corpus's segments, so no window could overlap a true span well.
+    grounding = model.ground(caption["text"], features,
                              segments=[s["text"] for s in caption["segments"]])
     truth = [(s["start"], s["end"]) for s in caption["segments"]]
     ax = plot_similarity_map(grounding, title=caption["text"],

@@ -117,6 +117,7 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     grounding = metrics["grounding"]
     assert grounding["queries"] > 0 and 0 <= grounding["mIoU"] <= 1
     assert {"R@1,IoU=0.3", "R@1,IoU=0.5", "R@1,IoU=0.7", "uniform/mIoU"} <= set(grounding)
+    assert {"spans/R@1,IoU=0.5", "spans/mIoU", "window/R@1,IoU=0.5", "window/mIoU"} <= set(grounding)
     assert set(metrics["isc"]) == {"uniform", "cpd", "kmeans"}
     assert all(v["pairs"] > 0 and -1 <= v["mean"] <= 1 for v in metrics["isc"].values())
     order = metrics["action_order"]
@@ -135,6 +136,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert f"MPJPE {reconstruction['mpjpe_mm']:.1f} mm" in text
     for title in ("## Retrieval", "## Grounding", "## Intra-segment consistency", "## Action order"):
         assert title in text
+    for row in ("| ordered spans |", "| best span |", "| sliding window |", "| uniform split |"):
+        assert row in text
     assert (out / "isc.png").stat().st_size > 0
     assert len(list((out / "similarity_maps").glob("*.png"))) == 1
 

@@ -25,7 +25,7 @@ from segmo.models.residual_transformer import ResidualTransformer, ResidualTrans
 from segmo.models.tokenizer import RVQVAE
 from segmo.pipeline import GenerationOutput, SegMo, edit_drift
 from segmo.pipeline.cli import bundle_main, generate_main, ground_main
-from segmo.pipeline.grounding import plot_similarity_map
+from segmo.pipeline.grounding import best_span, plot_similarity_map, sliding_windows
 from segmo.pipeline.retrieval import pair_scores
 
 TEXT_DIM = 8
@@ -234,11 +234,53 @@ def test_grounding_shapes_and_best_span(model, generated):
 def test_grounding_locates_segments_by_content_not_order(model, generated):
     """Grounding feeds the segments as a set: listing them in another order moves no span."""
     motion = generated.motion(0)
-    forward = model.ground(PROMPTS[0], motion, segments=["walk", "wave", "jump"])
-    shuffled = model.ground(PROMPTS[0], motion, segments=["jump", "walk", "wave"])
+    forward = model.ground(PROMPTS[0], motion, window=5, segments=["walk", "wave", "jump"])
+    shuffled = model.ground(PROMPTS[0], motion, window=5, segments=["jump", "walk", "wave"])
     torch.testing.assert_close(torch.as_tensor(shuffled.similarity)[[1, 2, 0]],
                                torch.as_tensor(forward.similarity), rtol=1e-5, atol=1e-5)
     assert shuffled.best_spans_frames[1:] + shuffled.best_spans_frames[:1] == forward.best_spans_frames
+
+
+def test_window_search_is_the_papers_sliding_window(model, generated):
+    """search="window" (a window given) is what grounding computed before the span searches:
+    each segment's best sliding window of the segment space, ×4 frames."""
+    motion = generated.motion(1)
+    out = model.ground(PROMPTS[1], motion, window=5, stride=1)
+    same = model.ground(PROMPTS[1], motion, search="window")  # the paper's 5 tokens
+    assert out.search == "window" and same.best_spans_frames == out.best_spans_frames
+    space = model.embed_segments([PROMPTS[1]], [motion])
+    windows = sliding_windows(int(space.num_tokens[0]), 5, 1)
+    similarity = space.similarity(torch.from_numpy(windows))[0].float()
+    expected = best_span(similarity, windows) * 4
+    assert out.best_spans_frames == [(int(s), int(min(e, len(motion)))) for s, e in expected]
+    torch.testing.assert_close(out.similarity, similarity)
+
+
+def test_ordered_search_cuts_the_motion_in_caption_order(model, generated):
+    motion = np.concatenate([generated.motion(0), generated.motion(0)[:6]])  # 54 frames, 13 tokens
+    out = model.ground(PROMPTS[0], motion, segments=["walk", "wave", "jump"])
+    assert out.search == "ordered" and out.windows.shape == (78, 2)  # every span of ≥ 2 of 13 tokens
+    spans = out.best_spans_frames
+    assert spans[0][0] == 0 and spans[-1][1] == 52  # every valid token (52 frames used)
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))  # contiguous, in order
+    assert all(e - s >= 8 for s, e in spans)  # ≥ 2 tokens each
+    columns = {tuple(w): i for i, w in enumerate(out.windows.tolist())}
+    for k, (score, (s, e)) in enumerate(zip(out.best_scores, spans)):
+        assert score == pytest.approx(float(out.similarity[k, columns[(s // 4, -(-e // 4))]]))
+    best = model.ground(PROMPTS[0], motion, search="spans", segments=["walk", "wave", "jump"])
+    assert best.best_scores == pytest.approx(out.similarity.max(dim=1).values.tolist())
+    ax = plot_similarity_map(out, truth=[(0, 16), (16, 40), (40, 54)])
+    assert ax.get_images()[0].get_array().shape == (3, 13)  # segments × tokens
+    assert len(ax.patches) == 3 and len(ax.collections) == 3
+    import matplotlib.pyplot as plt
+
+    plt.close(ax.figure)
+    for kwargs, message in ((dict(search="best"), "search='best'"),
+                            (dict(search="spans", window=5), "is for search='window'"),
+                            (dict(window=0), "window=0"),
+                            (dict(min_tokens=7), "3 segments in order need 21 tokens")):
+        with pytest.raises(SegmoError, match=message):
+            model.ground(PROMPTS[0], motion, segments=["walk", "wave", "jump"], **kwargs)
 
 
 def test_embed_pairs_spans(model, generated):
@@ -355,6 +397,9 @@ def test_cli_ground_prints_spans(bundle, generated, tmp_path, hash_text_encoder,
     line = cli_failure(["ground", "--model", str(bundle), "--text", "x", "--motion",
                         str(tmp_path / "joints.npy")], capsys)
     assert "joints" in line
+    line = cli_failure(["ground", "--model", str(bundle), "--text", "x", "--motion", str(motion),
+                        "--search", "spans", "--window", "5"], capsys)
+    assert "--window is for --search window, not --search spans" in line
 
 
 def test_generation_output_save_rejects_unknown_format(generated, tmp_path):

@@ -19,8 +19,10 @@ Sections (spec §9, paper §4):
   score); SegMo's motion features depend on the text, so each pair costs a forward pass and
   the full protocol is limited to `--retrieval-motions` motions (first caption each).
 - grounding (built-in corpus only, `DATA/segments/<id>.json`): each caption's ground-truth
-  segments are grounded in the real motion (`SegMo.ground`, explicit segments); the best
-  window vs the true span → R@1 at IoU 0.3/0.5/0.7 and mIoU; a few maps are plotted.
+  segments are grounded in the real motion (explicit segments) with each search of
+  `segmo.pipeline.grounding` (ordered spans, each segment's best span, the paper's sliding
+  window `--grounding-window`); the chosen span vs the true span → R@1 at IoU 0.3/0.5/0.7
+  and mIoU, beside the text-free uniform split; a few maps are plotted.
 - ISC and its CV (paper Fig. 4) per motion segmenter on the real test pairs.
 - action order (built-in corpus, `--action-classifier DIR`, or `train` to fit one): exact
   sequence accuracy and normalised edit distance of motions generated from each motion's
@@ -347,8 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--text-segments", help="use DATA/text_segments/NAME instead of the bundle's segmenter")
     p.add_argument("--steps", type=positive_int, default=SamplingOptions.steps,
                    help="mask decoding steps")
-    p.add_argument("--grounding-window", default="auto",
-                   help="sliding-window sizes in tokens, e.g. 5 or 4,8,16; auto = 0.5-2x the mean segment")
+    p.add_argument("--grounding-window", default="5",
+                   help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
+                        "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")
     p.add_argument("--retrieval-motions", type=non_negative_int, default=100,
                    help="motions of SegMo's full retrieval protocol (N^2 passes); 0 = all")
     p.add_argument("--skip", default="", help=f"comma-separated sections to leave out: {','.join(SECTIONS)}")

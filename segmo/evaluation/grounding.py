@@ -68,14 +68,16 @@ def auto_windows(num_tokens: int, num_segments: int) -> list[int]:
 
 
 def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
-                       max_motions: int | None = 50, window: int | Sequence[int] | str = "auto",
-                       stride: int = 1, threshold: float = 0.5) -> dict[str, float]:
+                       max_motions: int | None = 50, search: str | None = None,
+                       window: int | Sequence[int] | str | None = None, stride: int = 1,
+                       threshold: float = 0.5) -> dict[str, float]:
     """Ground every multi-segment caption of the built-in corpus and score against the truth.
 
     For each motion of `split` (first `max_motions`) and each caption with ≥ 2 segments in
-    `segments/<id>.json`, the caption is grounded with its ground-truth segment texts; the
-    best span of each segment is compared with its true span. window "auto" = multi-scale
-    windows of 0.5–2× the mean segment length (`auto_windows`; a/n known from the query).
+    `segments/<id>.json`, the caption is grounded with its ground-truth segment texts
+    (`SegMo.ground`: search "ordered" by default, or "spans", or "window" with `window`
+    sizes, where "auto" = multi-scale windows of 0.5–2× the mean segment length,
+    `auto_windows`); the chosen span of each segment is compared with its true span.
     Returns the metrics of `grounding_metrics`, `rate` (fraction with IoU ≥ threshold), the
     number of segments, and the same metrics for the uniform split (a text-free baseline).
     """
@@ -89,11 +91,12 @@ def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
         n = len(features) // FRAMES_PER_TOKEN
         for caption in record["captions"]:
             segs = caption["segments"]
-            if not 2 <= len(segs) <= min(model.max_segments, n):
+            # n // 2: the ordered search gives each segment at least 2 tokens (MIN_TOKENS)
+            if not 2 <= len(segs) <= min(model.max_segments, n // 2):
                 continue
             size = auto_windows(n, len(segs)) if window == "auto" else window
-            out = model.ground(caption["text"], features, size, stride,
-                               segments=[s["text"] for s in segs])
+            out = model.ground(caption["text"], features, search=search, window=size,
+                               stride=stride, segments=[s["text"] for s in segs])
             pred += out.best_spans_frames
             truth += [(s["start"], s["end"]) for s in segs]
             uniform += [(FRAMES_PER_TOKEN * s, FRAMES_PER_TOKEN * e) for s, e in segment_batch(

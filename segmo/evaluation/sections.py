@@ -37,7 +37,7 @@ from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
 from segmo.models.alignment import isc_from_cosines, paired_cosine
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.pipeline.grounding import plot_similarity_map
+from segmo.pipeline.grounding import MIN_TOKENS, SEARCHES, locate, plot_similarity_map
 from segmo.pipeline.retrieval import pair_scores
 from segmo.segmentation import uniform_spans
 
@@ -67,7 +67,7 @@ class EvaluateConfig:
     device: str = "cpu"
     text_segments: str | None = None
     steps: int = SamplingOptions.steps
-    grounding_window: str = "auto"
+    grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True
     skip: tuple[str, ...] = ()
@@ -204,8 +204,8 @@ def ground_truth(cfg: EvaluateConfig, mid: str, caption_index: int, t: int) -> l
 
 
 def _windows(cfg: EvaluateConfig, n: int, a: int) -> int | list[int]:
-    """Window sizes in tokens: "auto" = `auto_windows` (as `grounding_accuracy`), else the
-    given comma-separated sizes."""
+    """Window sizes in tokens of the "window" row: "auto" = `auto_windows` (0.5–2× the mean
+    segment length), else the given comma-separated sizes (default 5, the paper's)."""
     if cfg.grounding_window == "auto":
         return auto_windows(n, a)
     return [int(w) for w in str(cfg.grounding_window).split(",")]
@@ -213,34 +213,44 @@ def _windows(cfg: EvaluateConfig, n: int, a: int) -> int | list[int]:
 
 def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict], out: Path
                       ) -> dict[str, float] | None:
-    """Ground the true segments of every caption with ≥ 2 of them; R@1 at IoU and mIoU of the
-    best window vs the true span, and the same for the text-free uniform split (baseline)."""
-    pred, gold, uniform, plotted = [], [], [], 0
+    """Ground the true segments of every caption with ≥ 2 of them, with each search of
+    `segmo.pipeline.grounding` on one pass per caption; R@1 at IoU and mIoU of the chosen
+    span vs the true span. Keys: the default search ("ordered") plain, "spans/...",
+    "window/..." (`--grounding-window`), and "uniform/..." for the text-free uniform split
+    (a baseline). The maps plotted are the ordered search's."""
+    pred: dict[str, list] = {search: [] for search in SEARCHES}
+    gold, uniform, plotted = [], [], 0
     for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
         t = int(b["lengths"][r])
         truth = ground_truth(cfg, b["id"][r], b["caption_index"][r], t)
         n = t // FRAMES_PER_TOKEN
-        if not truth or not 2 <= len(truth) <= min(model.max_segments, n) or any(
+        if not truth or not 2 <= len(truth) <= min(model.max_segments, n // MIN_TOKENS) or any(
                 s["end"] <= s["start"] for s in truth):
             continue
-        g = model.ground(b["caption"][r], raw_features(ds, b, r), window=_windows(cfg, n, len(truth)),
-                         segments=[s["text"] for s in truth])
-        pred += [tuple(p) for p in g.best_spans_frames]
+        motion = raw_features(ds, b, r)
+        space = model.embed_segments([b["caption"][r]], [motion], segments=[[s["text"] for s in truth]])
+        found = {search: locate(space, b["caption"][r], len(motion), search,
+                                window=_windows(cfg, n, len(truth)) if search == "window" else None)
+                 for search in SEARCHES}
+        for search, g in found.items():
+            pred[search] += [tuple(p) for p in g.best_spans_frames]
         gold += [(s["start"], s["end"]) for s in truth]
         uniform += [(4 * s, 4 * e) for s, e in uniform_spans(n, len(truth))]
         if plotted < cfg.similarity_maps:
             plt = report._pyplot()
             (out / "similarity_maps").mkdir(parents=True, exist_ok=True)
-            ax = plot_similarity_map(g, title=b["caption"][r] + "\ntruth (frames): " + ", ".join(
-                f"{s['start']}-{s['end']}" for s in truth))
+            ax = plot_similarity_map(found["ordered"], truth=[(s["start"], s["end"]) for s in truth],
+                                     title=b["caption"][r] + "\ntruth (frames): " + ", ".join(
+                                         f"{s['start']}-{s['end']}" for s in truth))
             ax.figure.tight_layout()
             ax.figure.savefig(out / "similarity_maps" / f"{b['id'][r]}_{b['caption_index'][r]}.png", dpi=110)
             plt.close(ax.figure)
             plotted += 1
     if not gold:
         return None
-    result = {**grounding_metrics(np.array(pred), np.array(gold)), "queries": float(len(gold))}
-    result |= {f"uniform/{k}": v for k, v in grounding_metrics(np.array(uniform), np.array(gold)).items()}
+    result = {**grounding_metrics(np.array(pred["ordered"]), np.array(gold)), "queries": float(len(gold))}
+    for name, spans in (("spans", pred["spans"]), ("window", pred["window"]), ("uniform", uniform)):
+        result |= {f"{name}/{k}": v for k, v in grounding_metrics(np.array(spans), np.array(gold)).items()}
     return result
 
 

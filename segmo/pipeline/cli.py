@@ -5,7 +5,8 @@
     segmo generate --model models/segmo --text "a person walks forward, then waves" \
         --length 120 --seed 0 --out runs/gen --formats npy,gif,bvh
     segmo ground --model models/segmo --text "a person walks, then waves" \
-        --motion runs/gen/sample_00_features.npy --out map.png
+        --motion runs/gen/sample_00_features.npy --out map.png     # ordered spans
+    segmo ground ... --window 5                                     # the paper's window
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from segmo.errors import (
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.sampling import SamplingOptions
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
-from segmo.pipeline.grounding import plot_similarity_map
+from segmo.pipeline.grounding import MIN_TOKENS, PAPER_WINDOW, SEARCHES, plot_similarity_map
 from segmo.pipeline.outputs import FORMATS
 from segmo.pipeline.segmo import SegMo
 
@@ -117,15 +118,24 @@ def ground_main(argv: list[str] | None = None) -> None:
                         help="the query's segments separated by '#' (default: rule segmenter)")
     parser.add_argument("--motion", required=True,
                         help="raw motion features .npy (t, d), e.g. new_joint_vecs/<id>.npy")
-    parser.add_argument("--window", type=positive_int, default=5,
-                        help="window size in tokens (4 frames)")
+    parser.add_argument("--search", choices=SEARCHES, default=None,
+                        help="ordered (default): one span per segment in caption order, cutting "
+                             "the motion; spans: each segment's best span of any length; window: "
+                             "the paper's sliding window (default when --window is given)")
+    parser.add_argument("--window", type=positive_int, default=None,
+                        help=f"sliding-window size in tokens (4 frames) of --search window "
+                             f"(default {PAPER_WINDOW}, the paper's)")
     parser.add_argument("--stride", type=positive_int, default=1, help="window stride in tokens")
+    parser.add_argument("--min-tokens", type=positive_int, default=MIN_TOKENS,
+                        help="shortest span of --search ordered/spans, in tokens")
     parser.add_argument("--out", default=None, help="save the similarity map (e.g. map.png)")
     args = parser.parse_args(argv)
     motion = npy_argument(parser, "--motion", args.motion)
     if motion.ndim == 3:
         parser.error(f"--motion {args.motion}: holds joints {motion.shape}; pass the raw "
                      "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
+    if args.window is not None and args.search not in (None, "window"):
+        parser.error(f"--window is for --search window, not --search {args.search}")
     if args.out:
         _check_output_dir(parser, "--out", str(Path(args.out).parent))
     model = _load(parser, args.model)
@@ -134,8 +144,8 @@ def ground_main(argv: list[str] | None = None) -> None:
         model.normalize_motion(motion)  # the checks of a motion, here naming its file
     except SegmoError as error:
         raise SegmoError(f"--motion {args.motion}: {error}") from None
-    out = model.ground(args.text, motion, window=args.window, stride=args.stride,
-                       segments=segments)
+    out = model.ground(args.text, motion, search=args.search, window=args.window,
+                       stride=args.stride, min_tokens=args.min_tokens, segments=segments)
     print(out)
     if args.out:
         # matplotlib on use, its file backend chosen before plotting imports pyplot.

@@ -1,13 +1,24 @@
 """Temporal grounding (paper §4.4, Fig. 5): where each segment of a text happens in a
 motion, in SegMo's learned segment space (`segmo.pipeline.space`).
 
-Every sliding window of the motion's tokens is embedded as a motion span and compared by
-cosine with each text segment; a segment's best window, ×4, is its frame span. The
-windows and the picture of the map live here too; how well grounding finds the truth
-(temporal IoU, `grounding_accuracy`) is `segmo.evaluation.grounding`.
+Candidate token spans of the motion are embedded as motion spans and compared by cosine
+with each text segment; the chosen span of each segment, ×4, is its frame span. Three
+searches (`SEARCHES`):
+
+- "ordered" (the default): the caption's segments happen in caption order, one after the
+  other. The motion's valid tokens are cut into as many contiguous spans as there are
+  segments, each of at least `min_tokens` tokens, maximising the summed similarity of
+  segment k with span k (`ordered_spans`, a dynamic programme over the boundaries).
+- "spans": each segment alone, its best span among every span [s, e) of at least
+  `min_tokens` tokens (`all_spans`); spans of different segments may overlap.
+- "window": the paper's sliding windows of a fixed size (`window`, 5 tokens in Fig. 5;
+  a list gives multi-scale windows), stepping by `stride`; each segment's best window.
+
+The windows, the DP and the picture of the map live here too; how well grounding finds
+the truth (temporal IoU, `grounding_accuracy`) is `segmo.evaluation.grounding`.
 
     out = model.ground("a person walks forward, then waves", features)   # (t, 263) raw
-    print(out)                       # best frame span per text segment
+    print(out)                       # frame span per text segment
     plot_similarity_map(out)         # paper Fig. 5
 """
 
@@ -22,26 +33,76 @@ import torch
 from segmo.errors import SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline.outputs import GroundingOutput
-from segmo.pipeline.space import SegmentModel
+from segmo.pipeline.space import SegmentEmbeddings, SegmentModel
+
+SEARCHES: tuple[str, ...] = ("ordered", "spans", "window")
+PAPER_WINDOW = 5  # tokens, paper Fig. 5
+MIN_TOKENS = 2  # shortest span of "spans"/"ordered": one token has no motion to speak of
 
 
-def ground(model: SegmentModel, text: str, motion: Any, window: int | Sequence[int] = 5,
-           stride: int = 1, segments: list[str] | None = None) -> GroundingOutput:
-    """Similarity of each text segment with every sliding window of the motion.
+def ground(model: SegmentModel, text: str, motion: Any, search: str | None = None,
+           window: int | Sequence[int] | None = None, stride: int = 1,
+           min_tokens: int = MIN_TOKENS, segments: list[str] | None = None) -> GroundingOutput:
+    """Where each text segment of `text` happens in `motion` (raw features (t, d)).
 
-    motion: raw features (t, d); window: size(s) in tokens (a list gives multi-scale
-    windows); stride in tokens. The best window of each segment, ×4, is its frame span.
+    search: "ordered", "spans" or "window" (module docstring); None = "window" when a
+    `window` is given (size(s) in tokens; `stride` in tokens), else "ordered". min_tokens:
+    the shortest span of "ordered" and "spans".
     """
+    search = check_search(search, window, stride, min_tokens)
     space = model.embed_segments([text], [motion],
                                  segments=None if segments is None else [segments])
-    t = len(motion)  # frames given; the pass used them cut to a multiple of 4
-    windows = torch.from_numpy(sliding_windows(int(space.num_tokens[0]), window, stride))
-    similarity = space.similarity(windows)[0].float().cpu()
-    best = best_span(similarity, windows) * FRAMES_PER_TOKEN
+    return locate(space, text, len(motion), search, window, stride, min_tokens)
+
+
+def check_search(search: str | None, window: int | Sequence[int] | None, stride: int,
+                 min_tokens: int) -> str:
+    """The search `ground` runs, or SegmoError naming the bad argument."""
+    if search is None:
+        search = "ordered" if window is None else "window"
+    if search not in SEARCHES:
+        raise SegmoError(f"ground: search={search!r}; choose from {', '.join(SEARCHES)}")
+    if window is not None and search != "window":
+        raise SegmoError(f"ground: window={window!r} is for search='window', not {search!r}")
+    sizes = [] if window is None else [window] if isinstance(window, int) else list(window)
+    if search == "window" and window is not None and (
+            not sizes or not all(isinstance(w, (int, np.integer)) and w >= 1 for w in sizes)):
+        raise SegmoError(f"ground: window={window!r} must be a size >= 1 (tokens) or a list of them")
+    if not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise SegmoError(f"ground: stride={stride!r} must be a whole number >= 1 (tokens)")
+    if not isinstance(min_tokens, (int, np.integer)) or min_tokens < 1:
+        raise SegmoError(f"ground: min_tokens={min_tokens!r} must be a whole number >= 1")
+    return search
+
+
+def locate(space: SegmentEmbeddings, text: str, num_frames: int, search: str,
+           window: int | Sequence[int] | None = None, stride: int = 1,
+           min_tokens: int = MIN_TOKENS) -> GroundingOutput:
+    """`ground` on an embedded pair (the first of `space`): the candidate spans of `search`,
+    their similarity with each segment, and the chosen span of each. num_frames: frames of
+    the motion given (its pass used them cut to a multiple of 4)."""
+    n = int(space.num_tokens[0])
+    a = len(space.segments[0])
+    if search == "window":
+        spans = sliding_windows(n, PAPER_WINDOW if window is None else window, stride)
+    else:
+        spans = all_spans(n, min(min_tokens, n))
+    spans_t = torch.from_numpy(spans)
+    similarity = space.similarity(spans_t)[0, :a].float().cpu()  # (a, k)
+    if search == "ordered":
+        if a * min_tokens > n:
+            raise SegmoError(f"ground: {a} segments in order need {a * min_tokens} tokens of "
+                             f"at least min_tokens={min_tokens}; the motion has {n}")
+        chosen = ordered_spans(similarity, spans, n)
+    else:
+        chosen = best_span(similarity, spans)
+    index = {tuple(s): i for i, s in enumerate(spans.tolist())}
+    scores = [float(similarity[k, index[tuple(s)]]) for k, s in enumerate(chosen.tolist())]
+    frames = chosen * FRAMES_PER_TOKEN
     return GroundingOutput(
-        text=text, segments=space.segments[0], windows=windows, similarity=similarity,
-        best_spans_frames=[(int(s), int(min(e, t))) for s, e in best],
-        best_scores=similarity.max(dim=-1).values.tolist(), num_frames=t)
+        text=text, segments=space.segments[0], windows=spans_t, similarity=similarity,
+        best_spans_frames=[(int(s), int(min(e, num_frames))) for s, e in frames],
+        best_scores=scores, num_frames=num_frames, search=search)
 
 
 def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | None = None) -> np.ndarray:
@@ -66,6 +127,15 @@ def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | 
     return np.array(sorted(set(spans)), dtype=np.int64)
 
 
+def all_spans(num_tokens: int, min_tokens: int = MIN_TOKENS) -> np.ndarray:
+    """Every span [s, e) of at least `min_tokens` tokens in [0, num_tokens), sorted by
+    start then end: (k, 2), k = (n − m + 1)(n − m + 2)/2 (1,176 for n = 49, m = 2)."""
+    if not 1 <= min_tokens <= num_tokens:
+        raise ValueError(f"all_spans: min_tokens={min_tokens} must be in 1..num_tokens={num_tokens}")
+    return np.array([(s, e) for s in range(num_tokens)
+                     for e in range(s + min_tokens, num_tokens + 1)], dtype=np.int64).reshape(-1, 2)
+
+
 def best_span(similarity: Any, windows: Any) -> np.ndarray:
     """The window with the highest score: similarity (..., w), windows (w, 2) → (..., 2).
     Ties go to the first window."""
@@ -76,45 +146,100 @@ def best_span(similarity: Any, windows: Any) -> np.ndarray:
     return win[np.argmax(s, axis=-1)]
 
 
+def ordered_spans(similarity: Any, spans: Any, num_tokens: int) -> np.ndarray:
+    """Cut [0, num_tokens) into a contiguous spans in order, span k going to row k, with the
+    highest summed score: similarity (a, k) of each row with the candidate `spans` (k, 2);
+    a cut that needs a span not among the candidates is not allowed. → (a, 2).
+
+    Dynamic programme over boundaries, O(a·n²): best[j][e] = the best sum of rows 0..j−1
+    cutting [0, e); best[j+1][e] = max over s of best[j][s] + score[j][s, e]. Ties go to the
+    earliest boundary.
+    """
+    s = similarity.detach().cpu().numpy() if isinstance(similarity, torch.Tensor) else np.asarray(similarity)
+    cand = np.asarray(spans)
+    a, n = s.shape[0], num_tokens
+    if s.shape != (a, len(cand)):
+        raise ValueError(f"ordered_spans: {s.shape[-1]} scores for {len(cand)} spans")
+    score = np.full((a, n + 1, n + 1), -np.inf)  # score[j, start, end]
+    score[:, cand[:, 0], cand[:, 1]] = s
+    best = np.full((a + 1, n + 1), -np.inf)
+    best[0, 0] = 0.0
+    back = np.zeros((a + 1, n + 1), dtype=np.int64)
+    for j in range(a):
+        # total[start, end] = best[j][start] + score[j][start, end]
+        total = best[j][:, None] + score[j]
+        back[j + 1] = total.argmax(axis=0)
+        best[j + 1] = total.max(axis=0)
+    if not np.isfinite(best[a, n]):
+        raise ValueError(f"ordered_spans: no cut of {n} tokens into {a} candidate spans")
+    ends = [n]
+    for j in range(a, 0, -1):
+        ends.append(int(back[j, ends[-1]]))
+    bounds = ends[::-1]
+    return np.array([(bounds[j], bounds[j + 1]) for j in range(a)], dtype=np.int64)
+
+
+def token_map(output: GroundingOutput) -> torch.Tensor:
+    """(a, n) the best similarity of each segment over the candidate spans that contain each
+    token: the map of "spans"/"ordered", whose candidates have every length."""
+    n = int(output.windows[:, 1].max())
+    index = torch.arange(n)
+    inside = (index >= output.windows[:, :1]) & (index < output.windows[:, 1:])  # (k, n)
+    masked = output.similarity[:, :, None].masked_fill(~inside[None], float("-inf"))
+    return masked.amax(dim=1)
+
+
 def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = None,
                         truth: Sequence[tuple[int, int]] | None = None, cmap: str = "viridis"):
-    """Paper Fig. 5: x = window start (tokens), y = text segment, colour = similarity; the
-    best window of each segment is outlined in red. `truth` (one (start, end) frame span
-    per segment) underlines in white the windows lying inside the true span. Returns the
-    matplotlib Axes."""
+    """Paper Fig. 5, y = text segment, colour = similarity. "window": x = window start
+    (tokens), the best window of each segment outlined in red, `truth` (one (start, end)
+    frame span per segment) underlined in white over the windows lying inside the true span.
+    "spans"/"ordered": x = token, colour = the best span containing that token
+    (`token_map`), the chosen span outlined in red over its tokens, `truth` underlined over
+    its tokens. Returns the matplotlib Axes."""
     # matplotlib on use: grounding and retrieval themselves do not plot.
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
+    if truth is not None and len(truth) != len(output.segments):
+        raise SegmoError(f"plot_similarity_map: {len(truth)} true spans for "
+                         f"{len(output.segments)} segments")
+    by_token = output.search != "window"
+    sim = (token_map(output) if by_token else output.similarity).numpy()
     if ax is None:
-        _, ax = plt.subplots(figsize=(max(4.0, 0.12 * output.similarity.shape[1] + 2),
+        _, ax = plt.subplots(figsize=(max(4.0, 0.12 * sim.shape[1] + 2),
                                       0.5 * len(output.segments) + 1.5))
-    sim = output.similarity.numpy()
-    starts = output.windows[:, 0].tolist()
     image = ax.imshow(sim, aspect="auto", cmap=cmap, interpolation="nearest")
     ax.figure.colorbar(image, ax=ax, label="cosine similarity")
-    best = sim.argmax(axis=1)
-    for row, col in enumerate(best):
-        ax.add_patch(Rectangle((col - 0.5, row - 0.5), 1, 1, fill=False, edgecolor="red",
+    for row, (start, end) in enumerate(output.best_spans_frames):
+        if by_token:
+            col, width = start // FRAMES_PER_TOKEN, -(-end // FRAMES_PER_TOKEN) - start // FRAMES_PER_TOKEN
+        else:
+            col, width = int(sim[row].argmax()), 1
+        ax.add_patch(Rectangle((col - 0.5, row - 0.5), width, 1, fill=False, edgecolor="red",
                                linewidth=2))
-    if truth is not None:
-        if len(truth) != len(output.segments):
-            raise SegmoError(f"plot_similarity_map: {len(truth)} true spans for "
-                             f"{len(output.segments)} segments")
-        frames = output.windows * FRAMES_PER_TOKEN
-        for row, (start, end) in enumerate(truth):
+    for row, (start, end) in enumerate(truth or []):
+        if by_token:  # tokens that overlap the true frames
+            first, last = start // FRAMES_PER_TOKEN, -(-end // FRAMES_PER_TOKEN) - 1
+        else:  # windows inside the true frames
+            frames = output.windows * FRAMES_PER_TOKEN
             inside = ((frames[:, 0] >= start) & (frames[:, 1] <= end)).nonzero()[:, 0]
-            if len(inside):
-                ax.hlines(row + 0.35, int(inside.min()) - 0.5, int(inside.max()) + 0.5,
-                          colors="white", linewidth=3)
+            first, last = (int(inside.min()), int(inside.max())) if len(inside) else (1, 0)
+        if first <= last:
+            ax.hlines(row + 0.35, first - 0.5, last + 0.5, colors="white", linewidth=3)
     ax.set_yticks(range(len(output.segments)))
     ax.set_yticklabels([s if len(s) <= 40 else s[:37] + "..." for s in output.segments])
-    step = max(1, len(starts) // 12)
-    ax.set_xticks(range(0, len(starts), step))
-    sizes = (output.windows[:, 1] - output.windows[:, 0]).unique()
-    labels = ([str(s) for s in starts] if len(sizes) == 1
-              else [f"{s}+{e - s}" for s, e in output.windows.tolist()])
+    if by_token:
+        labels, xlabel = [str(p) for p in range(sim.shape[1])], f"token ({output.search} search)"
+    else:
+        sizes = (output.windows[:, 1] - output.windows[:, 0]).unique()
+        starts = output.windows[:, 0].tolist()
+        labels = ([str(s) for s in starts] if len(sizes) == 1
+                  else [f"{s}+{e - s}" for s, e in output.windows.tolist()])
+        xlabel = "window start (tokens)" if len(sizes) == 1 else "window start+size (tokens)"
+    step = max(1, len(labels) // 12)
+    ax.set_xticks(range(0, len(labels), step))
     ax.set_xticklabels(labels[::step])
-    ax.set_xlabel("window start (tokens)" if len(sizes) == 1 else "window start+size (tokens)")
+    ax.set_xlabel(xlabel)
     ax.set_title(title if title is not None else output.text, fontsize=9)
     return ax

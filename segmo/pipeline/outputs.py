@@ -101,11 +101,14 @@ class GroundingOutput:
     """Where each text segment of a query happens in a motion (paper §4.4, Fig. 5).
 
     text: the query; segments: its a text segments (rows of `similarity`).
-    windows: (w, 2) long token spans [start, end) of the sliding windows (columns).
+    windows: (w, 2) long token spans [start, end) of the candidates (columns): the sliding
+        windows of search "window", every span of at least `min_tokens` tokens otherwise.
     similarity: (a, w) float cosine similarity in the learned segment space.
-    best_spans_frames: per segment, the best window in frames [start, end) (×4 tokens,
-        clipped to num_frames); best_scores: its similarity.
+    best_spans_frames: per segment, the chosen span in frames [start, end) (×4 tokens,
+        clipped to num_frames): its best candidate, or its span of the ordered cut;
+        best_scores: that span's similarity.
     num_frames: frames of the motion that was grounded.
+    search: "ordered", "spans" or "window" (`segmo.pipeline.grounding`).
     """
 
     text: str
@@ -115,6 +118,7 @@ class GroundingOutput:
     best_spans_frames: list[tuple[int, int]]
     best_scores: list[float]
     num_frames: int
+    search: str = "window"
 
     def __str__(self) -> str:
         lines = [f"query: {self.text!r} ({self.num_frames} frames)"]

@@ -454,12 +454,15 @@ class SegMo:
             z[i, : len(r)] = r
         return z, frames
 
-    def ground(self, text: str, motion: Any, window: int | list[int] = 5, stride: int = 1,
-               segments: list[str] | None = None) -> GroundingOutput:
-        """Where each text segment of `text` happens in `motion` (raw features (t, d));
-        see `segmo.pipeline.grounding.ground`."""
-        return grounding.ground(self, text, motion, window=window, stride=stride,
-                                segments=segments)
+    def ground(self, text: str, motion: Any, window: int | list[int] | None = None,
+               stride: int = 1, segments: list[str] | None = None, search: str | None = None,
+               min_tokens: int = grounding.MIN_TOKENS) -> GroundingOutput:
+        """Where each text segment of `text` happens in `motion` (raw features (t, d)):
+        search "ordered" (default; one span per segment, in order, cutting the motion),
+        "spans" (each segment's best span of any length) or "window" (the paper's sliding
+        windows, the default when `window` is given); see `segmo.pipeline.grounding`."""
+        return grounding.ground(self, text, motion, search=search, window=window,
+                                stride=stride, min_tokens=min_tokens, segments=segments)
 
     def embed_pairs(self, texts: list[str], motions: Any, spans: Any = None, *,
                     segments: list[list[str]] | None = None, lengths: Any = None,
