@@ -217,7 +217,7 @@ def _encode(folder: Path, index: dict, tokenizer: Any, todo: dict, key: str,
     """Encode the `todo` crops in batches of one length; publish a shard every
     `SHARD_ITEMS` items."""
     by_length: dict[int, list[str]] = defaultdict(list)
-    for item, (ds, i, offset) in todo.items():
+    for item, (ds, i, _) in todo.items():
         by_length[ds.crop_length(i)].append(item)
     device = next(tokenizer.parameters()).device
     tokenizer.eval()
