@@ -51,6 +51,7 @@ from torch.utils.data import Dataset
 
 from segmo.data.checks import MAX_ABS_Z, refuse_values, value_problem
 from segmo.data.layout import caption_spans, motion_file, read_split, resolve_stats, split_file
+from segmo.data.motion_tokens import MotionTokenCache, clip_key
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -274,6 +275,10 @@ class MotionDataset(Dataset):
         if text_cache is None and text_features is not None:
             text_cache = TextFeatureCache.open(self.root, text_features)
         self.text_cache = text_cache
+        # The frozen tokenizer's codes of every crop, attached by the mask/residual tasks
+        # (segmo.data.motion_tokens); samples then carry `tokens` (t // 4, q) long.
+        self.motion_tokens: MotionTokenCache | None = None
+        self._clip_keys: list[str] | None = None
 
     def _read_motion(self, mid: str, seg_dir: Path | None, report: LoadReport) -> list[_Entry]:
         spec = self.skeleton
@@ -354,13 +359,41 @@ class MotionDataset(Dataset):
         """The epoch whose crops plain integer keys get."""
         self.epoch = epoch
 
+    # -- crops (the motion-token cache encodes each one: segmo.data.motion_tokens) --------
+
+    def clip(self, i: int) -> np.ndarray:
+        """(t_clip, d) raw frames of entry i: the motion, or its time-tagged sub-clip."""
+        e = self.entries[i]
+        return self.motions.get(e.motion_id)[e.start:e.end]
+
+    def crop_length(self, i: int) -> int:
+        """Frames of entry i's crops: the clip's length down to whole tokens."""
+        t_clip = self.entries[i].end - self.entries[i].start
+        return t_clip - t_clip % FRAMES_PER_TOKEN
+
+    def crop_offsets(self, i: int) -> range:
+        """The start frames entry i's crop can have: 0 .. t_clip % 4 with `random_crop`, else 0."""
+        spare = self.entries[i].end - self.entries[i].start - self.crop_length(i)
+        return range(spare + 1 if self.random_crop else 1)
+
+    def crop(self, i: int, offset: int) -> torch.Tensor:
+        """(t, d) float32 z-scored crop of entry i starting at `offset` frames."""
+        raw = self.clip(i)
+        t = self.crop_length(i)
+        return torch.from_numpy((raw[offset:offset + t] - self.mean) / self.std)
+
+    def clip_keys(self) -> list[str]:
+        """`segmo.data.motion_tokens.clip_key` of every entry (computed once)."""
+        if self._clip_keys is None:
+            self._clip_keys = [clip_key(self.clip(i)) for i in range(len(self))]
+        return self._clip_keys
+
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
         i, epoch = split_key(key, self.epoch)
         e = self.entries[i]
-        raw = self.motions.get(e.motion_id)[e.start:e.end]
-        t = raw.shape[0] - raw.shape[0] % FRAMES_PER_TOKEN
-        off = crop_offset(raw.shape[0], t, self.random_crop, sample_rng(self.seed, epoch, i))
-        motion = torch.from_numpy((raw[off:off + t] - self.mean) / self.std)
+        t = self.crop_length(i)
+        off = crop_offset(e.end - e.start, t, self.random_crop, sample_rng(self.seed, epoch, i))
+        motion = self.crop(i, off)
         spans = None
         if e.spans is not None:
             spans = [(min(max(s - off, 0), t), min(max(x - off, 0), t)) for s, x in e.spans]
@@ -370,6 +403,8 @@ class MotionDataset(Dataset):
         }
         if self.text_cache is not None:
             sample.update(self._text_features(e))
+        if self.motion_tokens is not None:
+            sample["tokens"] = self.motion_tokens.tokens(self.clip_keys()[i], off)
         return sample
 
     def _text_features(self, e: _Entry) -> dict[str, torch.Tensor]:

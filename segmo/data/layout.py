@@ -6,6 +6,7 @@ the datasets, evaluation, pipeline grounding, the demo and the tools; the built-
 (``texts/``, ``text_segments/``, ``text_features/``) belongs to `segmo.text`, below this
 package: caption lines are read by `segmo.text.captions` (which this module reuses), text
 segments by `segmo.text.extract` and the dataset, text features by `segmo.text.cache`.
+The motion-token cache (``motion_tokens/``) is `segmo.data.motion_tokens`'s.
 
     ROOT/<split>.txt              ids, one per line          read_split
     ROOT/Mean.npy, ROOT/Std.npy   (d,) train statistics      load_stats

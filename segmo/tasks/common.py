@@ -4,11 +4,15 @@ the base of the mask and residual stages."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
+from typing import Literal
 
 import torch
 from torch import Tensor
 
+from segmo.data.humanml3d import MotionDataset
+from segmo.data.motion_tokens import MotionTokenCache, update_motion_tokens
 from segmo.errors import SegmoError
 from segmo.models.pretrained import read_config
 from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
@@ -16,6 +20,7 @@ from segmo.models.transformer import TransformerConfig
 from segmo.tasks.base import Task
 
 _DEFAULT = TransformerConfig()  # the model's defaults are the task's
+log = logging.getLogger(__name__)
 
 
 class TransformerTask(Task):
@@ -28,12 +33,18 @@ class TransformerTask(Task):
     follows them, so `segmo fit --help` and every YAML list all arguments flat, as before.
     ``max_segments`` (A) comes from ``data.init_args.max_segments`` under ``segmo fit``
     (`segmo.training.cli`).
+
+    ``motion_tokens``: "cached" (default) encodes every crop the data can draw once, at
+    `setup`, into ``DATA/motion_tokens/<key>/`` (`segmo.data.motion_tokens`; built or
+    extended by rank 0 under DDP while the others wait) and trains on those tokens;
+    "on_the_fly" encodes each batch with the tokenizer at every step, as MoMask does.
     """
 
     def __init__(
         self,
         tokenizer: str,
         cond_drop_prob: float,
+        motion_tokens: Literal["cached", "on_the_fly"] = "cached",
         text_dim: int = _DEFAULT.text_dim,
         text_encoder: str | None = None,
         dim: int = _DEFAULT.dim,
@@ -61,6 +72,45 @@ class TransformerTask(Task):
 
     def setup(self, stage: str) -> None:
         check_text_features(self)
+        if self.hparams.motion_tokens == "cached" and self.datamodule is not None:
+            attach_motion_tokens(self)
+
+    @torch.no_grad()
+    def batch_tokens(self, batch: dict) -> Tensor:
+        """(b, n, q) long tokens of a batch: its cached ``tokens``, else the tokenizer's
+        encoding of its motions."""
+        if "tokens" in batch:
+            return batch["tokens"]
+        self.tokenizer.eval()
+        return self.tokenizer.encode(batch["motion"])
+
+
+def attach_motion_tokens(task: TransformerTask) -> None:
+    """Build (rank 0) or extend the motion-token cache of the task's tokenizer for the
+    DataModule's datasets and attach it to them. Rank 0 writes; every rank waits for it
+    (the broadcast is the barrier) and gets its error, if any, so that none hangs."""
+    datamodule = task.datamodule
+    datasets = [ds for ds in getattr(datamodule, "datasets", {}).values()
+                if isinstance(ds, MotionDataset)]
+    if not datasets:
+        return
+    root = datasets[0].root
+    folder, error = None, None
+    if task.global_rank == 0:
+        try:
+            summary = update_motion_tokens(root, task.tokenizer, task.hparams.tokenizer, datasets)
+            print(f"motion tokens: {summary}", flush=True)  # the progress line of a fit's setup
+            folder = str(summary.folder)
+        except (SegmoError, OSError) as err:
+            error = (f"model.init_args.motion_tokens=cached: {err} (or train with "
+                     "--model.init_args.motion_tokens=on_the_fly)")
+    strategy = task.trainer.strategy
+    folder, error = strategy.broadcast((folder, error), src=0)
+    if error is not None:
+        raise SegmoError(error)
+    cache = MotionTokenCache(folder)
+    for ds in datasets:
+        ds.motion_tokens = cache
 
 
 def load_tokenizer(path: str) -> RVQVAE:

@@ -1,6 +1,7 @@
 """Training stage 2: the mask transformer with segment alignment (spec §4–§5, paper §3).
 
-Each step encodes the batch's motions with the frozen tokenizer, masks base tokens with
+Each step takes the batch's base tokens (cached, or encoded by the frozen tokenizer:
+`TransformerTask`), masks base tokens with
 the cosine schedule, predicts them from the caption and its segments, and adds
 λ · alignment loss between the text segments (their projected text vectors, which carry
 no slot order: `segmo.models.transformer.TextPrefix`) and motion segments (spans from
@@ -140,8 +141,7 @@ class MaskTask(TransformerTask):
     @torch.no_grad()
     def tokens(self, batch: dict) -> tuple[Tensor, Tensor, Tensor]:
         """Base tokens (b, n), token mask (b, n), token lengths (b,) of a batch."""
-        self.tokenizer.eval()
-        indices = self.tokenizer.encode(batch["motion"])
+        indices = self.batch_tokens(batch)
         lengths = token_lengths(batch["lengths"])
         return indices[..., 0], token_mask(batch["lengths"], indices.shape[1]), lengths
 

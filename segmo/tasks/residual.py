@@ -1,6 +1,7 @@
 """Training stage 3: the residual transformer (spec §6).
 
-Each step encodes the batch with the frozen tokenizer, draws a target layer j ∈ 1..q−1
+Each step takes the batch's tokens (cached, or encoded by the frozen tokenizer:
+`TransformerTask`), draws a target layer j ∈ 1..q−1
 per sample (favouring low layers), and predicts every valid token of layer j from the
 sum of the embeddings of layers 0..j−1, the caption and its segments. The whole
 condition is dropped with probability `cond_drop_prob` for classifier-free guidance.
@@ -41,9 +42,7 @@ class ResidualTask(TransformerTask):
 
     def step(self, batch: dict, generator: torch.Generator | None = None,
              drop: Tensor | None = None) -> dict[str, Tensor]:
-        with torch.no_grad():
-            self.tokenizer.eval()
-            indices = self.tokenizer.encode(batch["motion"])  # (b, n, q)
+        indices = self.batch_tokens(batch)  # (b, n, q)
         b, n, q = indices.shape
         valid = token_mask(batch["lengths"], n)
         sentence, segments, segment_mask = text_condition(batch)

@@ -1,0 +1,129 @@
+"""The motion-token cache (`segmo.data.motion_tokens`): cached tokens are the tokenizer's
+encoding of the very crop a sample draws, the cache is keyed by the tokenizer, a killed
+build is never trusted, and the mask stage trains on it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import REPO, build_text_dataset
+
+from segmo.data import collate
+from segmo.data import motion_tokens as mt
+from segmo.data.humanml3d import MotionDataset
+from segmo.models.tokenizer import RVQVAE
+from segmo.training.cli import main as cli_main
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return build_text_dataset(tmp_path_factory.mktemp("tokens") / "data", motions=10,
+                              encoders={"minilm": 384})
+
+
+def train_set(root: Path) -> MotionDataset:
+    return MotionDataset(root, "train", random_crop=True, text_features="minilm", seed=3)
+
+
+def attach(ds: MotionDataset, tokenizer: RVQVAE, path) -> mt.TokenCacheSummary:
+    summary = mt.update_motion_tokens(ds.root, tokenizer, str(path), [ds], progress=False)
+    ds.motion_tokens = mt.MotionTokenCache(summary.folder)
+    return summary
+
+
+def test_cached_tokens_are_the_encoding_of_the_drawn_crop(data, tokenizer_dir):
+    tokenizer = RVQVAE.from_pretrained(tokenizer_dir["t2m"]).eval()
+    ds = train_set(data)
+    summary = attach(ds, tokenizer, tokenizer_dir["t2m"])
+    crops = {(ds.clip_keys()[i], o) for i in range(len(ds)) for o in ds.crop_offsets(i)}
+    assert summary.new == summary.total == len(crops)  # two captions of a clip share its crops
+    offsets = set()
+    for epoch in range(3):
+        for i in range(len(ds)):
+            sample = ds[(i, epoch)]
+            raw = ds.clip(i)
+            t = sample["length"]
+            off = next(o for o in ds.crop_offsets(i)
+                       if np.array_equal((raw[o:o + t] - ds.mean) / ds.std, sample["motion"].numpy()))
+            offsets.add(off)
+            expected = tokenizer.encode(sample["motion"][None])[0]
+            assert sample["tokens"].shape == (t // 4, tokenizer.num_quantizers)
+            assert torch.equal(sample["tokens"], expected), (i, epoch, off)
+    assert len(offsets) > 1  # several frame phases were drawn, each from its own encoding
+    batch = collate([ds[0], ds[1], ds[2]])
+    assert batch["tokens"].shape == (3, batch["motion"].shape[1] // 4, tokenizer.num_quantizers)
+
+
+def test_the_cache_is_keyed_by_the_tokenizer_and_reused(data, tokenizer_dir, tmp_path):
+    path = tokenizer_dir["t2m"]
+    tokenizer = RVQVAE.from_pretrained(path)
+    ds = train_set(data)
+    first = attach(ds, tokenizer, path)
+    again = attach(ds, RVQVAE.from_pretrained(shutil.copytree(path, tmp_path / "copy")), path)
+    assert again.folder == first.folder and again.new == 0  # same weights elsewhere: reused
+    other = RVQVAE.from_pretrained(path)
+    with torch.no_grad():
+        other.encoder.layers[0].weight.mul_(1.5)
+    other.save_pretrained(tmp_path / "retrained")
+    changed = attach(ds, RVQVAE.from_pretrained(tmp_path / "retrained"), tmp_path / "retrained")
+    assert changed.folder != first.folder and changed.new == changed.total > 0
+    assert json.loads((changed.folder / "meta.json").read_text())["tokenizer"].endswith("retrained")
+
+
+def test_a_killed_build_is_not_trusted_and_resumes(data, tokenizer_dir, tmp_path, monkeypatch):
+    root = tmp_path / "data"
+    shutil.copytree(data, root)
+    shutil.rmtree(root / mt.FOLDER, ignore_errors=True)
+    tokenizer = RVQVAE.from_pretrained(tokenizer_dir["t2m"])
+    ds = train_set(root)
+    monkeypatch.setattr(mt, "SHARD_ITEMS", 1)  # one shard per encoded batch
+    monkeypatch.setattr(mt, "BATCH", 2)
+    encode, calls = tokenizer.encode, []
+
+    def killed(motion):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt  # a kill between two shards
+        return encode(motion)
+
+    monkeypatch.setattr(tokenizer, "encode", killed)
+    with pytest.raises(KeyboardInterrupt):
+        mt.update_motion_tokens(root, tokenizer, "tok", [ds], progress=False)
+    folder = mt.cache_folder(root, mt.cache_key(tokenizer, ds.mean, ds.std))
+    (folder / ".shard-00002.tokens.npy.999.0.tmp").write_bytes(b"\x93NUMPY half")  # a cut write
+    published = mt.MotionTokenCache(folder)
+    assert 0 < len(published) < len({(k, o) for i, k in enumerate(ds.clip_keys())
+                                      for o in ds.crop_offsets(i)})
+    monkeypatch.setattr(tokenizer, "encode", encode)
+    resumed = mt.update_motion_tokens(root, tokenizer, "tok", [ds], progress=False)
+    assert resumed.new == resumed.total - len(published)
+    assert not list(folder.glob(".*.tmp"))
+    ds.motion_tokens = mt.MotionTokenCache(folder)
+    for i in range(len(ds)):
+        sample = ds[i]
+        assert torch.equal(sample["tokens"], encode(sample["motion"][None])[0])
+
+
+@pytest.mark.parametrize("mode", ["cached", "on_the_fly"])
+def test_a_mask_fit_trains_on_the_cache(mode, data, tokenizer_dir, tmp_path):
+    cli = cli_main(["fit", "--config", str(REPO / "configs/mask/synthetic.yaml"),
+                    f"--data.root={data}", f"--runs_dir={tmp_path / 'runs'}",
+                    f"--model.init_args.tokenizer={tokenizer_dir['t2m']}",
+                    f"--model.init_args.motion_tokens={mode}",
+                    "--model.init_args.dim=32", "--model.init_args.depth=1",
+                    "--model.init_args.heads=2", "--model.init_args.ff_dim=32",
+                    "--model.init_args.alignment_dim=16", "--data.init_args.batch_size=2",
+                    "--trainer.max_steps=3", "--trainer.limit_val_batches=1",
+                    "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false",
+                    "--trainer.accelerator=cpu", "--trainer.devices=1"])
+    assert cli.trainer.global_step == 3
+    train = cli.datamodule.dataset("train")
+    assert (train.motion_tokens is not None) == (mode == "cached")
+    if mode == "cached":
+        assert "tokens" in next(iter(cli.datamodule.train_dataloader()))
+        assert cli.datamodule.dataset("val").motion_tokens is train.motion_tokens
