@@ -30,9 +30,10 @@ from segmo.data.layout import (
     read_split,
     stats_files,
 )
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import boundaries, get_motion_segmenter
 
-UNIT = 4  # frames per token
+UNIT = FRAMES_PER_TOKEN
 METHODS = ("uniform", "cpd", "kmeans")
 
 
