@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -11,11 +12,13 @@ import numpy as np
 import pytest
 from conftest import cli_failure
 
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import T2M
 from segmo.synth import ACTIONS, build_corpus, sample_motion
+from segmo.synth.actions import SAMPLE_V2
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions
 from segmo.synth.corpus import main, split_assignment
-from segmo.synth.sequence import motion_from_actions
+from segmo.synth.sequence import MAX_RATIO, motion_from_actions
 
 NUM = 30
 FEET = [7, 8, 10, 11]
@@ -37,6 +40,72 @@ def test_same_seed_gives_identical_bytes_with_any_worker_count(corpus, tmp_path)
     assert [k for k in first if first[k] != second[k]] == []
     other = build_corpus(tmp_path / "other", 4, seed=4, progress=False)
     assert (other / "new_joint_vecs" / "000000.npy").read_bytes() != first["new_joint_vecs/000000.npy"]
+
+
+# sha256 over the sorted relative paths and contents of `build_corpus(out, 20, seed=0,
+# version=1)`, computed on main's code before version 2 existed.
+V1_SHA256 = "9f2674d61862d265b6e6d393eb9adb53b44d2055ecc7df44b0cdd1762f511328"
+
+
+def _corpus_sha256(root: Path) -> str:
+    digest = hashlib.sha256()
+    for name, data in _files(root).items():
+        digest.update(Path(name).as_posix().encode() + b"\0" + data)
+    return digest.hexdigest()
+
+
+def test_version_1_is_reproduced_byte_for_byte(tmp_path):
+    root = build_corpus(tmp_path / "v1", 20, seed=0, version=1, progress=False)
+    assert json.loads((root / "corpus.json").read_text())["version"] == 1
+    assert _corpus_sha256(root) == V1_SHA256
+
+
+def test_version_2_is_the_default_and_a_folder_of_another_version_is_refused(corpus, tmp_path, capsys):
+    assert json.loads((corpus / "corpus.json").read_text())["version"] == 2
+    out = tmp_path / "data"
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1", "--version", "1"])
+    (out / "text_features").mkdir()
+    line = cli_failure(["synth", "--out", str(out), "--num-motions", "3", "--workers", "1"], capsys)
+    assert "version 1" in line and "text_features" in line and "--overwrite" in line
+    assert json.loads((out / "corpus.json").read_text())["version"] == 1
+    line = cli_failure(["synth", "--out", str(out), "--version", "3"], capsys)
+    assert "argument --version" in line
+    with pytest.raises(SegmoError, match="version must be one of 1, 2, got 3"):
+        build_corpus(tmp_path / "v3", 3, version=3)
+
+
+def _durations(version: int, seeds: range) -> list[list[int]]:
+    motions = [sample_motion(np.random.default_rng([11, s]), version) for s in seeds]
+    return [[seg.end - seg.start for seg in m.segments] for m in motions]
+
+
+def test_version_2_durations_follow_the_action_not_the_segment_count():
+    multi = [d for d in _durations(2, range(60)) if len(d) >= 2]
+    ratios = np.array([max(d) / min(d) for d in multi])
+    # Built-frame ratio <= MAX_RATIO; the spans add transition halves, hence the slack.
+    assert ratios.max() <= MAX_RATIO * 1.25
+    v1 = np.array([max(d) / min(d) for d in _durations(1, range(60)) if len(d) >= 2])
+    assert np.median(ratios) > 2.0 > np.median(v1)
+    # The equal split no longer grounds almost every segment.
+    from segmo.evaluation.grounding import grounding_metrics
+    from segmo.segmentation import uniform_spans
+
+    pred = [(s * 4, e * 4) for d in multi for s, e in uniform_spans(sum(d) // 4, len(d))]
+    truth = [(int(sum(d[:i])), int(sum(d[:i + 1]))) for d in multi for i in range(len(d))]
+    assert grounding_metrics(pred, truth)["R@1,IoU=0.5"] < 0.85
+
+
+def test_version_2_keeps_the_counts_the_caption_names():
+    rng = np.random.default_rng(0)
+    for name in ("jump_in_place", "jump_forward", "clap", "wave", "punch"):
+        params = ACTIONS[name].sample(rng) | {"count": 2}
+        quick = SAMPLE_V2[name](rng) | {"count": 2}
+        slow, fast = (motion_from_actions(np.random.default_rng(1), [(name, p)]) for p in (params, quick))
+        assert fast.segments[0].end - fast.segments[0].start < slow.segments[0].end - slow.segments[0].start
+        if name.startswith("jump"):  # two flights: the feet leave the floor twice
+            feet = fast.joints[:, FEET, 1].min(1)
+            airborne = feet > feet.min() + 0.05
+            assert int((np.diff(airborne.astype(int)) == 1).sum()) == 2, name
 
 
 def test_layout_splits_and_statistics(corpus):

@@ -1,6 +1,6 @@
 """Render one sample of every synthetic action for a visual check.
 
-    python tools/render_actions.py --out renders/actions [--gif] [--seed 0]
+    python tools/render_actions.py --out renders/actions [--gif] [--seed 0] [--version 2]
 
 For each action (and one "walk while waving" pair) writes `<action>.png`: film strips
 of eight key frames from the side and from the front and a top view of the root and
@@ -18,8 +18,8 @@ from matplotlib.figure import Figure
 
 from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.motion.skeleton import T2M
-from segmo.synth.actions import ACTIONS
-from segmo.synth.sequence import motion_from_actions
+from segmo.synth.actions import ACTIONS, sample_params
+from segmo.synth.sequence import VERSION, VERSIONS, motion_from_actions
 
 # Preview parameters that make each action easy to recognise (sampled otherwise).
 PREVIEW = {"turn": {"direction": "left", "angle": 90}, "wave": {"hand": "right", "count": 3}}
@@ -67,12 +67,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--gif", action="store_true", help="also write GIFs (slower)")
     parser.add_argument("--only", nargs="*", help="action names to render")
+    parser.add_argument("--version", type=int, choices=VERSIONS, default=VERSION,
+                        help="sample the parameters (durations) as this corpus version does")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
     jobs = []
     for name, spec in ACTIONS.items():
-        params = PREVIEW.get(name) or spec.sample(rng)
+        params = sample_params(name, rng, args.version) | PREVIEW.get(name, {})
         plan = [("sit_down", {"duration": 2.0}), (name, params)] if spec.needs == "sitting" else [(name, params)]
         jobs.append((name, plan, None))
     jobs.append(("walk_forward+wave", [("walk_forward", {"speed": 1.3, "steps": 8})],

@@ -30,16 +30,16 @@ from segmo.data.layout import (
     read_split,
     stats_files,
 )
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import boundaries, get_motion_segmenter
 
-UNIT = 4  # frames per token
 METHODS = ("uniform", "cpd", "kmeans")
 
 
 def pool_tokens(features: np.ndarray) -> np.ndarray:
     """`(t, d)` → `(t // 4, d)` means over consecutive 4-frame windows (tail dropped)."""
-    n = features.shape[0] // UNIT
-    return features[: n * UNIT].reshape(n, UNIT, -1).mean(1)
+    n = features.shape[0] // FRAMES_PER_TOKEN
+    return features[: n * FRAMES_PER_TOKEN].reshape(n, FRAMES_PER_TOKEN, -1).mean(1)
 
 
 def load_encoder(directory: str):
@@ -55,7 +55,7 @@ def load_encoder(directory: str):
 
     @torch.no_grad()
     def encode(raw: np.ndarray) -> np.ndarray:
-        x = model.normalize(torch.from_numpy(raw[: len(raw) // UNIT * UNIT]).float())
+        x = model.normalize(torch.from_numpy(raw[: len(raw) // FRAMES_PER_TOKEN * FRAMES_PER_TOKEN]).float())
         return model.encoder(x.T[None])[0].T.numpy()  # Conv1d layout (b, d, t)
 
     return encode
@@ -104,7 +104,7 @@ def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | No
                     seconds[method] += time.perf_counter() - began
                     calls[method] += 1
                 spans = cache[key]
-                predicted = [start + UNIT * b for b in boundaries(spans)]
+                predicted = [start + FRAMES_PER_TOKEN * b for b in boundaries(spans)]
                 errors[method] += [abs(p - t) for p, t in zip(predicted, truth)]
     result = {"split": split, "motions": len(ids), "captions": captions, "skipped": skipped}
     for method in METHODS:

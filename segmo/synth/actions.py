@@ -173,7 +173,7 @@ def _locomotion(kind: str):
             return stepping(rng, p["speed"], steps, cadence, turn=s * 2 * np.pi)
         if kind in ("turn", "spin"):
             angle = 360.0 if kind == "spin" else p["angle"]
-            steps = 2 + int(round(angle / 60))
+            steps = p.get("steps", 2 + int(round(angle / 60)))
             return stepping(rng, 0.0, steps, 2.3 if kind == "spin" else 1.8,
                             turn=_SIGN[p["direction"]] * np.radians(angle), turn_with_distance=False,
                             style=GaitStyle(lift=0.06, arm_swing=0.0))
@@ -187,8 +187,12 @@ def _jump(rng, p, sitting, hop_side: str | None = None):
     hop = hop_side is not None
     height = p.get("height", 0.1 if hop else 0.22)
     flight = 2 * np.sqrt(2 * height / 9.81)
-    prep, period = (0.45, flight + 0.25) if hop else (0.45, flight + 0.55)
-    total = prep + count * period + 0.6
+    # "ground" (version 2): seconds on the ground between two jumps; the crouches before
+    # take-off and after landing shrink with it, the flight (gravity) does not.
+    ground = p.get("ground", 0.25 if hop else 0.55)
+    k = ground / (0.25 if hop else 0.55)
+    prep, period = 0.45 * k, flight + ground
+    total = prep + count * period + 0.6 * k
     t = _frames(total)
     time = np.arange(t) / FPS
     track = neutral_track(t)
@@ -203,8 +207,8 @@ def _jump(rng, p, sitting, hop_side: str | None = None):
         lift = np.where(air, 4 * height * u * (1 - u), lift)
         forward += dist * smoothstep(u)
         depth = 0.05 if hop else 0.16
-        crouch += depth * np.exp(-0.5 * ((time - (t0 - 0.15)) / 0.09) ** 2)
-        crouch += depth * np.exp(-0.5 * ((time - (t0 + flight + 0.12)) / 0.09) ** 2)
+        crouch += depth * np.exp(-0.5 * ((time - (t0 - 0.15 * k)) / (0.09 * k)) ** 2)
+        crouch += depth * np.exp(-0.5 * ((time - (t0 + flight + 0.12 * k)) / (0.09 * k)) ** 2)
     lean = 1.6 * crouch
     track.root[:, 1] += lift - crouch
     track.root[:, 2] += forward
@@ -386,6 +390,57 @@ ACTIONS: dict[str, ActionSpec] = {a.name: a for a in [
     ActionSpec("stand_still", "standing", lambda r: {"duration": _r(r.uniform(1.2, 3.0))}, _stand_still),
 ]}
 
+# Version 2 of the corpus: durations follow the action and its parameters, as real ones
+# do. Locomotion and standing still take more steps / seconds (up to many seconds); the
+# short actions are quicker ("tempo": performed that many times faster than version 1's
+# timing, see `_retime`; jumps spend less time on the ground). The actions not listed
+# sample as in version 1 (`ActionSpec.sample`), whose parameters stay as they were so
+# that version 1 corpora are reproduced byte for byte.
+SAMPLE_V2: dict[str, Callable[[np.random.Generator], dict]] = {
+    # long: a few seconds to many
+    "walk_forward": lambda r: {"speed": _r(r.uniform(1.0, 1.8)), "steps": int(r.integers(6, 21))},
+    "walk_backward": lambda r: {"speed": _r(r.uniform(0.6, 1.0)), "steps": int(r.integers(4, 13))},
+    "jog": lambda r: {"speed": _r(r.uniform(1.9, 2.5)), "steps": int(r.integers(8, 27))},
+    "run": lambda r: {"speed": _r(r.uniform(2.6, 3.9)), "steps": int(r.integers(8, 31))},
+    "side_step": lambda r: {"direction": _side(r), "speed": _r(r.uniform(0.35, 0.6)),
+                            "steps": int(r.integers(3, 9)) * 2},
+    "walk_circle": lambda r: {"direction": _side(r), "radius": _r(r.uniform(0.8, 1.6)),
+                              "speed": _r(r.uniform(1.0, 1.4))},
+    "stand_still": lambda r: {"duration": _r(r.uniform(1.5, 8.0))},
+    # medium: about two seconds (sit_down and stand_up sample as in version 1)
+    "squat": lambda r: {"count": int(r.integers(1, 4)), "depth": _r(r.uniform(0.3, 0.42)),
+                        "tempo": _r(r.uniform(1.3, 1.6))},
+    "crouch": lambda r: {"depth": _r(r.uniform(0.42, 0.5)), "hold": _r(r.uniform(0.3, 1.0)),
+                         "tempo": _r(r.uniform(1.3, 1.6))},
+    "stretch_arms_up": lambda r: {"hold": _r(r.uniform(0.4, 1.2)), "tempo": _r(r.uniform(1.2, 1.5))},
+    "hop": lambda r: {"foot": _side(r), "count": int(r.integers(2, 6)), "ground": _r(r.uniform(0.15, 0.22))},
+    "spin": lambda r: {"direction": _side(r), "tempo": _r(r.uniform(1.4, 1.8))},
+    # short: about a second
+    "turn": lambda r: (lambda angle: {"direction": _side(r), "angle": angle, "steps": 2 if angle == 90 else 3,
+                                      "tempo": _r(r.uniform(1.6, 2.0))})(90 if r.random() < 0.6 else 180),
+    "jump_in_place": lambda r: {"count": int(r.choice(3, p=[0.5, 0.3, 0.2])) + 1,
+                                "height": _r(r.uniform(0.1, 0.2)), "ground": _r(r.uniform(0.18, 0.28))},
+    "jump_forward": lambda r: {"count": int(r.choice(3, p=[0.5, 0.3, 0.2])) + 1,
+                               "height": _r(r.uniform(0.1, 0.2)), "distance": _r(r.uniform(0.4, 0.8)),
+                               "ground": _r(r.uniform(0.18, 0.28))},
+    "bow": lambda r: {"angle": int(r.integers(35, 70)), "hold": _r(r.uniform(0.1, 0.4)),
+                      "tempo": _r(r.uniform(1.5, 1.8))},
+    "kick": lambda r: {"side": _side(r), "height": _r(r.uniform(0.45, 0.75)), "tempo": _r(r.uniform(1.8, 2.3))},
+    "punch": lambda r: {"side": _side(r), "count": int(r.integers(1, 4)), "tempo": _r(r.uniform(1.8, 2.2))},
+    "wave": lambda r: {"hand": ["left", "right", "both"][int(r.choice(3, p=[0.4, 0.4, 0.2]))],
+                       "count": int(r.integers(1, 5)), "tempo": _r(r.uniform(1.5, 1.9))},
+    "raise_arm": lambda r: {"side": _side(r), "hold": _r(r.uniform(0.2, 0.8)), "tempo": _r(r.uniform(1.5, 1.8))},
+    "clap": lambda r: {"count": int(r.integers(2, 5)), "tempo": _r(r.uniform(1.7, 2.1))},
+}
+
+
+def sample_params(name: str, rng: np.random.Generator, version: int) -> dict:
+    """The parameters of action `name` as corpus `version` samples them."""
+    if version >= 2 and name in SAMPLE_V2:
+        return SAMPLE_V2[name](rng)
+    return ACTIONS[name].sample(rng)
+
+
 # Upper-body actions that can run on top of a locomotion, and their parameters there.
 OVERLAYS = {"wave": lambda r: {"hand": _side(r)}, "clap": lambda r: {},
             "raise_arm": lambda r: {"side": _side(r), "hold": 0.0}}
@@ -397,10 +452,33 @@ def _pad(track: BodyTrack, before: int, after: int) -> BodyTrack:
     return BodyTrack(**{k: pad(v) for k, v in vars(track).items()})
 
 
+_QUATERNIONS = ("pelvis", "spine", "neck", "foot_rot")
+
+
+def _retime(track: BodyTrack, tempo: float) -> BodyTrack:
+    """The same movement `tempo` times faster: every channel resampled in time (linear,
+    quaternions renormalised), first and last frame kept, so it still starts and ends at
+    rest. Counts (waves, claps, steps) are unchanged; only their pace is."""
+    t = track.num_frames
+    at = np.linspace(0.0, t - 1, max(2, int(round((t - 1) / tempo)) + 1))
+    lo = np.minimum(at.astype(int), t - 2)
+    w = at - lo
+    out = {}
+    for key, x in vars(track).items():
+        wk = w.reshape((-1,) + (1,) * (x.ndim - 1))
+        y = (1 - wk) * x[lo] + wk * x[lo + 1]
+        if key in _QUATERNIONS:
+            y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+        out[key] = y
+    return BodyTrack(**out)
+
+
 def build_action(name: str, params: dict, rng: np.random.Generator, sitting: bool,
                  overlay: tuple[str, dict] | None = None) -> BodyTrack:
     """Build one segment's track; `overlay` = (upper action, params) runs at the same time."""
     track = ACTIONS[name].build(rng, params, sitting)
+    if "tempo" in params:
+        track = _retime(track, params["tempo"])
     if overlay is not None:
         track = apply_arms(track, arm_overlay(overlay[0], overlay[1], track.num_frames), torso=False)
     # Every action starts and ends with a few frames at rest in its neutral pose.

@@ -1,8 +1,10 @@
 """Build the synthetic corpus in the HumanML3D layout (`segmo synth`).
 
-    segmo synth --out data/synth --num-motions 2000 --seed 0
+    segmo synth --out data/synth --num-motions 2000 --seed 0 [--version 2]
 
-Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
+`--version` picks how motions are sampled (`segmo.synth.sequence`): 2, the default, lets
+durations follow the action (a long walk beside one short jump); 1 reproduces the first
+corpus, whose actions last nearly equally long, byte for byte. Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
 not depend on how many workers build them; the normalisation statistics are merged in
 index order for the same reason. The corpus is built in `OUT.tmp-<pid>` and renamed into
 place when complete (so its files, written at the paths of `segmo.data.layout`, need no
@@ -41,10 +43,9 @@ from segmo.files import LOCK_FILE, FolderLock
 from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.synth.actions import ACTIONS
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions, pos_tag
-from segmo.synth.sequence import sample_motion
+from segmo.synth.sequence import VERSION, VERSIONS, sample_motion
 from segmo.text.captions import TEXTS
 
-VERSION = 1
 SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
 # Std floor: a feature that never varies in the train split (e.g. a joint that never moves
 # relative to the root) would otherwise divide by zero when z-scoring.
@@ -71,12 +72,12 @@ def motion_id(index: int) -> str:
     return f"{index:06d}"
 
 
-def _build_one(job: tuple[str, int, int, str]) -> dict:
+def _build_one(job: tuple[str, int, int, str, int]) -> dict:
     """Generate and write motion `index`; returns its statistics for the parent."""
-    root, seed, index, split = job
+    root, seed, index, split, version = job
     root = Path(root)
     rng = np.random.default_rng([seed, index])
-    motion = sample_motion(rng)
+    motion = sample_motion(rng, version)
     features = joints_to_features(motion.joints.astype(np.float32), "t2m").astype(np.float32)
     joints = features_to_joints(features, "t2m").astype(np.float32)
     mid = motion_id(index)
@@ -116,8 +117,9 @@ def _corpus_of(path: Path) -> dict | None:
 
 
 def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int = 1,
-                 overwrite: bool = False, progress: bool = True) -> Path:
-    """Write a corpus of `num_motions` motions to `out`; returns the path.
+                 overwrite: bool = False, progress: bool = True, version: int = VERSION) -> Path:
+    """Write a corpus of `num_motions` motions (sampled as corpus `version` does) to `out`;
+    returns the path.
 
     Leaves a folder that already holds this very corpus untouched. Refuses, unless
     `overwrite`, a non-empty `out` that is not a corpus, and a corpus folder holding
@@ -128,6 +130,9 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
         raise SegmoError(f"build_corpus: num_motions must be >= 1, got {num_motions}")
     if workers < 1:
         raise SegmoError(f"build_corpus: workers must be >= 1, got {workers}")
+    if version not in VERSIONS:
+        raise SegmoError(f"build_corpus: version must be one of {', '.join(map(str, VERSIONS))}, "
+                         f"got {version!r}")
     if out.exists() and not out.is_dir():
         raise SegmoError(f"build_corpus: {out} exists and is not a folder")
     with FolderLock(out, "segmo synth"):
@@ -136,7 +141,7 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
             for leftover in out.parent.glob(pattern):
                 shutil.rmtree(leftover, ignore_errors=True)
         existing = _corpus_of(out)
-        wanted = {"version": VERSION, "seed": seed, "num_motions": num_motions}
+        wanted = {"version": version, "seed": seed, "num_motions": num_motions}
         if existing is not None and all(existing.get(k) == v for k, v in wanted.items()):
             return out  # deterministic: rebuilding would write the same bytes
         extra = sorted(p.name for p in out.iterdir() if p.name not in CORPUS_ENTRIES)
@@ -149,17 +154,18 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
                 f"seed {existing.get('seed')}, {existing.get('num_motions')} motions) and "
                 f"{', '.join(extra)}, which a rebuild would delete; pass overwrite=True "
                 "(--overwrite) or choose another folder")
-        return _build(out, num_motions, seed, workers, progress)
+        return _build(out, num_motions, seed, workers, progress, version)
 
 
-def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool) -> Path:
+def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool,
+           version: int) -> Path:
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
     for sub in FOLDERS:
         (tmp / sub).mkdir(parents=True)
     splits = split_assignment(num_motions, seed)
-    jobs = [(str(tmp), seed, i, splits[i]) for i in range(num_motions)]
+    jobs = [(str(tmp), seed, i, splits[i], version) for i in range(num_motions)]
     try:
         if workers > 1:
             context = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
@@ -175,7 +181,7 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool)
                 results = [_build_one(j) for j in tqdm(jobs, desc="synth", disable=not progress)]
             finally:
                 torch.set_num_threads(threads)
-        _write_summary(tmp, results, splits, seed, num_motions)
+        _write_summary(tmp, results, splits, seed, num_motions, version)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -186,7 +192,8 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool)
     return out
 
 
-def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int, n: int) -> None:
+def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int, n: int,
+                   version: int) -> None:
     for name in SPLITS:
         ids = [motion_id(i) for i in range(n) if splits[i] == name]
         split_file(root, name).write_text("".join(f"{i}\n" for i in ids))
@@ -217,7 +224,7 @@ def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int
         for a in r["actions"]:
             action_counts[a] = action_counts.get(a, 0) + 1
     summary = {
-        "name": "segmo-synth", "version": VERSION, "seed": seed, "num_motions": n, "fps": 20.0,
+        "name": "segmo-synth", "version": version, "seed": seed, "num_motions": n, "fps": 20.0,
         "skeleton": "t2m", "actions": sorted(ACTIONS), "held_out_templates": list(HELD_OUT_TEMPLATES),
         "held_out_note": "these caption templates appear only in val/test captions",
         "std_floor": STD_FLOOR,
@@ -240,8 +247,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--workers", type=positive_int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a folder that holds something else than this corpus")
+    parser.add_argument("--version", type=int, choices=VERSIONS, default=VERSION,
+                        help="corpus version: 2 durations follow the action (default), 1 the "
+                        "first corpus (nearly equal durations)")
     args = parser.parse_args(argv)
-    path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite)
+    path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite,
+                        version=args.version)
     print(f"{args.num_motions} motions in {path}")
 
 

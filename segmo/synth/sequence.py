@@ -1,5 +1,11 @@
 """Sequencing: sample 1-5 actions, build them, blend them into one motion.
 
+Two corpus versions sample differently. Version 1 draws each action in turn while
+leaving room for the ones still to come, so the actions of one motion last nearly
+equally long. Version 2 draws every action with durations that follow the action and
+its parameters (`segmo.synth.actions.SAMPLE_V2`), then redraws the longest until the
+motion fits in MAX_FRAMES with its longest action at most MAX_RATIO times its shortest.
+
 Consecutive actions overlap by a 5-15 frame transition in which local rotations are
 slerped and the root is interpolated; each action is placed where the previous one is at
 the start of the transition, so the root is continuous and locomotion carries on along
@@ -15,16 +21,25 @@ import torch
 
 from segmo.motion.kinematics import forward_kinematics
 from segmo.motion.skeleton import T2M
-from segmo.synth.actions import ACTIONS, OVERLAYS, build_action
+from segmo.synth.actions import ACTIONS, OVERLAYS, build_action, sample_params
 from segmo.synth.gait import gaussian, sliding
 from segmo.synth.rig import REST_OFFSETS, axis_angle, qmul, qrot, slerp, solve_pose
 
+VERSION = 2  # what `sample_motion` and `segmo synth` build unless told otherwise
+VERSIONS = (1, 2)
 MIN_FRAMES, MAX_FRAMES = 40, 196  # feature frames (joint frames - 1)
+# Version 2: the longest / shortest action of one motion (built frames); draws of the
+# longest action before a short one (SHORT_V2, about a second each) takes its place.
+MAX_RATIO = 5.0
+FIT_ATTEMPTS, REDRAWS = 30, 4
+SHORT_V2 = ("kick", "punch", "wave", "clap", "turn", "bow", "jump_in_place", "raise_arm")
 SEGMENT_COUNTS = (1, 2, 3, 4, 5)
 SEGMENT_WEIGHTS = (0.3, 0.33, 0.22, 0.1, 0.05)
 OVERLAY_PROBABILITY = 0.25
-RESERVE_FRAMES = 32  # the shortest actions take about this many frames
-# Drawn when the frames left per remaining segment are few, so that 4-5 segments fit.
+# Version 1 only: the room left for each action still to come (the shortest actions take
+# about this many frames), and the actions drawn when the frames left per remaining
+# segment are few, so that 4-5 segments fit.
+RESERVE_FRAMES = 32
 SHORT_ACTIONS = ("kick", "punch", "wave", "clap", "turn", "bow", "jump_in_place", "raise_arm",
                  "stand_up", "sit_down", "stand_still", "walk_backward")
 # How often each action is drawn (relative); locomotion is the most common in real data.
@@ -76,8 +91,78 @@ def _hold(clip, before: int, after: int):
     return pad(q), pad(root), pad(yaw)
 
 
-def sample_motion(rng: np.random.Generator) -> SynthMotion:
-    """Sample and build one motion (its joints and ground-truth segments)."""
+def sample_motion(rng: np.random.Generator, version: int = VERSION) -> SynthMotion:
+    """Sample and build one motion (its joints and ground-truth segments) of corpus
+    `version` (`VERSIONS`)."""
+    if version == 1:
+        return _sample_v1(rng)
+    if version == 2:
+        return _sample_v2(rng)
+    raise ValueError(f"sample_motion: version must be one of {VERSIONS}, got {version!r}")
+
+
+def _overlay(rng, spec):
+    if spec.locomotion and rng.random() < OVERLAY_PROBABILITY:
+        upper = list(OVERLAYS)[int(rng.integers(len(OVERLAYS)))]
+        return upper, OVERLAYS[upper](rng)
+    return None
+
+
+def _sample_v2(rng: np.random.Generator) -> SynthMotion:
+    count = int(rng.choice(SEGMENT_COUNTS, p=SEGMENT_WEIGHTS))
+    sitting, previous, names, seated = False, None, [], []
+    for _ in range(count):  # the order of actions first (body states), then their lengths
+        previous = _choose(rng, sitting, previous, short=False)
+        names.append(previous)
+        seated.append(sitting)
+        sitting = {"sitting": True, "standing": False}.get(ACTIONS[previous].ends, sitting)
+    overlaps = [0] + [int(rng.integers(5, 16)) for _ in names[1:]]
+    plan = [_draw(rng, name, sit) for name, sit in zip(names, seated)]
+    while True:
+        for attempt in range(FIT_ATTEMPTS):
+            frames = [len(track.root) for _, _, track in plan]
+            # What `_hold` and `_blend` make of these clips (see `_sample_v1`).
+            total = sum(frames) + sum(o // 3 + (o + 1) // 2 - o for o in overlaps[1:len(plan)])
+            if total <= MAX_FRAMES + 1 and max(frames) <= MAX_RATIO * min(frames):
+                return _assemble(rng, names[:len(plan)], plan, overlaps[:len(plan)])
+            i = int(np.argmax(frames))
+            if attempt >= REDRAWS and ACTIONS[names[i]].ends is None:
+                # Its draws keep it too long: a short action takes its place instead.
+                neighbours = names[max(i - 1, 0):i] + names[i + 1:i + 2]
+                names[i] = _choose_short(rng, seated[i], neighbours)
+            plan[i] = _draw(rng, names[i], seated[i])
+        if len(plan) == 1:  # cannot happen with the library's lengths; keep the loop finite
+            raise RuntimeError(f"sample_motion: {names[0]} never fits in {MAX_FRAMES} frames")
+        plan.pop()  # these actions do not fit together: drop the last one (keeps body states)
+
+
+def _choose_short(rng, sitting: bool, neighbours: list[str]) -> str:
+    state = "sitting" if sitting else "standing"
+    names = [n for n in SHORT_V2 if n not in neighbours and ACTIONS[n].needs in ("any", state)]
+    weights = np.array([ACTION_WEIGHTS.get(n, 1.0) for n in names])
+    return names[int(rng.choice(len(names), p=weights / weights.sum()))]
+
+
+def _draw(rng, name, sitting):
+    spec = ACTIONS[name]
+    params = sample_params(name, rng, 2)
+    overlay = _overlay(rng, spec)
+    return params, overlay, build_action(name, params, rng, sitting, overlay)
+
+
+def _assemble(rng, names, plan, overlaps) -> SynthMotion:
+    clips, segments = [], []
+    for name, (params, overlay, track), overlap in zip(names, plan, overlaps):
+        clip = (solve_pose(track), track.root.copy(), track.yaw.copy())
+        if overlap:
+            clip = _hold(clip, overlap // 3, 0)
+            clips[-1] = _hold(clips[-1], 0, (overlap + 1) // 2)
+        clips.append(clip)
+        segments.append(Segment(name, params, overlay))
+    return _finish(rng, clips, overlaps, segments)
+
+
+def _sample_v1(rng: np.random.Generator) -> SynthMotion:
     count = int(rng.choice(SEGMENT_COUNTS, p=SEGMENT_WEIGHTS))
     sitting, previous = False, None
     clips, segments, overlaps = [], [], []
@@ -90,10 +175,7 @@ def sample_motion(rng: np.random.Generator) -> SynthMotion:
             name = _choose(rng, sitting, previous, short)
             spec = ACTIONS[name]
             params = spec.sample(rng)
-            overlay = None
-            if spec.locomotion and rng.random() < OVERLAY_PROBABILITY:
-                upper = list(OVERLAYS)[int(rng.integers(len(OVERLAYS)))]
-                overlay = (upper, OVERLAYS[upper](rng))
+            overlay = _overlay(rng, spec)
             track = build_action(name, params, rng, sitting, overlay)
             overlap = int(rng.integers(5, 16)) if clips else 0
             pad = (overlap + 1) // 2
