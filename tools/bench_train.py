@@ -158,6 +158,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--motions", type=int, default=256)
     parser.add_argument("--data", type=Path, help="a dataset folder with a text-feature cache")
     parser.add_argument("--text-features", default="random")
+    parser.add_argument("--bf16", action="store_true",
+                        help="also time the cached step in bf16-mixed (torch.autocast), as "
+                             "`--trainer.precision bf16-mixed` trains")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -195,9 +198,11 @@ def main(argv: list[str] | None = None) -> dict:
 
         def segmo_step(mode: str) -> dict:
             t0 = time.perf_counter()
-            batch = next_batch(mode)
+            batch = next_batch("cached" if mode == "cached_bf16" else mode)
             t1 = time.perf_counter()
-            terms = task.step(batch)
+            # bf16-mixed: what `--trainer.precision bf16-mixed` runs (torch.autocast on the CPU).
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=mode == "cached_bf16"):
+                terms = task.step(batch)
             t2 = time.perf_counter()
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
@@ -223,6 +228,8 @@ def main(argv: list[str] | None = None) -> dict:
             return {"total": time.perf_counter() - t0}
 
         runs = {"cached": segmo_step, "on_the_fly": segmo_step, "momask": momask_step}
+        if args.bf16:
+            runs["cached_bf16"] = segmo_step
         times: dict[str, list[dict]] = {name: [] for name in runs}
         for name, run in runs.items():  # warm-up
             for _ in range(2):
@@ -258,6 +265,9 @@ def main(argv: list[str] | None = None) -> dict:
         "ms_per_step": {name: round(1000 * median(name), 1) for name in runs},
         "speedup_cached_vs_on_the_fly": round(median("on_the_fly") / cached, 2),
         "speedup_cached_vs_momask": round(median("momask") / cached, 2),
+        **({"speedup_cached_bf16_vs_on_the_fly": round(median("on_the_fly") / median("cached_bf16"), 2),
+            "speedup_cached_bf16_vs_momask": round(median("momask") / median("cached_bf16"), 2)}
+           if args.bf16 else {}),
         "cached_step_ms": {k: round(1000 * median("cached", k), 1)
                            for k in ("data", "forward", "backward")},
         "on_the_fly_step_ms": {k: round(1000 * median("on_the_fly", k), 1)
