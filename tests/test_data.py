@@ -555,3 +555,69 @@ def test_real_text_feature_cache(tmp_path):
     expected = FakeCache().sentence(batch["caption"])
     assert torch.allclose(batch["sentence"], expected, atol=1e-2)  # stored as float16
     assert batch["segment_mask"].sum(1).tolist() == [2, 1, 2, 1]
+
+
+def test_group_by_length_keeps_every_index_and_groups_lengths():
+    from segmo.data.sampling import group_by_length
+
+    rng = np.random.default_rng(0)
+    lengths = rng.integers(10, 200, size=1003)
+    order = rng.permutation(1003)
+    out = group_by_length(order, lengths, 32, np.random.default_rng(1))
+    assert sorted(out.tolist()) == list(range(1003))
+    full = out[: len(out) // 32 * 32].reshape(-1, 32)
+    spread = (lengths[full].max(1) - lengths[full].min(1)).mean()
+    shuffled = order[: len(order) // 32 * 32].reshape(-1, 32)
+    assert spread < 0.2 * (lengths[shuffled].max(1) - lengths[shuffled].min(1)).mean()
+    assert len(out) - len(full.reshape(-1)) == 1003 % 32  # the short block is last
+
+
+def test_group_by_length_sampler_is_a_function_of_seed_and_epoch(tmp_path):
+    from segmo.data.sampling import EpochSampler
+
+    class Toy(torch.utils.data.Dataset):
+        def __len__(self):
+            return 300
+
+    lengths = np.random.default_rng(0).integers(40, 197, size=300)
+    a = EpochSampler(Toy(), seed=3, lengths=lengths, batch_size=16, num_replicas=1, rank=0)
+    b = EpochSampler(Toy(), seed=3, lengths=lengths, batch_size=16, num_replicas=1, rank=0)
+    a.set_epoch(2), b.set_epoch(2)
+    assert list(a) == list(b)
+    b.set_epoch(3)
+    assert list(a) != list(b)
+    # Two ranks: each rank's batch is one block's share, so it still holds similar lengths.
+    ranks = [EpochSampler(Toy(), seed=3, lengths=lengths, batch_size=16, num_replicas=2, rank=r)
+             for r in (0, 1)]
+    orders = [r.order() for r in ranks]
+    assert sorted(np.concatenate(orders).tolist()) == list(range(300))
+    first = lengths[orders[0][:16]]
+    assert first.max() - first.min() < 40
+    with pytest.raises(ValueError, match="needs batch_size"):
+        EpochSampler(Toy(), lengths=lengths, num_replicas=1, rank=0)
+
+
+def test_datamodule_groups_batches_by_length_and_still_resumes(tmp_path):
+    from segmo.data import MotionDataModule
+    from segmo.errors import SegmoError
+
+    lengths = {f"{i:03d}": 40 + 13 * (i % 12) for i in range(60)}
+    write_dataset(tmp_path, lengths)
+    plain = MotionDataModule(str(tmp_path), batch_size=8, seed=4)
+    grouped = MotionDataModule(str(tmp_path), batch_size=8, seed=4, group_by_length=True)
+
+    def padded(dm):
+        return sum(b["motion"].shape[0] * b["motion"].shape[1] for b in dm.train_dataloader())
+
+    assert padded(grouped) < 0.8 * padded(plain)
+    ids = sorted(i for b in grouped.train_dataloader() for i in b["id"])
+    assert len(ids) == 120 // 8 * 8  # every sample once but the dropped short batch
+    loader = grouped.train_dataloader()
+    loader.sampler.set_epoch(1)
+    whole = [b["id"] for b in loader]
+    loader = grouped.train_dataloader()
+    loader.load_state_dict({"epoch": 1, "batches": 5})
+    assert [b["id"] for b in loader] == whole[5:]
+    windows = MotionDataModule(str(tmp_path), batch_size=4, window=32, group_by_length=True)
+    with pytest.raises(SegmoError, match="group_by_length: the MotionWindowDataset"):
+        windows.train_dataloader()

@@ -16,6 +16,10 @@ A step is what `segmo fit` runs per batch: the next batch from the DataLoader (s
 read, cropped and collated; no workers), the forward pass and losses, backward, AdamW.
 - cached: `MaskTask.step` on a batch carrying cached tokens (motion_tokens=cached);
 - on_the_fly: the same with the batch encoded by the frozen tokenizer (the path before);
+- grouped: cached, with batches of similar length (`data.group_by_length`): a batch pads
+  to its own longest clip instead of nearly the longest of the corpus;
+- with --bf16, cached_bf16 and grouped_bf16: the same under bf16-mixed autocast (what
+  `--trainer.precision bf16-mixed` trains), fast only where the CPU has native bf16;
 - momask: the MoMask reference's mask-transformer step at the same sizes: the frozen
   VQ-VAE encodes the motion batch, then its post-norm `nn.TransformerEncoder`
   (`bench_generate.momask_models`, sequence-first, one condition token) predicts the
@@ -178,11 +182,12 @@ def main(argv: list[str] | None = None) -> dict:
         task.train()
         optimizer = task.configure_optimizers()["optimizer"]
         modules = {}
-        for mode in ("cached", "on_the_fly"):
+        for mode in ("cached", "on_the_fly", "grouped"):
             dm = MotionDataModule(str(root), batch_size=32, text_segments="rule",
-                                  text_features=args.text_features, max_segments=5)
+                                  text_features=args.text_features, max_segments=5,
+                                  group_by_length=mode == "grouped")
             dm.setup("fit")
-            if mode == "cached":
+            if mode != "on_the_fly":
                 build = update_motion_tokens(root, task.tokenizer, "random", [dm.dataset("train")],
                                              progress=False)
                 dm.dataset("train").motion_tokens = MotionTokenCache(build.folder)
@@ -198,10 +203,10 @@ def main(argv: list[str] | None = None) -> dict:
 
         def segmo_step(mode: str) -> dict:
             t0 = time.perf_counter()
-            batch = next_batch("cached" if mode == "cached_bf16" else mode)
+            batch = next_batch(mode.removesuffix("_bf16"))
             t1 = time.perf_counter()
             # bf16-mixed: what `--trainer.precision bf16-mixed` runs (torch.autocast on the CPU).
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=mode == "cached_bf16"):
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=mode.endswith("_bf16")):
                 terms = task.step(batch)
             t2 = time.perf_counter()
             optimizer.zero_grad(set_to_none=True)
@@ -227,9 +232,10 @@ def main(argv: list[str] | None = None) -> dict:
             momask_optimizer.step()
             return {"total": time.perf_counter() - t0}
 
-        runs = {"cached": segmo_step, "on_the_fly": segmo_step, "momask": momask_step}
+        runs = {"cached": segmo_step, "on_the_fly": segmo_step, "grouped": segmo_step,
+                "momask": momask_step}
         if args.bf16:
-            runs["cached_bf16"] = segmo_step
+            runs |= {"cached_bf16": segmo_step, "grouped_bf16": segmo_step}
         times: dict[str, list[dict]] = {name: [] for name in runs}
         for name, run in runs.items():  # warm-up
             for _ in range(2):
@@ -265,9 +271,10 @@ def main(argv: list[str] | None = None) -> dict:
         "ms_per_step": {name: round(1000 * median(name), 1) for name in runs},
         "speedup_cached_vs_on_the_fly": round(median("on_the_fly") / cached, 2),
         "speedup_cached_vs_momask": round(median("momask") / cached, 2),
-        **({"speedup_cached_bf16_vs_on_the_fly": round(median("on_the_fly") / median("cached_bf16"), 2),
-            "speedup_cached_bf16_vs_momask": round(median("momask") / median("cached_bf16"), 2)}
-           if args.bf16 else {}),
+        "speedup_vs_on_the_fly": {name: round(median("on_the_fly") / median(name), 2)
+                                  for name in runs if name not in ("on_the_fly", "momask")},
+        "speedup_vs_momask": {name: round(median("momask") / median(name), 2)
+                              for name in runs if name not in ("on_the_fly", "momask")},
         "cached_step_ms": {k: round(1000 * median("cached", k), 1)
                            for k in ("data", "forward", "backward")},
         "on_the_fly_step_ms": {k: round(1000 * median("on_the_fly", k), 1)

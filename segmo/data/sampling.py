@@ -3,6 +3,8 @@
 Every random choice of the data side is a pure function of numbers a checkpoint holds:
 
 * the order of an epoch is a permutation drawn from ``(seed, epoch)`` (`EpochSampler`);
+  with lengths given, the same permutation regrouped so that each batch holds clips of
+  similar length (`group_by_length`), again a function of ``(seed, epoch)`` only;
 * a sample's random crop or window is drawn from ``(seed, epoch, index)`` (`sample_rng`),
   where ``index`` is the sample's position in its dataset. The sampler hands the epoch to
   the dataset inside the key it yields, ``(index, epoch)``, so the draw does not depend on
@@ -39,6 +41,27 @@ def split_key(key: Any, epoch: int) -> tuple[int, int]:
     return int(key), epoch
 
 
+# Batches of similar length are formed within pools of this many batches.
+POOL_BATCHES = 50
+
+
+def group_by_length(order: np.ndarray, lengths: np.ndarray, block: int, rng: np.random.Generator
+                    ) -> np.ndarray:
+    """`order` regrouped so that each run of `block` consecutive indices holds clips of
+    similar length: within pools of POOL_BATCHES blocks of the shuffled order, indices are
+    sorted by length (longest first), cut into blocks, and the full blocks are shuffled
+    (the one short block, if any, goes last, where `drop_last` drops it). A batch then
+    pads to its own longest clip, not to the epoch's, while every clip still comes once
+    per epoch and the order of the batches stays random."""
+    pool = block * POOL_BATCHES
+    ranked = np.concatenate([chunk[np.argsort(-lengths[chunk], kind="stable")]
+                             for chunk in np.split(order, range(pool, len(order), pool))])
+    blocks = np.split(ranked, range(block, len(ranked), block))
+    full = [b for b in blocks if len(b) == block]
+    short = [b for b in blocks if len(b) < block]
+    return np.concatenate([full[i] for i in rng.permutation(len(full))] + short)
+
+
 def _world() -> tuple[int, int]:
     """(world size, rank) of the initialised process group, else (1, 0)."""
     if torch.distributed.is_available() and torch.distributed.is_initialized():
@@ -54,13 +77,23 @@ class EpochSampler(DistributedSampler):
 
     ``skip`` keys of the next epoch to be iterated are left out (a resumed epoch);
     `set_epoch` to another epoch clears it. ``len()`` is the whole epoch's share.
+
+    ``lengths`` (one per sample) and ``batch_size``: batches of similar length
+    (`group_by_length`, blocks of ``batch_size`` × world size, so that every rank's batch
+    is one block's share).
     """
 
     def __init__(self, dataset: Dataset, seed: int = 0, shuffle: bool = True,
-                 num_replicas: int | None = None, rank: int | None = None) -> None:
+                 num_replicas: int | None = None, rank: int | None = None,
+                 lengths: np.ndarray | None = None, batch_size: int | None = None) -> None:
         world, own = _world()
         super().__init__(dataset, num_replicas=world if num_replicas is None else num_replicas,
                          rank=own if rank is None else rank, shuffle=shuffle, seed=seed)
+        if lengths is not None and (batch_size is None or len(lengths) != len(dataset)):
+            raise ValueError(f"EpochSampler: lengths needs batch_size and one length per sample "
+                             f"({len(lengths)} for {len(dataset)})")
+        self.lengths = None if lengths is None else np.asarray(lengths)
+        self.batch_size = batch_size
         self.skip = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -71,8 +104,10 @@ class EpochSampler(DistributedSampler):
     def order(self) -> np.ndarray:
         """(num_samples,) dataset indices of this rank in this epoch."""
         n = len(self.dataset)
-        order = (np.random.default_rng((self.seed, self.epoch)).permutation(n) if self.shuffle
-                 else np.arange(n))
+        rng = np.random.default_rng((self.seed, self.epoch))
+        order = rng.permutation(n) if self.shuffle else np.arange(n)
+        if self.lengths is not None and self.shuffle:
+            order = group_by_length(order, self.lengths, self.batch_size * self.num_replicas, rng)
         order = np.resize(order, self.total_size)  # pads by repeating from the start
         return order[self.rank:self.total_size:self.num_replicas]
 
