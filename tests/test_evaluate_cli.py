@@ -285,3 +285,13 @@ def test_seeds_report_has_a_table_per_bucket() -> None:
     assert "| SegMo | 2 | 0.600±0.000 |" in text
     assert "Captions with 1 text segment(s):" in text
     assert "| SegMo | 2 | 0.800±0.000 | – | – | – | 0.900±0.000 |" in text
+
+
+def test_isc_grid_has_a_row_per_training_segmenter() -> None:
+    grid = load_tool("ablation_grid")
+    run = {"isc": {"uniform": {"mean": 0.61, "cv": 0.25}, "cpd": {"mean": 0.52, "cv": 0.4}}}
+    table = grid.isc_grid({"in_sample": run, "cpd": {"isc": {"cpd": {"mean": 0.7, "cv": 0.1}}}})
+    lines = table.splitlines()
+    assert lines[0].endswith("| cpd | uniform |")
+    assert lines[2] == "| uniform | 0.520 (CV 0.40) | 0.610 (CV 0.25) |"
+    assert lines[3] == "| cpd | 0.700 (CV 0.10) | – |"

@@ -178,10 +178,32 @@ def main(argv: list[str] | None = None) -> None:
     table = compare_table([(VARIANTS[v][2], json.loads(first[v].read_text())) for v in variants])
     (grid.out / "table3.md").write_text(table + "\n")
     print(table)
+    grid_rows = {v: json.loads(first[v].read_text()) for v in variants if v in TRAIN_SEGMENTERS}
+    if len(grid_rows) > 1:
+        (grid.out / "isc_grid.md").write_text(isc_grid(grid_rows) + "\n")
+        print(isc_grid(grid_rows))
     if seeds != [None]:
         runs = {v: [json.loads(path.read_text()) for vv, _, path in done if vv == v] for v in variants}
         (grid.out / "seeds.md").write_text(seeds_report(runs) + "\n")
         print(seeds_report(runs))
+
+
+# The variants that differ only in the motion segmenter of the alignment loss (Fig. 4's rows).
+TRAIN_SEGMENTERS = ("in_sample", "cpd", "kmeans")
+
+
+def isc_grid(evaluations: dict[str, dict]) -> str:
+    """The paper's Fig. 4 as a table (OUT/isc_grid.md): a row per training segmenter (the
+    in_sample, cpd and kmeans variants), a column per evaluation segmenter; cells "ISC (CV)"
+    from each evaluation's `isc` section."""
+    columns = sorted({name for m in evaluations.values() for name in m.get("isc", {})})
+    lines = ["| trained with \\ evaluated with | " + " | ".join(columns) + " |",
+             "| --- |" + " --- |" * len(columns)]
+    for variant, metrics in evaluations.items():
+        isc = metrics.get("isc", {})
+        cells = [f"{isc[c]['mean']:.3f} (CV {isc[c]['cv']:.2f})" if c in isc else "–" for c in columns]
+        lines.append(f"| {VARIANTS[variant][1]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def seeds_report(runs: dict[str, list[dict]]) -> str:
