@@ -1,0 +1,28 @@
+"""tools/training_curves.py: plateau verdicts and the table from CSV-logger files."""
+
+from pathlib import Path
+
+from conftest import load_tool
+
+
+def test_plateau_verdicts():
+    curves = load_tool("training_curves")
+    assert curves.plateau([5, 4, 3, 2, 1, 0.5], 3, 0.01, True) == "improving"
+    assert curves.plateau([5, 2, 1, 1.0, 1.001, 1.0], 3, 0.01, True) == "plateau"
+    assert curves.plateau([5, 2, 1, 1.5, 1.6, 1.7], 3, 0.01, True) == "worse"
+    assert curves.plateau([0.1, 0.5, 0.8, 0.81, 0.8, 0.805], 3, 0.02, False) == "plateau"
+    assert curves.plateau([1, 2], 3, 0.01, True) == "too few points"
+
+
+def test_table_and_png_from_metrics_csv(tmp_path: Path, capsys):
+    curves = load_tool("training_curves")
+    run = tmp_path / "runs" / "mask" / "a" / "version_0"
+    run.mkdir(parents=True)
+    rows = ["epoch,step,train/loss,val/loss"] + [f"0,{s},1.0," for s in range(0, 50, 10)]
+    rows += [f"0,{s},,{v}" for s, v in ((9, 3.0), (19, 2.0), (29, 1.5), (39, 1.49), (49, 1.495), (59, 1.49))]
+    (run / "metrics.csv").write_text("\n".join(rows) + "\n")
+    result = curves.main(["--runs", str(tmp_path / "runs"), "--metric", "val/loss", "--out", str(tmp_path / "png")])
+    assert (tmp_path / "png" / "val_loss.png").is_file()
+    (row,) = result["runs"]
+    assert row["points"] == 6 and row["best"] == 1.49 and row["last_step"] == 59 and row["plateau"] == "plateau"
+    assert "| a | val/loss | 6 | 3 | 1.49 | 1.49 (59) | plateau |" in capsys.readouterr().out
