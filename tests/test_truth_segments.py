@@ -1,0 +1,32 @@
+"""tools/truth_segments.py: the corpus' ground-truth segments as a segmentation source."""
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import load_tool
+
+from segmo.synth import build_corpus
+from segmo.text.extract import segment_folder
+from segmo.text.rules import RuleSegmenter
+
+
+def test_truth_segments_are_the_ground_truth_and_resume(tmp_path: Path):
+    tool = load_tool("truth_segments")
+    data = build_corpus(tmp_path / "corpus", 8, seed=0, progress=False)
+    segment_folder(data, RuleSegmenter(), "rule", progress=False)
+    result = tool.main(["--data", str(data)])
+    assert result["summary"]["processed_files"] == 8
+    assert 0.0 <= result["rule_agreement"]["rule_equals_truth"] <= 1.0
+    record = json.loads((data / "segments" / "000000.json").read_text())
+    lines = (data / "text_segments" / "truth" / "000000.txt").read_text().splitlines()
+    assert lines == ["#".join(s["text"] for s in c["segments"]) for c in record["captions"]]
+    assert tool.main(["--data", str(data)])["summary"]["processed_files"] == 0  # nothing stale
+
+
+def test_truth_segments_need_ground_truth(tmp_path: Path, capsys):
+    tool = load_tool("truth_segments")
+    (tmp_path / "texts").mkdir()
+    with pytest.raises(SystemExit):
+        tool.main(["--data", str(tmp_path)])
+    assert "no segments/<id>.json" in capsys.readouterr().err
