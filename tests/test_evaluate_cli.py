@@ -118,6 +118,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert grounding["queries"] > 0 and 0 <= grounding["mIoU"] <= 1
     assert {"R@1,IoU=0.3", "R@1,IoU=0.5", "R@1,IoU=0.7", "uniform/mIoU"} <= set(grounding)
     assert {"spans/R@1,IoU=0.5", "spans/mIoU", "window/R@1,IoU=0.5", "window/mIoU"} <= set(grounding)
+    assert {"cpd/R@1,IoU=0.5", "kmeans/mIoU"} <= set(grounding)
+    assert "| k-means |" in (out / "report.md").read_text()
     assert set(metrics["isc"]) == {"uniform", "cpd", "kmeans"}
     assert all(v["pairs"] > 0 and -1 <= v["mean"] <= 1 for v in metrics["isc"].values())
     order = metrics["action_order"]

@@ -31,15 +31,9 @@ from segmo.data.layout import (
     stats_files,
 )
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.segmentation import boundaries, get_motion_segmenter
+from segmo.segmentation import boundaries, get_motion_segmenter, pool_tokens
 
 METHODS = ("uniform", "cpd", "kmeans")
-
-
-def pool_tokens(features: np.ndarray) -> np.ndarray:
-    """`(t, d)` → `(t // 4, d)` means over consecutive 4-frame windows (tail dropped)."""
-    n = features.shape[0] // FRAMES_PER_TOKEN
-    return features[: n * FRAMES_PER_TOKEN].reshape(n, FRAMES_PER_TOKEN, -1).mean(1)
 
 
 def load_encoder(directory: str):

@@ -39,8 +39,9 @@ NOTES: dict[str, str] = {
         "segment, in caption order (≥ 2 tokens each), maximising the summed similarity; "
         "spans: each segment's best span of any length ≥ 2 tokens; window: the paper's "
         "sliding windows {window} (tokens; auto = 0.5–2× the mean segment length), stride 1. "
-        "R@1 = the chosen span's temporal IoU with the true span ≥ threshold; uniform split "
-        "= the text-free uniform spans, a baseline."),
+        "R@1 = the chosen span's temporal IoU with the true span ≥ threshold. Baselines that "
+        "know only the number of segments: the uniform split, change points (cpd) and "
+        "k-means on the motion features pooled per token."),
     "isc": ("Mean cosine of the paired text/motion segments of every caption of the split "
             "(CV = std/mean), motion spans from each segmenter."),
     "reconstruction": (
@@ -132,11 +133,13 @@ def retrieval_table(retrieval: dict[str, Any]) -> str:
 
 def grounding_table(grounding: dict[str, Any]) -> str:
     """Rows: the default search (plain keys, "ordered spans") and, where present, the other
-    searches and the text-free uniform baseline (keys "spans/...", "window/...", "uniform/...")."""
+    searches and the text-free baselines (keys "spans/...", "window/...", "uniform/...",
+    "cpd/...", "kmeans/...")."""
     keys = [k for k in grounding if k.startswith("R@1") or k == "mIoU"]
     rows = [["ordered spans"] + [cell(grounding[k]) for k in keys]]
     for prefix, name in (("spans", "best span"), ("window", "sliding window"),
-                         ("uniform", "uniform split")):
+                         ("uniform", "uniform split"), ("cpd", "change points (cpd)"),
+                         ("kmeans", "k-means")):
         if all(f"{prefix}/{k}" in grounding for k in keys):
             rows.append([name] + [cell(grounding[f"{prefix}/{k}"]) for k in keys])
     return _table(["Spans"] + keys, rows) + f"\n\n{int(grounding.get('queries', 0))} segment queries."

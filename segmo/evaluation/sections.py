@@ -39,7 +39,7 @@ from segmo.models.alignment import isc_from_cosines, paired_cosine
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline.grounding import MIN_TOKENS, SEARCHES, locate, plot_similarity_map
 from segmo.pipeline.retrieval import pair_scores
-from segmo.segmentation import uniform_spans
+from segmo.segmentation import get_motion_segmenter, pool_tokens
 
 SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
 SECTIONS: tuple[str, ...] = ("reconstruction", "retrieval", "grounding", "isc", "action_order")
@@ -216,10 +216,12 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
     """Ground the true segments of every caption with ≥ 2 of them, with each search of
     `segmo.pipeline.grounding` on one pass per caption; R@1 at IoU and mIoU of the chosen
     span vs the true span. Keys: the default search ("ordered") plain, "spans/...",
-    "window/..." (`--grounding-window`), and "uniform/..." for the text-free uniform split
-    (a baseline). The maps plotted are the ordered search's."""
+    "window/..." (`--grounding-window`), and "uniform/...", "cpd/...", "kmeans/..." for the
+    text-free motion segmenters told the number of segments (baselines; cpd and kmeans on
+    the z-scored features pooled per token). The maps plotted are the ordered search's."""
     pred: dict[str, list] = {search: [] for search in SEARCHES}
-    gold, uniform, plotted = [], [], 0
+    baselines: dict[str, list] = {name: [] for name in SEGMENTERS}
+    gold, plotted = [], 0
     for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
         t = int(b["lengths"][r])
         truth = ground_truth(cfg, b["id"][r], b["caption_index"][r], t)
@@ -235,7 +237,10 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
         for search, g in found.items():
             pred[search] += [tuple(p) for p in g.best_spans_frames]
         gold += [(s["start"], s["end"]) for s in truth]
-        uniform += [(4 * s, 4 * e) for s, e in uniform_spans(n, len(truth))]
+        tokens = pool_tokens(b["motion"][r, :t].numpy())
+        for name, spans in baselines.items():
+            spans += [(FRAMES_PER_TOKEN * s, FRAMES_PER_TOKEN * e)
+                      for s, e in get_motion_segmenter(name)(tokens, len(truth), n)]
         if plotted < cfg.similarity_maps:
             plt = report._pyplot()
             (out / "similarity_maps").mkdir(parents=True, exist_ok=True)
@@ -249,7 +254,7 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
     if not gold:
         return None
     result = {**grounding_metrics(np.array(pred["ordered"]), np.array(gold)), "queries": float(len(gold))}
-    for name, spans in (("spans", pred["spans"]), ("window", pred["window"]), ("uniform", uniform)):
+    for name, spans in (("spans", pred["spans"]), ("window", pred["window"]), *baselines.items()):
         result |= {f"{name}/{k}": v for k, v in grounding_metrics(np.array(spans), np.array(gold)).items()}
     return result
 

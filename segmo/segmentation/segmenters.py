@@ -32,6 +32,8 @@ from typing import Literal, get_args
 import numpy as np
 import torch
 
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
+
 SegmenterName = Literal["uniform", "cpd", "kmeans"]
 Span = tuple[int, int]
 Segmenter = Callable[..., list[Span]]
@@ -83,6 +85,13 @@ def repair_boundaries(boundaries: Sequence[int], num_segments: int, n_valid: int
         k = int(np.argmax(np.diff(edges)))
         inner = sorted({*inner, (edges[k] + edges[k + 1]) // 2})
     return inner
+
+
+def pool_tokens(features: np.ndarray) -> np.ndarray:
+    """`(t, d)` frame features → `(t // 4, d)` means over each token's 4 frames (tail
+    dropped): per-token features for the segmenters without a tokenizer."""
+    n = features.shape[0] // FRAMES_PER_TOKEN
+    return features[: n * FRAMES_PER_TOKEN].reshape(n, FRAMES_PER_TOKEN, -1).mean(1)
 
 
 def uniform_spans(n_valid: int, num_segments: int) -> list[Span]:
