@@ -297,3 +297,19 @@ def test_isc_grid_has_a_row_per_training_segmenter() -> None:
     assert lines[0].endswith("| cpd | uniform |")
     assert lines[2] == "| uniform | 0.520 (CV 0.40) | 0.610 (CV 0.25) |"
     assert lines[3] == "| cpd | 0.700 (CV 0.10) | – |"
+
+
+def test_ablation_truth_variant_trains_and_evaluates_on_the_truth_segments(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "ablation_grid.py"), "--data", "D", "--tokenizer", "T",
+         "--evaluator", "E", "--variants", "truth", "--residual", "R", "--length", "L",
+         "--out", str(tmp_path), "--dry-run"], capture_output=True, text=True, cwd=REPO, check=True)
+    lines = result.stdout.splitlines()
+    assert any(" fit " in line and "--data.text_segments truth" in line for line in lines)
+    assert any(" evaluate " in line and "--text-segments truth" in line for line in lines)
+    (tmp_path / "data").mkdir()
+    refused = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "ablation_grid.py"), "--data", str(tmp_path / "data"),
+         "--tokenizer", str(tmp_path), "--evaluator", str(tmp_path), "--variants", "truth",
+         "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=REPO)
+    assert refused.returncode == 2 and "tools/truth_segments.py" in refused.stderr.splitlines()[-1]

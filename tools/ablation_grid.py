@@ -45,7 +45,12 @@ VARIANTS: dict[str, tuple[str, str, str]] = {
     "token": ("token", "uniform", "SegMo (Token Align)"),
     "cpd": ("in_sample", "cpd", "SegMo (CPD-based Seg)"),
     "kmeans": ("in_sample", "kmeans", "SegMo (clustering-based Seg)"),
+    # Segmentation source (Fig. 4): the built-in corpus' ground-truth text segments
+    # (tools/truth_segments.py, then `segmo encode-texts --segments truth`) instead of the rules.
+    "truth": ("in_sample", "uniform", "SegMo (ground-truth text segments)"),
 }
+# Variants trained and evaluated on another text-segment source than the config's.
+TEXT_SEGMENTS = {"truth": "truth"}
 REPO = Path(__file__).resolve().parents[1]
 SEGMO = [sys.executable, "-m", "segmo"]
 # The figures of OUT/seeds.md: (metrics.json path, column title).
@@ -142,6 +147,12 @@ def main(argv: list[str] | None = None) -> None:
         for flag in ("data", "tokenizer", "evaluator"):
             if not Path(getattr(args, flag)).exists():
                 p.error(f"--{flag} {getattr(args, flag)}: no such directory")
+        for variant in variants:
+            source = TEXT_SEGMENTS.get(variant)
+            if source and not (Path(args.data) / "text_segments" / source).is_dir():
+                p.error(f"--variants {variant}: {args.data}/text_segments/{source} is missing; run "
+                        f"tools/truth_segments.py --data {args.data}, then segmo encode-texts "
+                        f"--data {args.data} --encoder minilm --segments {source}")
 
     grid = Grid(args)
     tokenizer = ["--model.init_args.tokenizer", args.tokenizer]
@@ -153,9 +164,11 @@ def main(argv: list[str] | None = None) -> None:
         alignment, segmenter, title = VARIANTS[variant]
         name = variant if seed is None else f"{variant}_s{seed}"
         seeded = [] if seed is None else ["--seed_everything", str(seed)]
+        source = TEXT_SEGMENTS.get(variant)
         mask = grid.fit_and_export("mask", f"mask_{name}", [
             *tokenizer, "--model.init_args.alignment", alignment,
-            "--model.init_args.segmenter", segmenter, *seeded])
+            "--model.init_args.segmenter", segmenter, *seeded,
+            *(["--data.text_segments", source] if source else [])])
         bundle = grid.out / "bundles" / name
         grid.run([*SEGMO, "bundle", "--tokenizer", args.tokenizer, "--mask", str(mask),
                   "--residual", residual, "--length", length, "--out", str(bundle)],
@@ -163,6 +176,7 @@ def main(argv: list[str] | None = None) -> None:
         evaluation = grid.out / "eval" / name
         grid.run([*SEGMO, "evaluate", "--model", str(bundle), "--data", args.data,
                   "--evaluator", args.evaluator, "--name", title, "--out", str(evaluation),
+                  *(["--text-segments", source] if source else []),
                   *extra, *shlex.split(args.eval_args)], done=evaluation / "metrics.json")
         return variant, seed, evaluation / "metrics.json"
 
