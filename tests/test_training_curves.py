@@ -14,6 +14,12 @@ def test_plateau_verdicts():
     assert curves.plateau([1, 2], 3, 0.01, True) == "too few points"
 
 
+def test_smooth_is_a_trailing_mean():
+    curves = load_tool("training_curves")
+    assert curves.smooth([1.0, 3.0, 5.0, 7.0], 2) == [1.0, 2.0, 4.0, 6.0]
+    assert curves.smooth([1.0, 3.0], 1) == [1.0, 3.0]
+
+
 def test_table_and_png_from_metrics_csv(tmp_path: Path, capsys):
     curves = load_tool("training_curves")
     run = tmp_path / "runs" / "mask" / "a" / "version_0"

@@ -10,6 +10,7 @@ prints a Markdown table (run, metric, first, best, last, plateau) and a final JS
     python tools/training_curves.py --runs runs --metric val/loss --out curves/
     python tools/training_curves.py --runs runs/mask --metric val/loss --metric val/segment_top1 \\
         --out curves/ --window 3
+    python tools/training_curves.py --runs runs/mask --metric train/loss --smooth 20 --window 20 --out curves/
 """
 
 from __future__ import annotations
@@ -31,6 +32,14 @@ def read_metric(path: Path, metric: str) -> list[tuple[int, float]]:
         if value not in ("", None):
             out.append((int(float(row["step"])), float(value)))
     return out
+
+
+def smooth(values: list[float], points: int) -> list[float]:
+    """Trailing moving average over `points` values (1: unchanged), for noisy train metrics."""
+    if points <= 1:
+        return list(values)
+    return [sum(values[max(0, i - points + 1):i + 1]) / (i + 1 - max(0, i - points + 1))
+            for i in range(len(values))]
 
 
 def plateau(values: list[float], window: int, tolerance: float, lower_is_better: bool) -> str:
@@ -64,6 +73,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
     p.add_argument("--window", type=int, default=3, help="validation points that define the plateau")
     p.add_argument("--tolerance", type=float, default=0.01, help="relative gain below which it is a plateau")
+    p.add_argument("--smooth", type=int, default=1,
+                   help="moving average over this many logged points (train metrics are noisy)")
     args = p.parse_args(argv)
     if not args.runs.is_dir():
         p.error(f"--runs {args.runs}: no such folder")
@@ -87,7 +98,8 @@ def main(argv: list[str] | None = None) -> dict:
             if not points:
                 continue
             name = path.parent.parent.name
-            steps, values = zip(*points, strict=True)
+            steps, raw = zip(*points, strict=True)
+            values = smooth(list(raw), args.smooth)
             ax.plot(steps, values, marker="o", markersize=2, label=name)
             best = min(values) if lower else max(values)
             rows.append({"run": name, "metric": metric, "points": len(values), "first": values[0],
@@ -106,7 +118,7 @@ def main(argv: list[str] | None = None) -> dict:
     for r in rows:
         print(f"| {r['run']} | {r['metric']} | {r['points']} | {r['first']:.4g} | {r['best']:.4g} | "
               f"{r['last']:.4g} ({r['last_step']}) | {r['plateau']} |")
-    result = {"runs": rows, "window": args.window, "tolerance": args.tolerance}
+    result = {"runs": rows, "window": args.window, "tolerance": args.tolerance, "smooth": args.smooth}
     print(json.dumps(result))
     return result
 
