@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 import os
 import socket
 import time
@@ -30,6 +31,8 @@ from pathlib import Path
 from typing import IO, Any
 
 from segmo.errors import FolderBusyError
+
+log = logging.getLogger(__name__)
 
 LOCK_FILE = ".segmo-writer.lock"
 _counter = itertools.count()
@@ -85,14 +88,18 @@ class FolderLock:
 
     Re-entrant within a process (the demo's steps, or a writer calling another, share
     one lock), exclusive between processes. Use as a context manager; `acquire` raises
-    `FolderBusyError` when another process holds the lock.
+    `FolderBusyError` when another process holds the lock: at once, or with ``wait``
+    seconds, when a process running the same ``command`` (a peer doing the same job, such
+    as two fits building one motion-token cache) still holds it after them; one line says
+    whom it waits for. Any other writer is refused at once.
     """
 
     _held: dict[str, list] = {}  # resolved folder -> [open lock file, depth], this process
 
-    def __init__(self, folder: str | os.PathLike, command: str) -> None:
+    def __init__(self, folder: str | os.PathLike, command: str, wait: float = 0.0) -> None:
         self.folder = Path(folder)
         self.command = command
+        self.wait = wait
 
     @property
     def path(self) -> Path:
@@ -106,11 +113,17 @@ class FolderLock:
         self.folder.mkdir(parents=True, exist_ok=True)
         # No O_TRUNC: a process that fails to get the lock must not erase the holder's note.
         handle = open(os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666), "r+", encoding="utf-8")
-        if not _try_lock(handle):
+        deadline, told = time.monotonic() + self.wait, False
+        while not _try_lock(handle):
             holder = _read_holder(handle)
-            handle.close()
-            raise FolderBusyError(f"{self.folder} is being written by {holder}; wait for it to "
-                                  "finish or stop it (one writer per data folder)")
+            if time.monotonic() >= deadline or f"({self.command}," not in holder:
+                handle.close()
+                raise FolderBusyError(f"{self.folder} is being written by {holder}; wait for it to "
+                                      "finish or stop it (one writer per data folder)")
+            if not told:
+                log.warning("%s: waiting for %s to finish writing it", self.folder, holder)
+                told = True
+            time.sleep(min(1.0, max(deadline - time.monotonic(), 0.0)))
         handle.seek(0)
         handle.truncate()
         handle.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(),

@@ -127,3 +127,48 @@ def test_a_mask_fit_trains_on_the_cache(mode, data, tokenizer_dir, tmp_path):
     if mode == "cached":
         assert "tokens" in next(iter(cli.datamodule.train_dataloader()))
         assert cli.datamodule.dataset("val").motion_tokens is train.motion_tokens
+
+
+def _hold_lock(root: Path, command: str, seconds: float):
+    import subprocess
+    import sys
+
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from segmo.files import FolderLock; "
+         "FolderLock(sys.argv[1], sys.argv[2]).acquire(); print('HELD', flush=True); "
+         "time.sleep(float(sys.argv[3]))", str(root), command, str(seconds)],
+        stdout=subprocess.PIPE, text=True, cwd=REPO)
+    assert holder.stdout.readline().strip() == "HELD"
+    return holder
+
+
+def test_fits_share_the_cache_and_wait_for_a_peer_build(data, tokenizer_dir, tmp_path):
+    from segmo.errors import FolderBusyError
+
+    root = Path(shutil.copytree(data, tmp_path / "data"))
+    shutil.rmtree(root / "motion_tokens", ignore_errors=True)  # built by the tests above
+    path = tokenizer_dir["t2m"]
+    tokenizer = RVQVAE.from_pretrained(path)
+    ds = train_set(root)
+    # Another kind of writer holds the folder: refused at once.
+    other = _hold_lock(root, "segmo encode-texts", 60)
+    try:
+        with pytest.raises(FolderBusyError, match="segmo encode-texts"):
+            attach(ds, tokenizer, path)
+    finally:
+        other.kill()
+        other.wait()
+    # A peer fit building the same cache: waited for (here it holds the lock 2 s).
+    peer = _hold_lock(root, "segmo fit (motion tokens)", 2)
+    try:
+        built = attach(ds, tokenizer, path)
+    finally:
+        peer.wait()
+    assert built.new == built.total > 0
+    # Complete: read without the lock, even while another writer holds the folder.
+    other = _hold_lock(root, "segmo encode-texts", 60)
+    try:
+        assert attach(ds, tokenizer, path).new == 0
+    finally:
+        other.kill()
+        other.wait()

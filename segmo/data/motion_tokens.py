@@ -168,6 +168,10 @@ class TokenCacheSummary:
                 f"{self.total - self.new} reused, {self.seconds:.1f} s")
 
 
+# How long a fit waits for another fit's build of the same folder's cache (seconds).
+LOCK_WAIT = 3600.0
+
+
 def update_motion_tokens(root: str | Path, tokenizer: Any, tokenizer_path: str,
                          datasets: list[Any], progress: bool = True) -> TokenCacheSummary:
     """Encode every crop of `datasets` (`MotionDataset`s of `root`, one statistics) that the
@@ -183,7 +187,15 @@ def update_motion_tokens(root: str | Path, tokenizer: Any, tokenizer_path: str,
     mean, std = datasets[0].mean, datasets[0].std
     key = cache_key(tokenizer, mean, std)
     folder = cache_folder(root, key)
-    with FolderLock(root, "segmo fit (motion tokens)"):
+    wanted = {f"{clip}:{offset}": (ds, i, offset) for ds in datasets
+              for i, clip in enumerate(ds.clip_keys()) for offset in ds.crop_offsets(i)}
+    if (folder / INDEX).is_file():  # published atomically: safe to read without the lock
+        have = {item for shard in _read_index(folder)["shards"] for item in shard["items"]}
+        if have >= set(wanted):  # nothing to write: several fits may share the cache
+            return TokenCacheSummary(folder, len(wanted), 0, time.perf_counter() - start)
+    # Two fits started together both find it missing; the second waits for the first's
+    # build instead of failing, then encodes only what is still missing.
+    with FolderLock(root, "segmo fit (motion tokens)", wait=LOCK_WAIT):
         folder.mkdir(parents=True, exist_ok=True)
         remove_temporaries(folder)  # from a killed build; never referenced
         if (folder / INDEX).is_file():
@@ -198,18 +210,11 @@ def update_motion_tokens(root: str | Path, tokenizer: Any, tokenizer_path: str,
             }, indent=2) + "\n")
             write_atomic(folder / INDEX, json.dumps(index))
         have = {item for shard in index["shards"] for item in shard["items"]}
-        todo: dict[str, tuple[Any, int, int]] = {}  # item -> (dataset, entry index, offset)
-        total = set()
-        for ds in datasets:
-            for i, clip in enumerate(ds.clip_keys()):
-                for offset in ds.crop_offsets(i):
-                    item = f"{clip}:{offset}"
-                    total.add(item)
-                    if item not in have and item not in todo:
-                        todo[item] = (ds, i, offset)
+        # item -> (dataset, entry index, offset)
+        todo: dict[str, tuple[Any, int, int]] = {k: v for k, v in wanted.items() if k not in have}
         if todo:
             _encode(folder, index, tokenizer, todo, key, progress)
-    return TokenCacheSummary(folder, len(total), len(todo), time.perf_counter() - start)
+    return TokenCacheSummary(folder, len(wanted), len(todo), time.perf_counter() - start)
 
 
 def _encode(folder: Path, index: dict, tokenizer: Any, todo: dict, key: str,
