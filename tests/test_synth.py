@@ -18,7 +18,7 @@ from segmo.synth import ACTIONS, build_corpus, sample_motion
 from segmo.synth.actions import SAMPLE_V2
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions
 from segmo.synth.corpus import main, split_assignment
-from segmo.synth.sequence import MAX_RATIO, motion_from_actions
+from segmo.synth.sequence import LONG_V3, MAX_RATIO, motion_from_actions
 
 NUM = 30
 FEET = [7, 8, 10, 11]
@@ -45,6 +45,8 @@ def test_same_seed_gives_identical_bytes_with_any_worker_count(corpus, tmp_path)
 # sha256 over the sorted relative paths and contents of `build_corpus(out, 20, seed=0,
 # version=1)`, computed on main's code before version 2 existed.
 V1_SHA256 = "9f2674d61862d265b6e6d393eb9adb53b44d2055ecc7df44b0cdd1762f511328"
+# The same for `version=2`, computed on main's code before version 3 existed.
+V2_SHA256 = "b00f802ba1995f65a644da0831adb7155d81f6051c727f3030ab2326340a8a43"
 
 
 def _corpus_sha256(root: Path) -> str:
@@ -54,24 +56,25 @@ def _corpus_sha256(root: Path) -> str:
     return digest.hexdigest()
 
 
-def test_version_1_is_reproduced_byte_for_byte(tmp_path):
-    root = build_corpus(tmp_path / "v1", 20, seed=0, version=1, progress=False)
-    assert json.loads((root / "corpus.json").read_text())["version"] == 1
-    assert _corpus_sha256(root) == V1_SHA256
+@pytest.mark.parametrize("version, sha256", [(1, V1_SHA256), (2, V2_SHA256)])
+def test_older_versions_are_reproduced_byte_for_byte(tmp_path, version, sha256):
+    root = build_corpus(tmp_path / f"v{version}", 20, seed=0, version=version, progress=False)
+    assert json.loads((root / "corpus.json").read_text())["version"] == version
+    assert _corpus_sha256(root) == sha256
 
 
-def test_version_2_is_the_default_and_a_folder_of_another_version_is_refused(corpus, tmp_path, capsys):
-    assert json.loads((corpus / "corpus.json").read_text())["version"] == 2
+def test_version_3_is_the_default_and_a_folder_of_another_version_is_refused(corpus, tmp_path, capsys):
+    assert json.loads((corpus / "corpus.json").read_text())["version"] == 3
     out = tmp_path / "data"
     main(["--out", str(out), "--num-motions", "3", "--workers", "1", "--version", "1"])
     (out / "text_features").mkdir()
     line = cli_failure(["synth", "--out", str(out), "--num-motions", "3", "--workers", "1"], capsys)
     assert "version 1" in line and "text_features" in line and "--overwrite" in line
     assert json.loads((out / "corpus.json").read_text())["version"] == 1
-    line = cli_failure(["synth", "--out", str(out), "--version", "3"], capsys)
+    line = cli_failure(["synth", "--out", str(out), "--version", "4"], capsys)
     assert "argument --version" in line
-    with pytest.raises(SegmoError, match="version must be one of 1, 2, got 3"):
-        build_corpus(tmp_path / "v3", 3, version=3)
+    with pytest.raises(SegmoError, match="version must be one of 1, 2, 3, got 4"):
+        build_corpus(tmp_path / "v4", 3, version=4)
 
 
 def _durations(version: int, seeds: range) -> list[list[int]]:
@@ -93,6 +96,27 @@ def test_version_2_durations_follow_the_action_not_the_segment_count():
     pred = [(s * 4, e * 4) for d in multi for s, e in uniform_spans(sum(d) // 4, len(d))]
     truth = [(int(sum(d[:i])), int(sum(d[:i + 1]))) for d in multi for i in range(len(d))]
     assert grounding_metrics(pred, truth)["R@1,IoU=0.5"] < 0.85
+
+
+def test_version_3_puts_a_short_action_beside_a_long_one():
+    motions = [sample_motion(np.random.default_rng([11, s]), 3) for s in range(80)]
+    multi = [m for m in motions if len(m.segments) >= 2]
+    durations = [[seg.end - seg.start for seg in m.segments] for m in multi]
+    ratios = np.array([max(d) / min(d) for d in durations])
+    # Built-frame ratios lie in [MIN_RATIO_V3, MAX_RATIO]; the spans add transition halves.
+    assert ratios.max() <= MAX_RATIO * 1.25
+    contrasted = [r for m, r in zip(multi, ratios) if any(s.action in LONG_V3 for s in m.segments)]
+    # (the others sit down and stand up: no slot where a long action could go)
+    assert len(contrasted) >= 0.8 * len(multi) and min(contrasted) >= 3.0
+    counts = np.bincount([len(m.segments) for m in motions], minlength=6)
+    assert counts[1] < 0.45 * len(motions) and counts[4:].sum() > 0  # still 1-5 segments
+    # A split into equal parts grounds at most about half of the segments.
+    from segmo.evaluation.grounding import grounding_metrics
+    from segmo.segmentation import uniform_spans
+
+    pred = [(s * 4, e * 4) for d in durations for s, e in uniform_spans(sum(d) // 4, len(d))]
+    truth = [(int(sum(d[:i])), int(sum(d[:i + 1]))) for d in durations for i in range(len(d))]
+    assert grounding_metrics(pred, truth)["R@1,IoU=0.5"] < 0.55
 
 
 def test_version_2_keeps_the_counts_the_caption_names():

@@ -434,8 +434,18 @@ SAMPLE_V2: dict[str, Callable[[np.random.Generator], dict]] = {
 }
 
 
+# Version 3: sitting down and standing up take about a second, so that a motion that sits
+# down and stands up again can still hold a long action about 4× as long.
+SAMPLE_V3: dict[str, Callable[[np.random.Generator], dict]] = {
+    "sit_down": lambda r: {"duration": _r(r.uniform(1.1, 1.6))},
+    "stand_up": lambda r: {"duration": _r(r.uniform(1.0, 1.5))},
+}
+
+
 def sample_params(name: str, rng: np.random.Generator, version: int) -> dict:
     """The parameters of action `name` as corpus `version` samples them."""
+    if version >= 3 and name in SAMPLE_V3:
+        return SAMPLE_V3[name](rng)
     if version >= 2 and name in SAMPLE_V2:
         return SAMPLE_V2[name](rng)
     return ACTIONS[name].sample(rng)

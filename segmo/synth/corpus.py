@@ -1,10 +1,12 @@
 """Build the synthetic corpus in the HumanML3D layout (`segmo synth`).
 
-    segmo synth --out data/synth --num-motions 2000 --seed 0 [--version 2]
+    segmo synth --out data/synth --num-motions 2000 --seed 0 [--version 3]
 
-`--version` picks how motions are sampled (`segmo.synth.sequence`): 2, the default, lets
-durations follow the action (a long walk beside one short jump); 1 reproduces the first
-corpus, whose actions last nearly equally long, byte for byte. Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
+`--version` picks how motions are sampled (`segmo.synth.sequence`): 3, the default, puts
+a short action beside a long one in every motion of two or more (a long walk beside one
+short jump); 2 lets durations follow the action without that; 1 reproduces the first
+corpus, whose actions last nearly equally long. Versions 1 and 2 are reproduced byte for
+byte. Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
 not depend on how many workers build them; the normalisation statistics are merged in
 index order for the same reason. The corpus is built in `OUT.tmp-<pid>` and renamed into
 place when complete (so its files, written at the paths of `segmo.data.layout`, need no
@@ -248,8 +250,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a folder that holds something else than this corpus")
     parser.add_argument("--version", type=int, choices=VERSIONS, default=VERSION,
-                        help="corpus version: 2 durations follow the action (default), 1 the "
-                        "first corpus (nearly equal durations)")
+                        help="corpus version: 3 a short action beside a long one (default), 2 "
+                        "durations follow the action, 1 the first corpus (nearly equal durations)")
     args = parser.parse_args(argv)
     path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite,
                         version=args.version)
