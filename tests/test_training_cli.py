@@ -69,6 +69,26 @@ def test_fit_every_config(config, tmp_path):
     assert "val/mpjpe_mm" in cli.trainer.callback_metrics
 
 
+@pytest.mark.parametrize("kind, expected", [("bf16", "bf16-mixed"), ("fp32", "32-true")])
+def test_precision_auto_trains_in_what_the_cpu_computes_natively(kind, expected, tmp_path, monkeypatch):
+    from segmo import cpu
+
+    monkeypatch.setattr(cpu, "auto_precision", lambda: (kind, "as this test says"))
+    root = make_dataset(tmp_path / "data")
+    cli = cli_main(["fit", "--config", str(CONFIGS[-1]), *tiny_overrides(root, tmp_path / "runs"),
+                    "--trainer.fast_dev_run=true", "--trainer.precision=auto"])
+    assert cli.trainer.state.finished and cli.trainer.precision == expected
+    line = cli_failure_line(["fit", "--config", str(CONFIGS[-1]), *tiny_overrides(root, tmp_path / "r2"),
+                             "--trainer.precision=fast"])
+    assert "trainer.precision" in line and "fast" in line
+
+
+def cli_failure_line(argv: list[str]) -> str:
+    with pytest.raises(SegmoError) as caught:
+        cli_main(argv)
+    return str(caught.value).splitlines()[0]
+
+
 def test_the_former_class_path_still_trains_and_exports(tmp_path):
     """YAMLs and checkpoints written before the tokenizer task moved name segmo.tasks.rvq."""
     from segmo.export import export

@@ -17,6 +17,8 @@ stage uses this same entry point. On top of Lightning's defaults it adds
 - one-line errors (`SegmoError`) for a bad config file, key, value or path
   (`segmo.training.config_errors`), which `segmo` prints as ``segmo fit: ...``, exit 2;
 - a default seed of 0 (`--seed_everything`);
+- ``--trainer.precision auto``: bf16-mixed where the CPU or GPU computes bf16 natively,
+  32-true elsewhere (`segmo.training.trainer`);
 - ``max_segments`` stated once, by the data: ``data.init_args.max_segments`` (the text
   segments a sample carries, padded to that many slots) is linked to the transformer's
   ``model.init_args.max_segments``. Configs written before state it for the model too;
@@ -42,6 +44,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from segmo.errors import SegmoError
 from segmo.training.config_errors import check_config_files, config_error, where_set
 from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step
+from segmo.training.trainer import SegmoTrainer
 
 SUBCOMMANDS = ("fit", "validate", "test")
 LINKED = ("data.init_args.max_segments", "model.init_args.max_segments")
@@ -167,6 +170,7 @@ def main(argv: list[str] | None = None) -> SegmoCLI:
         try:
             return SegmoCLI(
                 args=argv,
+                trainer_class=SegmoTrainer,
                 subclass_mode_model=True,
                 subclass_mode_data=True,
                 seed_everything_default=0,
