@@ -313,3 +313,27 @@ def test_ablation_truth_variant_trains_and_evaluates_on_the_truth_segments(tmp_p
          "--tokenizer", str(tmp_path), "--evaluator", str(tmp_path), "--variants", "truth",
          "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=REPO)
     assert refused.returncode == 2 and "tools/truth_segments.py" in refused.stderr.splitlines()[-1]
+
+
+def test_attention_report_writes_tables_plots_and_a_json_line(setup, hash_text_encoder, tmp_path, capsys):
+    tool = load_tool("attention_report")
+    out = tmp_path / "attention"
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+                      "--out", str(out), "--motions", "6", "--plots", "2"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last == json.loads((out / "attention.json").read_text())
+    assert last["motions"] == 6 and set(last["sink_ratio"]["by_block"]) == {"0"}
+    for name in ("sink_ratio", "prefix_share", "sentence_share", "attention_grounding"):
+        assert 0.0 <= last[name]["mean"] <= 1.0, name
+    assert last["attention_grounding"]["tokens"] > 0
+    assert 1 <= len(last["plots"]) <= 2 and all(Path(p).is_file() for p in last["plots"])
+    assert "| all |" in (out / "attention.md").read_text()
+
+
+def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_encoder, tmp_path, capsys):
+    tool = load_tool("attention_report")
+    plain = tmp_path / "plain"
+    (plain / "new_joint_vecs").mkdir(parents=True)
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(plain), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(plain) in err[0] and "ground truth" in err[0]

@@ -120,6 +120,24 @@ def test_seeded_generation_is_reproducible(model, generated):
     assert not torch.equal(other.tokens, generated.tokens)
 
 
+def test_recording_attention_changes_no_generation_or_edit(model, generated):
+    from segmo.evaluation.attention import motion_attention, sink_ratio
+
+    with model.record_attention() as recording:
+        again = model.generate(PROMPTS, [48, 32], generator=seeded())
+    assert torch.equal(again.tokens, generated.tokens)
+    steps = model.sampling.steps
+    assert recording.steps("mask") == steps and recording.steps("residual") >= 1
+    assert 0.0 <= sink_ratio(recording.of("mask"))["mean"] <= 1.0
+    plain = model.edit(generated, (8, 24), "a person jumps", generator=seeded(2))
+    with model.record_attention() as recording:
+        edited = model.edit(generated, (8, 24), "a person jumps", generator=seeded(2))
+    assert torch.equal(plain.tokens, edited.tokens) and recording.steps("mask") >= 1
+    maps = motion_attention(model, PROMPTS, generated.segments,
+                            [generated.motion(0), generated.motion(1)])
+    assert len(maps) == len(model.mask.trunk.blocks) and maps[0].rows.tolist() == [0, 1]
+
+
 def test_bundle_round_trip_gives_identical_generations(model, generated, tmp_path):
     model.save_pretrained(tmp_path / "copy")
     loaded = SegMo.from_pretrained(tmp_path / "copy", text_encoder=hash_encoder("hash", 8))

@@ -19,6 +19,8 @@ from __future__ import annotations
 import dataclasses
 import numbers
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,7 @@ from segmo.errors import SegmoError
 from segmo.generation.editing import edit_tokens, token_span
 from segmo.generation.generate import Precision, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions
+from segmo.models.attention_recorder import AttentionRecording, record_attention
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
@@ -402,6 +405,22 @@ class SegMo:
                              sentence, vectors, segment_mask, options=options,
                              generator=generator, precision=precision)
         return self.decode(edited, lengths, texts, used, precision)
+
+    @contextmanager
+    def record_attention(self) -> Iterator[AttentionRecording]:
+        """Record what the transformers' motion queries attend to while the context is open
+        (`segmo.models.attention_recorder`; diagnostics in `segmo.evaluation.attention`):
+
+            with model.record_attention() as recording:
+                out = model.generate(["a person walks forward, then jumps"], 120)
+            recording.of("mask")[0].weights   # step 0, block 0: (rows, heads, queries, keys)
+
+        Outputs are the same as without it."""
+        models = {"mask": self.mask}
+        if self.residual is not None:
+            models["residual"] = self.residual
+        with record_attention(models) as recording:
+            yield recording
 
     # -- the segment space: grounding and retrieval ------------------------------------------
 

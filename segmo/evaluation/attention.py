@@ -1,0 +1,200 @@
+"""Attention diagnostics over a recording (`segmo.models.attention_recorder`): how much of
+the motion queries' attention reaches the text, whether it sinks into one key, and whether
+each segment's key is attended where the segment happens.
+
+Every figure averages over the recorded conditional rows, the heads and the valid motion
+queries (padded motion positions are not queries of any sample); a map is one block of one
+pass.
+
+- ``sink_ratio``: MLA-Gen's SinkRatio (eq. 7) adapted to a short prefix. MLA-Gen sums the
+  top-K cross-attention weights of each motion frame over ~20 text tokens; segmo's motion
+  queries attend to a prefix of N = 2..6 valid keys (sentence and segments) beside the
+  motion, where a uniform spread already puts K/N on the top K. Per query, with the prefix
+  weights renormalised to sum to one (p), K' = min(K, N − 1) and s = the sum of the K'
+  largest p:
+
+      SinkRatio = (s − K'/N) / (1 − K'/N)
+
+  0 when the prefix weights are uniform, 1 when they sit on K' keys alone; queries of a
+  prefix of fewer than 2 valid keys are left out. K = 1 by default (the sink is one key).
+- ``prefix_share``: the attention mass on the text prefix (the rest is on motion keys).
+- ``sentence_share``: the sentence key's part of the prefix mass.
+- ``attention_grounding``: over motion tokens inside the ground-truth span of segment k,
+  the share whose largest segment weight (head mean) is on segment k.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from segmo.models.attention_recorder import AttentionMap
+
+
+def _query_valid(m: AttentionMap) -> torch.Tensor:
+    """(r, q) bool: the queries at valid motion positions."""
+    p = m.prefix_length
+    return m.key_valid[:, p:].gather(1, m.queries)
+
+
+def _prefix(m: AttentionMap) -> torch.Tensor:
+    """(r, heads, q, p) weights on the prefix keys."""
+    return m.weights[..., :m.prefix_length]
+
+
+def sink_ratio_values(m: AttentionMap, k: int = 1) -> torch.Tensor:
+    """(r, heads, q) SinkRatio per query (NaN where it is undefined: see the module)."""
+    if k < 1:
+        raise ValueError(f"sink_ratio: k must be ≥ 1, got {k}")
+    prefix = _prefix(m)
+    valid = m.key_valid[:, :m.prefix_length]  # (r, p)
+    n = valid.sum(1).to(prefix.dtype)[:, None, None]  # (r, 1, 1)
+    mass = prefix.sum(-1, keepdim=True)
+    p = torch.where(mass > 0, prefix / mass.clamp_min(1e-30), torch.zeros_like(prefix))
+    top = torch.sort(p, dim=-1, descending=True).values.cumsum(-1)  # (r, h, q, p)
+    kk = torch.clamp(n - 1, min=1, max=k).long()  # K' per row, (r, 1, 1)
+    s = top.gather(-1, (kk[..., None] - 1).expand(*top.shape[:3], 1)).squeeze(-1)
+    uniform = kk.to(prefix.dtype) / n  # (r, 1, 1), what a uniform spread puts on the top K'
+    ratio = (s - uniform) / (1 - uniform).clamp_min(1e-12)
+    defined = (n >= 2) & _query_valid(m)[:, None, :] & (mass.squeeze(-1) > 0)
+    return torch.where(defined, ratio, torch.full_like(ratio, float("nan")))
+
+
+def _mean(values: Iterable[torch.Tensor]) -> float:
+    flat = torch.cat([v.flatten() for v in values]) if values else torch.zeros(0)
+    flat = flat[~torch.isnan(flat)]
+    return float(flat.mean()) if flat.numel() else float("nan")
+
+
+def _grouped(maps: Sequence[AttentionMap], values) -> dict[str, dict[int, float]]:
+    by_block, by_step = defaultdict(list), defaultdict(list)
+    for m in maps:
+        v = values(m)
+        by_block[m.block].append(v)
+        by_step[m.step].append(v)
+    return {"by_block": {b: _mean(v) for b, v in sorted(by_block.items())},
+            "by_step": {s: _mean(v) for s, v in sorted(by_step.items())},
+            "mean": _mean([v for vs in by_block.values() for v in vs])}
+
+
+def _masked(m: AttentionMap, values: torch.Tensor) -> torch.Tensor:
+    """values (r, heads, q) with the invalid queries set to NaN."""
+    keep = _query_valid(m)[:, None, :].expand_as(values)
+    return torch.where(keep, values, torch.full_like(values, float("nan")))
+
+
+def sink_ratio(maps: Sequence[AttentionMap], k: int = 1) -> dict[str, dict[int, float]]:
+    """SinkRatio by block, by pass (decoding step) and overall."""
+    return _grouped(maps, lambda m: sink_ratio_values(m, k))
+
+
+def prefix_share(maps: Sequence[AttentionMap]) -> dict[str, dict[int, float]]:
+    """The attention mass on the text prefix, by block, by pass and overall."""
+    return _grouped(maps, lambda m: _masked(m, _prefix(m).sum(-1)))
+
+
+def sentence_share(maps: Sequence[AttentionMap]) -> dict[str, dict[int, float]]:
+    """The sentence key's part of the prefix mass, by block, by pass and overall."""
+    def share(m: AttentionMap) -> torch.Tensor:
+        prefix = _prefix(m)
+        mass = prefix.sum(-1)
+        value = torch.where(mass > 0, prefix[..., 0] / mass.clamp_min(1e-30), torch.nan)
+        return _masked(m, value)
+    return _grouped(maps, share)
+
+
+def segment_profile(m: AttentionMap, row: int) -> np.ndarray:
+    """(A, n) the head-mean weight of each segment key at each motion position of the map's
+    row `row` (an index into `m.rows`); NaN at positions it did not query."""
+    p = m.prefix_length
+    n = m.key_valid.shape[1] - p
+    weights = m.weights[row].mean(0)[:, 1:p]  # (q, A)
+    out = np.full((p - 1, n), np.nan, dtype=np.float32)
+    out[:, m.queries[row].numpy()] = weights.T.numpy()
+    return out
+
+
+def attention_grounding(maps: Sequence[AttentionMap],
+                        spans: Sequence[Sequence[tuple[int, int]]],
+                        counts: dict[int, list[int]] | None = None) -> dict:
+    """The share of motion tokens inside the ground-truth span of segment k whose largest
+    segment weight (head mean) is on segment k, by block and overall. spans[i]: the token
+    spans [start, end) of the segments of the maps' row i, in segment order. `counts`
+    (block → [hits, tokens]) adds to the counts of earlier batches and is updated."""
+    counts = {} if counts is None else counts
+    for m in maps:
+        for row, row_spans in enumerate(spans):
+            if row >= len(m.rows) or not row_spans:
+                continue
+            profile = segment_profile(m, row)[:len(row_spans)]
+            valid = m.key_valid[row, 1:1 + len(row_spans)].numpy()
+            profile[~valid] = -np.inf
+            tally = counts.setdefault(m.block, [0, 0])
+            for k, (start, end) in enumerate(row_spans):
+                for t in range(start, min(end, profile.shape[1])):
+                    column = profile[:, t]
+                    if np.isnan(column).any():
+                        continue
+                    tally[0] += int(np.argmax(column) == k)
+                    tally[1] += 1
+    hits = sum(h for h, _ in counts.values())
+    total = sum(t for _, t in counts.values())
+    return {"by_block": {b: h / t if t else float("nan") for b, (h, t) in sorted(counts.items())},
+            "mean": hits / total if total else float("nan"),
+            "tokens": total // max(len(counts), 1)}
+
+
+def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], path: str | Path,
+                           spans: Sequence[tuple[int, int]] | None = None, fps: float = 20.0,
+                           frames_per_token: int = 4, title: str = "") -> Path:
+    """A PNG of each segment's attention (head mean) over the motion's tokens, the x axis in
+    seconds, the ground-truth spans (token units) shaded in the segment's colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    profile = segment_profile(m, row)[:len(segments)]
+    seconds = (np.arange(profile.shape[1]) + 0.5) * frames_per_token / fps
+    valid = m.key_valid[row, m.prefix_length:].numpy()
+    fig, ax = plt.subplots(figsize=(8, 3))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, text in enumerate(segments):
+        colour = colours[k % len(colours)]
+        ax.plot(seconds[valid], profile[k][valid], color=colour, label=f"{k + 1}: {text}"[:48])
+        if spans is not None and k < len(spans):
+            start, end = spans[k]
+            ax.axvspan(start * frames_per_token / fps, end * frames_per_token / fps,
+                       color=colour, alpha=0.12)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("attention weight")
+    ax.set_title(title or f"{m.stage} step {m.step}, block {m.block}", fontsize=9)
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def motion_attention(model, texts: Sequence[str], segments: Sequence[Sequence[str]],
+                     motions: Sequence[np.ndarray]) -> list[AttentionMap]:
+    """The mask transformer's attention over given motions (raw features (t, d) each, e.g.
+    real ones whose segment spans are known): one conditional pass with every base token of
+    the motion visible, recorded (`SegMo.record_attention`). Row i of each map is motion i."""
+    sentence, vectors, segment_mask, _ = model.text_condition(list(texts), [list(s) for s in segments])
+    tokens = [model.encode_motion(motion)[0, :, 0] for motion in motions]
+    n = max(len(t) for t in tokens)
+    indices = torch.zeros(len(tokens), n, dtype=torch.long, device=model.device)
+    token_mask = torch.zeros(len(tokens), n, dtype=torch.bool, device=model.device)
+    for i, t in enumerate(tokens):
+        indices[i, :len(t)], token_mask[i, :len(t)] = t, True
+    with torch.inference_mode(), model.record_attention() as recording:
+        condition = model.mask.condition(sentence, vectors, segment_mask)
+        model.mask.forward_condition(indices, token_mask, condition)
+    return recording.of("mask")
