@@ -138,6 +138,39 @@ def test_recording_attention_changes_no_generation_or_edit(model, generated):
     assert len(maps) == len(model.mask.trunk.blocks) and maps[0].rows.tolist() == [0, 1]
 
 
+@pytest.mark.parametrize("search", ["ordered", "spans", "window"])
+def test_attention_grounding_finds_a_span_per_segment(model, generated, search):
+    motion = generated.motion(0)
+    out = model.ground(PROMPTS[0], motion, search=search, method="attention")
+    assert out.method == "attention" and out.search == search and len(out.best_spans_frames) == 2
+    assert out.similarity.shape == (2, len(out.windows)) and float(out.similarity.min()) >= 0.0
+    assert all(0 <= s < e <= len(motion) for s, e in out.best_spans_frames)
+    if search == "ordered":  # a cut: contiguous, in order, covering the motion
+        (s0, e0), (s1, e1) = out.best_spans_frames
+        assert s0 == 0 and e0 == s1 and e1 == len(motion)
+    assert " att " in str(out)
+
+
+def test_attention_grounding_follows_the_attention(model, generated, monkeypatch):
+    """Tokens 0-3 attend to segment 2 and the rest to segment 1: the ordered cut cannot
+    follow (segment 1 comes first), the free spans do."""
+    import segmo.pipeline.grounding as grounding_module
+
+    real = grounding_module.segment_profile
+
+    def fake(m, row):
+        profile = real(m, row)
+        profile[:] = 0.0
+        profile[1, :4], profile[0, 4:] = 1.0, 1.0
+        return profile
+
+    monkeypatch.setattr(grounding_module, "segment_profile", fake)
+    out = model.ground(PROMPTS[0], generated.motion(0), search="spans", method="attention")
+    assert out.best_spans_frames == [(16, 48), (0, 16)]
+    with pytest.raises(SegmoError, match="method='heat'; choose from similarity, attention"):
+        model.ground(PROMPTS[0], generated.motion(0), method="heat")
+
+
 def test_bundle_round_trip_gives_identical_generations(model, generated, tmp_path):
     model.save_pretrained(tmp_path / "copy")
     loaded = SegMo.from_pretrained(tmp_path / "copy", text_encoder=hash_encoder("hash", 8))

@@ -33,6 +33,10 @@ import numpy as np
 import torch
 
 from segmo.models.attention_recorder import AttentionMap
+from segmo.pipeline.attention import motion_attention, segment_profile
+
+__all__ = ["attention_grounding", "motion_attention", "plot_segment_attention", "prefix_share",
+           "segment_profile", "sentence_share", "sink_ratio", "sink_ratio_values"]
 
 
 def _query_valid(m: AttentionMap) -> torch.Tensor:
@@ -107,17 +111,6 @@ def sentence_share(maps: Sequence[AttentionMap]) -> dict[str, dict[int, float]]:
     return _grouped(maps, share)
 
 
-def segment_profile(m: AttentionMap, row: int) -> np.ndarray:
-    """(A, n) the head-mean weight of each segment key at each motion position of the map's
-    row `row` (an index into `m.rows`); NaN at positions it did not query."""
-    p = m.prefix_length
-    n = m.key_valid.shape[1] - p
-    weights = m.weights[row].mean(0)[:, 1:p]  # (q, A)
-    out = np.full((p - 1, n), np.nan, dtype=np.float32)
-    out[:, m.queries[row].numpy()] = weights.T.numpy()
-    return out
-
-
 def attention_grounding(maps: Sequence[AttentionMap],
                         spans: Sequence[Sequence[tuple[int, int]]],
                         counts: dict[int, list[int]] | None = None) -> dict:
@@ -181,20 +174,3 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
     plt.close(fig)
     return path
 
-
-def motion_attention(model, texts: Sequence[str], segments: Sequence[Sequence[str]],
-                     motions: Sequence[np.ndarray]) -> list[AttentionMap]:
-    """The mask transformer's attention over given motions (raw features (t, d) each, e.g.
-    real ones whose segment spans are known): one conditional pass with every base token of
-    the motion visible, recorded (`SegMo.record_attention`). Row i of each map is motion i."""
-    sentence, vectors, segment_mask, _ = model.text_condition(list(texts), [list(s) for s in segments])
-    tokens = [model.encode_motion(motion)[0, :, 0] for motion in motions]
-    n = max(len(t) for t in tokens)
-    indices = torch.zeros(len(tokens), n, dtype=torch.long, device=model.device)
-    token_mask = torch.zeros(len(tokens), n, dtype=torch.bool, device=model.device)
-    for i, t in enumerate(tokens):
-        indices[i, :len(t)], token_mask[i, :len(t)] = t, True
-    with torch.inference_mode(), model.record_attention() as recording:
-        condition = model.mask.condition(sentence, vectors, segment_mask)
-        model.mask.forward_condition(indices, token_mask, condition)
-    return recording.of("mask")

@@ -133,11 +133,13 @@ def retrieval_table(retrieval: dict[str, Any]) -> str:
 
 def grounding_table(grounding: dict[str, Any]) -> str:
     """Rows: the default search (plain keys, "ordered spans") and, where present, the other
-    searches and the text-free baselines (keys "spans/...", "window/...", "uniform/...",
-    "cpd/...", "kmeans/...")."""
+    searches, attention grounding and the text-free baselines (keys "spans/...",
+    "window/...", "attention/...", "attention_spans/...", "uniform/...", "cpd/...",
+    "kmeans/...")."""
     keys = [k for k in grounding if k.startswith("R@1") or k == "mIoU"]
     rows = [["ordered spans"] + [cell(grounding[k]) for k in keys]]
     for prefix, name in (("spans", "best span"), ("window", "sliding window"),
+                         ("attention", "attention, ordered spans"), ("attention_spans", "attention, best span"),
                          ("uniform", "uniform split"), ("cpd", "change points (cpd)"),
                          ("kmeans", "k-means")):
         if all(f"{prefix}/{k}" in grounding for k in keys):

@@ -37,11 +37,19 @@ from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
 from segmo.models.alignment import isc_from_cosines, paired_cosine
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.pipeline.grounding import MIN_TOKENS, SEARCHES, locate, plot_similarity_map
+from segmo.pipeline.grounding import (
+    MIN_TOKENS,
+    SEARCHES,
+    attention_locate,
+    locate,
+    plot_similarity_map,
+)
 from segmo.pipeline.retrieval import pair_scores
 from segmo.segmentation import get_motion_segmenter, pool_tokens
 
 SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
+# Attention grounding's rows of the grounding section: key prefix → search.
+ATTENTION = {"attention": "ordered", "attention_spans": "spans"}
 SECTIONS: tuple[str, ...] = ("reconstruction", "retrieval", "grounding", "isc", "action_order")
 
 
@@ -216,10 +224,11 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
     """Ground the true segments of every caption with ≥ 2 of them, with each search of
     `segmo.pipeline.grounding` on one pass per caption; R@1 at IoU and mIoU of the chosen
     span vs the true span. Keys: the default search ("ordered") plain, "spans/...",
-    "window/..." (`--grounding-window`), and "uniform/...", "cpd/...", "kmeans/..." for the
+    "window/..." (`--grounding-window`), "attention/..." and "attention_spans/..." (method
+    "attention", searches "ordered" and "spans"), and "uniform/...", "cpd/...", "kmeans/..." for the
     text-free motion segmenters told the number of segments (baselines; cpd and kmeans on
     the z-scored features pooled per token). The maps plotted are the ordered search's."""
-    pred: dict[str, list] = {search: [] for search in SEARCHES}
+    pred: dict[str, list] = {search: [] for search in (*SEARCHES, *ATTENTION)}
     baselines: dict[str, list] = {name: [] for name in SEGMENTERS}
     gold, plotted = [], 0
     for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
@@ -234,6 +243,9 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
         found = {search: locate(space, b["caption"][r], len(motion), search,
                                 window=_windows(cfg, n, len(truth)) if search == "window" else None)
                  for search in SEARCHES}
+        for name, search in ATTENTION.items():
+            found[name] = attention_locate(model, b["caption"][r], motion, search,
+                                           segments=[s["text"] for s in truth])
         for search, g in found.items():
             pred[search] += [tuple(p) for p in g.best_spans_frames]
         gold += [(s["start"], s["end"]) for s in truth]
@@ -254,7 +266,8 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
     if not gold:
         return None
     result = {**grounding_metrics(np.array(pred["ordered"]), np.array(gold)), "queries": float(len(gold))}
-    for name, spans in (("spans", pred["spans"]), ("window", pred["window"]), *baselines.items()):
+    others = [(name, pred[name]) for name in ("spans", "window", *ATTENTION)]
+    for name, spans in (*others, *baselines.items()):
         result |= {f"{name}/{k}": v for k, v in grounding_metrics(np.array(spans), np.array(gold)).items()}
     return result
 

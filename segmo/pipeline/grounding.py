@@ -14,6 +14,15 @@ searches (`SEARCHES`):
 - "window": the paper's sliding windows of a fixed size (`window`, 5 tokens in Fig. 5;
   a list gives multi-scale windows), stepping by `stride`; each segment's best window.
 
+Two methods score the candidates (`METHODS`): "similarity" (the default, the paper's)
+compares segment and span embeddings; "attention" reads where the mask transformer's
+motion tokens look when it sees the whole motion (`segmo.pipeline.attention`): each
+token's share of the last block's segment attention (head mean) that goes to segment k.
+A candidate scores its mean share; "ordered" cuts the motion so that the summed share
+of each token's segment is highest, "spans" takes each segment's longest-heaviest run
+where it holds the majority (the span maximising the sum of share − 0.5), "window" the
+window of the highest mean share.
+
 The windows, the DP and the picture of the map live here too; how well grounding finds
 the truth (temporal IoU, `grounding_accuracy`) is `segmo.evaluation.grounding`.
 
@@ -32,24 +41,31 @@ import torch
 
 from segmo.errors import SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
+from segmo.pipeline.attention import motion_attention, segment_profile
 from segmo.pipeline.outputs import GroundingOutput
 from segmo.pipeline.space import SegmentEmbeddings, SegmentModel
 
 SEARCHES: tuple[str, ...] = ("ordered", "spans", "window")
+METHODS: tuple[str, ...] = ("similarity", "attention")
 PAPER_WINDOW = 5  # tokens, paper Fig. 5
 MIN_TOKENS = 2  # shortest span of "spans"/"ordered": one token has no motion to speak of
 
 
 def ground(model: SegmentModel, text: str, motion: Any, search: str | None = None,
            window: int | Sequence[int] | None = None, stride: int = 1,
-           min_tokens: int = MIN_TOKENS, segments: list[str] | None = None) -> GroundingOutput:
+           min_tokens: int = MIN_TOKENS, segments: list[str] | None = None,
+           method: str = "similarity") -> GroundingOutput:
     """Where each text segment of `text` happens in `motion` (raw features (t, d)).
 
     search: "ordered", "spans" or "window" (module docstring); None = "window" when a
     `window` is given (size(s) in tokens; `stride` in tokens), else "ordered". min_tokens:
-    the shortest span of "ordered" and "spans".
+    the shortest span of "ordered" and "spans". method: "similarity" or "attention".
     """
     search = check_search(search, window, stride, min_tokens)
+    if method not in METHODS:
+        raise SegmoError(f"ground: method={method!r}; choose from {', '.join(METHODS)}")
+    if method == "attention":
+        return attention_locate(model, text, motion, search, window, stride, min_tokens, segments)
     space = model.embed_segments([text], [motion],
                                  segments=None if segments is None else [segments])
     return locate(space, text, len(motion), search, window, stride, min_tokens)
@@ -83,10 +99,7 @@ def locate(space: SegmentEmbeddings, text: str, num_frames: int, search: str,
     the motion given (its pass used them cut to a multiple of 4)."""
     n = int(space.num_tokens[0])
     a = len(space.segments[0])
-    if search == "window":
-        spans = sliding_windows(n, PAPER_WINDOW if window is None else window, stride)
-    else:
-        spans = all_spans(n, min(min_tokens, n))
+    spans = candidate_spans(n, search, window, stride, min_tokens)
     spans_t = torch.from_numpy(spans)
     similarity = space.similarity(spans_t)[0, :a].float().cpu()  # (a, k)
     if search == "ordered":
@@ -103,6 +116,48 @@ def locate(space: SegmentEmbeddings, text: str, num_frames: int, search: str,
         text=text, segments=space.segments[0], windows=spans_t, similarity=similarity,
         best_spans_frames=[(int(s), int(min(e, num_frames))) for s, e in frames],
         best_scores=scores, num_frames=num_frames, search=search)
+
+
+def candidate_spans(n: int, search: str, window: int | Sequence[int] | None, stride: int,
+                    min_tokens: int) -> np.ndarray:
+    """The candidate token spans (k, 2) of `search` over n tokens."""
+    if search == "window":
+        return sliding_windows(n, PAPER_WINDOW if window is None else window, stride)
+    return all_spans(n, min(min_tokens, n))
+
+
+def attention_locate(model: Any, text: str, motion: Any, search: str,
+                     window: int | Sequence[int] | None = None, stride: int = 1,
+                     min_tokens: int = MIN_TOKENS, segments: list[str] | None = None) -> GroundingOutput:
+    """`ground` with method "attention" (module docstring)."""
+    segments = model.segment_texts([text])[0] if segments is None else list(segments)
+    maps = motion_attention(model, [text], [segments], [motion])
+    last = max(maps, key=lambda m: m.block)
+    a, n = len(segments), len(motion) // FRAMES_PER_TOKEN
+    profile = segment_profile(last, 0)[:a, :n].astype(np.float64)
+    share = profile / np.maximum(profile.sum(0, keepdims=True), 1e-30)  # (a, n)
+    spans = candidate_spans(n, search, window, stride, min_tokens)
+    cumulative = np.concatenate([np.zeros((a, 1)), share.cumsum(1)], axis=1)
+    sums = cumulative[:, spans[:, 1]] - cumulative[:, spans[:, 0]]  # (a, k)
+    lengths = (spans[:, 1] - spans[:, 0]).astype(np.float64)
+    mean = sums / lengths
+    if search == "ordered":
+        if a * min_tokens > n:
+            raise SegmoError(f"ground: {a} segments in order need {a * min_tokens} tokens of "
+                             f"at least min_tokens={min_tokens}; the motion has {n}")
+        chosen = ordered_spans(sums, spans, n)
+    elif search == "spans":
+        chosen = best_span(sums - 0.5 * lengths, spans)
+    else:
+        chosen = best_span(mean, spans)
+    index = {tuple(s): i for i, s in enumerate(spans.tolist())}
+    scores = [float(mean[k, index[tuple(s)]]) for k, s in enumerate(chosen.tolist())]
+    frames = chosen * FRAMES_PER_TOKEN
+    return GroundingOutput(
+        text=text, segments=segments, windows=torch.from_numpy(spans),
+        similarity=torch.from_numpy(mean).float(),
+        best_spans_frames=[(int(s), int(min(e, len(motion)))) for s, e in frames],
+        best_scores=scores, num_frames=len(motion), search=search, method="attention")
 
 
 def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | None = None) -> np.ndarray:

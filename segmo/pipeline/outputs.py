@@ -103,12 +103,15 @@ class GroundingOutput:
     text: the query; segments: its a text segments (rows of `similarity`).
     windows: (w, 2) long token spans [start, end) of the candidates (columns): the sliding
         windows of search "window", every span of at least `min_tokens` tokens otherwise.
-    similarity: (a, w) float cosine similarity in the learned segment space.
+    similarity: (a, w) float: method "similarity", the cosine similarity in the learned
+        segment space; method "attention", the segment's mean share of the segment
+        attention over the candidate's tokens (`segmo.pipeline.grounding`).
     best_spans_frames: per segment, the chosen span in frames [start, end) (×4 tokens,
         clipped to num_frames): its best candidate, or its span of the ordered cut;
         best_scores: that span's similarity.
     num_frames: frames of the motion that was grounded.
     search: "ordered", "spans" or "window" (`segmo.pipeline.grounding`).
+    method: "similarity" or "attention".
     """
 
     text: str
@@ -119,10 +122,12 @@ class GroundingOutput:
     best_scores: list[float]
     num_frames: int
     search: str = "window"
+    method: str = "similarity"
 
     def __str__(self) -> str:
         lines = [f"query: {self.text!r} ({self.num_frames} frames)"]
+        what = "sim" if self.method == "similarity" else "att"
         for segment, (s, e), score in zip(self.segments, self.best_spans_frames,
                                           self.best_scores):
-            lines.append(f"  frames {s:4d}-{e:<4d} sim {score:+.3f}  {segment}")
+            lines.append(f"  frames {s:4d}-{e:<4d} {what} {score:+.3f}  {segment}")
         return "\n".join(lines)

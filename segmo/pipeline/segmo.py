@@ -475,13 +475,17 @@ class SegMo:
 
     def ground(self, text: str, motion: Any, window: int | list[int] | None = None,
                stride: int = 1, segments: list[str] | None = None, search: str | None = None,
-               min_tokens: int = grounding.MIN_TOKENS) -> GroundingOutput:
+               min_tokens: int = grounding.MIN_TOKENS, method: str = "similarity"
+               ) -> GroundingOutput:
         """Where each text segment of `text` happens in `motion` (raw features (t, d)):
         search "ordered" (default; one span per segment, in order, cutting the motion),
         "spans" (each segment's best span of any length) or "window" (the paper's sliding
-        windows, the default when `window` is given); see `segmo.pipeline.grounding`."""
+        windows, the default when `window` is given); method "similarity" (default, the
+        learned segment space) or "attention" (where the mask transformer's motion tokens
+        look); see `segmo.pipeline.grounding`."""
         return grounding.ground(self, text, motion, search=search, window=window,
-                                stride=stride, min_tokens=min_tokens, segments=segments)
+                                stride=stride, min_tokens=min_tokens, segments=segments,
+                                method=method)
 
     def embed_pairs(self, texts: list[str], motions: Any, spans: Any = None, *,
                     segments: list[list[str]] | None = None, lengths: Any = None,
