@@ -16,7 +16,8 @@ from segmo.evaluation.attention import (
     sentence_share,
     sink_ratio,
 )
-from segmo.models.attention_recorder import AttentionMap, prefix_labels, record_attention
+from segmo.models.attention_recorder import AttentionMap, record_attention
+from segmo.models.transformer import prefix_labels
 
 
 def make_map(prefix: list[float], n: int = 4, prefix_valid: list[bool] | None = None,
@@ -30,7 +31,7 @@ def make_map(prefix: list[float], n: int = 4, prefix_valid: list[bool] | None = 
     if motion_valid is not None:
         valid[0, p + motion_valid:] = False
     return AttentionMap("mask", step, block, torch.tensor([0]), torch.arange(n)[None], weights,
-                        valid, [*prefix_labels(p), *(f"motion {i}" for i in range(n))])
+                        valid, [*prefix_labels(p - 1), *(f"motion {i}" for i in range(n))])
 
 
 @pytest.mark.parametrize("prefix, valid, expected", [
@@ -67,7 +68,7 @@ def test_attention_grounding_counts_tokens_on_their_segment():
     weights[0, :, :3, 1] = 0.5   # segment 1 attended on tokens 0-2
     weights[0, :, 3:, 2] = 0.5   # segment 2 on tokens 3-5
     weights[..., 0] = 0.2
-    labels = [*prefix_labels(3), *(f"motion {i}" for i in range(n))]
+    labels = [*prefix_labels(2), *(f"motion {i}" for i in range(n))]
     m = AttentionMap("mask", 0, 0, torch.tensor([0]), torch.arange(n)[None], weights,
                      torch.ones(1, 3 + n, dtype=torch.bool), labels)
     assert attention_grounding([m], [[(0, 3), (3, 6)]])["mean"] == 1.0

@@ -446,6 +446,13 @@ def test_cli_ground_prints_spans(bundle, generated, tmp_path, hash_text_encoder,
     printed = capsys.readouterr().out
     assert "a person walks forward" in printed and "a person waves" in printed
     assert printed.count("frames ") == 2 and (tmp_path / "map.png").stat().st_size > 0
+    ground_main(["--model", str(bundle), "--text", PROMPTS[0], "--motion", str(motion),
+                 "--method", "attention", "--out", str(tmp_path / "attention.png")])
+    printed = capsys.readouterr().out
+    assert printed.count(" att ") == 2 and (tmp_path / "attention.png").stat().st_size > 0
+    line = cli_failure(["ground", "--model", str(bundle), "--text", "x", "--motion", str(motion),
+                        "--method", "heat"], capsys)
+    assert "argument --method" in line
     np.save(tmp_path / "joints.npy", generated.motion_joints(0))
     line = cli_failure(["ground", "--model", str(bundle), "--text", "x", "--motion",
                         str(tmp_path / "joints.npy")], capsys)

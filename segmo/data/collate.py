@@ -29,8 +29,9 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     (True = valid frame), ``lengths`` (b,) long; lists for ``caption``, ``segments``, ``id``,
     ``caption_index``, ``spans`` (whichever the samples have); and when text features are
     present ``sentence`` (b, dim), ``segment_features`` (b, A, dim), ``segment_mask``
-    (b, A) bool; frame ``labels`` (b, t) long padded with `IGNORE`; cached motion
-    ``tokens`` (b, t // 4, q) long padded with 0.
+    (b, A) bool; per-word ``word_features`` (b, l, dim) zero-padded to the longest caption
+    with ``word_mask`` (b, l) bool; frame ``labels`` (b, t) long padded with `IGNORE`;
+    cached motion ``tokens`` (b, t // 4, q) long padded with 0.
     """
     if not samples:
         raise ValueError("collate: empty list of samples")
@@ -50,6 +51,8 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     for key in ("sentence", "segment_features", "segment_mask"):
         if key in keys:
             batch[key] = torch.stack([s[key] for s in samples])
+    if "word_features" in keys:
+        batch["word_features"], batch["word_mask"] = _pad([s["word_features"] for s in samples])
     if "tokens" in keys:  # padded tokens are 0, a code: the token mask leaves them out
         batch["tokens"] = _pad([s["tokens"] for s in samples])[0]
     if "labels" in keys:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -46,7 +46,9 @@ class MotionDataModule(LightningDataModule):
     one batch. ``group_by_length`` (caption samples only) forms each train batch from clips
     of similar length (`segmo.data.sampling.group_by_length`): a batch pads to its own
     longest clip, which on the built-in corpus cuts the padded positions of the token
-    stages by about a third. ``max_abs_z`` bounds the feature values
+    stages by about a third. ``text_tokens="words"`` adds each caption's per-word features
+    from the text-feature cache (word-level conditioning; linked to the transformers'
+    ``text_tokens`` under ``segmo fit``). ``max_abs_z`` bounds the feature values
     (`segmo.data.checks`; None checks for NaN/inf only). ``unit_length`` is obsolete: a
     motion token is `FRAMES_PER_TOKEN` frames, fixed by the tokenizer's encoder; configs
     written when it was an option (``unit_length: 4``) still load, any other value is an error.
@@ -76,6 +78,7 @@ class MotionDataModule(LightningDataModule):
         max_abs_z: float | None = MAX_ABS_Z,
         frame_labels: bool = False,
         group_by_length: bool = False,
+        text_tokens: Literal["none", "words"] = "none",
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -103,6 +106,7 @@ class MotionDataModule(LightningDataModule):
         self.max_abs_z = max_abs_z
         self.frame_labels = frame_labels
         self.group_by_length = group_by_length
+        self.text_tokens = text_tokens
         self.datasets: dict[str, Dataset] = {}
 
     @property
@@ -158,7 +162,8 @@ class MotionDataModule(LightningDataModule):
             return MotionWindowDataset(self.root, split, window=self.window if train else None,
                                        **common)
         return MotionDataset(self.root, split, text_segments=self.text_segments,
-                             text_cache=self.text_cache, max_segments=self.max_segments, **common)
+                             text_cache=self.text_cache, max_segments=self.max_segments,
+                             text_tokens=self.text_tokens, **common)
 
     def setup(self, stage: str | None = None) -> None:
         splits = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",),

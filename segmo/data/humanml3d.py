@@ -216,7 +216,8 @@ class MotionDataset(Dataset):
     (``text_segments/<name>/<id>.txt``, else ``[caption]``); ``id``; ``caption_index``;
     ``spans`` list[(start, end)] frames of the returned motion, end exclusive, or None; and
     with a text-feature cache ``sentence`` (dim,), ``segment_features`` (A, dim) zero-padded,
-    ``segment_mask`` (A,) bool.
+    ``segment_mask`` (A,) bool, and with ``text_tokens="words"`` the caption's per-word
+    features ``word_features`` (l, dim) (the encoder's tokens, start and end included).
 
     Cropping to whole tokens drops ``t % FRAMES_PER_TOKEN`` frames: at a random
     offset when ``random_crop`` (training), else from the end (start 0, evaluation). Spans
@@ -243,9 +244,13 @@ class MotionDataset(Dataset):
         preload: bool = True,
         strict: bool = False,
         max_abs_z: float | None = MAX_ABS_Z,
+        text_tokens: str = "none",
     ) -> None:
         if max_segments < 1:
             raise SegmoError(f"max_segments={max_segments} must be at least 1")
+        if text_tokens not in ("none", "words"):
+            raise SegmoError(f"text_tokens={text_tokens!r}: choose none or words")
+        self.text_tokens = text_tokens
         self.root = Path(root)
         self.split = split
         self.skeleton = get_skeleton(skeleton)
@@ -414,7 +419,9 @@ class MotionDataset(Dataset):
         features[: seg.shape[0]] = seg
         mask = torch.zeros(self.max_segments, dtype=torch.bool)
         mask[: seg.shape[0]] = True
-        # Per-word features (`cache.tokens(e.caption)`) come back here with word-level conditioning.
-        return {"sentence": cache.sentence([e.caption])[0].float(), "segment_features": features,
-                "segment_mask": mask}
+        out = {"sentence": cache.sentence([e.caption])[0].float(), "segment_features": features,
+               "segment_mask": mask}
+        if self.text_tokens == "words":
+            out["word_features"] = cache.tokens(e.caption)
+        return out
 

@@ -44,12 +44,15 @@ def edit_tokens(
     options: SamplingOptions | None = None,
     generator: torch.Generator | None = None,
     precision: Precision = "auto",
+    words: torch.Tensor | None = None,
+    word_mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Regenerate the tokens of a span under new text conditioning (temporal inpainting).
 
     indices (b, n, q) long from `generate_tokens` (−1 marks padding in layer 0);
     span (start_token, end_token), end exclusive, or a (b, 2) long tensor of per-sample
-    spans; new text, options, generator and precision as in `generate_tokens`. Base tokens
+    spans; new text (words and word_mask too), options, generator and precision as in
+    `generate_tokens`. Base tokens
     inside the span are re-masked and refilled with everything outside visible as context;
     residual tokens are regenerated inside the span only. Every token outside the span is
     returned unchanged.
@@ -71,7 +74,8 @@ def edit_tokens(
     position = torch.arange(n, device=indices.device)
     editable = (position >= start) & (position < end) & token_mask
     return fill_tokens(mask_model, residual_model, indices, editable, token_mask, sentence,
-                       segments, segment_mask, options or SamplingOptions(), generator, precision)
+                       segments, segment_mask, options or SamplingOptions(), generator, precision,
+                       words, word_mask)
 
 
 def edit_drift(original: Any, edited: Any, span: tuple[int, int]) -> dict[int, float]:

@@ -51,12 +51,19 @@ def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Ten
 
 
 def guidance_condition(model: MaskTransformer | ResidualTransformer, sentence: torch.Tensor,
-                       segments: torch.Tensor, segment_mask: torch.Tensor) -> Condition:
-    """The prefix of a 2b-row guidance batch: rows 0..b−1 conditional, b..2b−1 not."""
+                       segments: torch.Tensor, segment_mask: torch.Tensor,
+                       words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
+                       ) -> Condition:
+    """The prefix of a 2b-row guidance batch: rows 0..b−1 conditional, b..2b−1 not (their
+    words dropped with the rest). words (b, l, text_dim), word_mask (b, l): the captions'
+    word features, for a model with word keys."""
     b = sentence.shape[0]
     drop = torch.arange(2 * b, device=sentence.device) >= b
+    two = (lambda x: None if x is None else torch.cat([x, x]))  # noqa: E731
+    extra = {} if model.config.text_tokens == "none" else {
+        "words": two(words), "word_mask": two(word_mask)}
     return model.condition(torch.cat([sentence, sentence]), torch.cat([segments, segments]),
-                           torch.cat([segment_mask, segment_mask]), drop)
+                           torch.cat([segment_mask, segment_mask]), drop, **extra)
 
 
 def guided_logits(logits: torch.Tensor, scale: float) -> torch.Tensor:
@@ -211,7 +218,7 @@ def check_models(mask_model: MaskTransformer, residual_model: ResidualTransforme
     """ValueError unless the two transformers share codebook, text width and segments."""
     if residual_model is None:
         return
-    for field in ("codebook_size", "text_dim", "max_segments"):
+    for field in ("codebook_size", "text_dim", "max_segments", "text_tokens"):
         a, b = getattr(mask_model.config, field), getattr(residual_model.config, field)
         if a != b:
             raise ValueError(f"mask and residual transformers disagree on {field}: {a} vs {b}")
@@ -221,7 +228,8 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
                 indices: torch.Tensor, editable: torch.Tensor, token_mask: torch.Tensor,
                 sentence: torch.Tensor, segments: torch.Tensor, segment_mask: torch.Tensor,
                 options: SamplingOptions, generator: torch.Generator | None,
-                precision: Precision) -> torch.Tensor:
+                precision: Precision, words: torch.Tensor | None = None,
+                word_mask: torch.Tensor | None = None) -> torch.Tensor:
     """Draw the `editable` tokens of `indices` under a text condition; keep the others.
 
     indices (b, n, q) long; editable ⊆ token_mask (b, n) bool. Base tokens at the editable
@@ -231,14 +239,15 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
     """
     models = [mask_model] + ([residual_model] if residual_model is not None else [])
     with _inference(models, precision, sentence.device):
-        condition = guidance_condition(mask_model, sentence, segments, segment_mask)
+        condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask)
         ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
         base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
         out = indices.clone()
         out[..., 0] = torch.where(token_mask, base, -1)
         if residual_model is None:
             return out
-        condition = guidance_condition(residual_model, sentence, segments, segment_mask)
+        condition = guidance_condition(residual_model, sentence, segments, segment_mask, words,
+                                       word_mask)
         return residual_decode(residual_model, out, editable, token_mask, condition, options,
                                generator)
 
@@ -254,10 +263,13 @@ def generate_tokens(
     options: SamplingOptions | None = None,
     generator: torch.Generator | None = None,
     precision: Precision = "auto",
+    words: torch.Tensor | None = None,
+    word_mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Text → motion tokens, drawn as `options` say (default `SamplingOptions()`).
 
-    sentence (b, text_dim), segments (b, a, text_dim), segment_mask (b, a) bool,
+    sentence (b, text_dim), segments (b, a, text_dim), segment_mask (b, a) bool, words
+    (b, l, text_dim) and word_mask (b, l) bool (for models with word keys; ignored by others),
     lengths (b,) frames (multiples of 4 in [4, 4·max_tokens]) → indices (b, n, q) long with
     n = max(lengths) // 4, q = residual_model.config.num_quantizers (1 without a residual
     model); positions beyond a sample's length hold −1. Models run in eval mode (their mode
@@ -270,7 +282,8 @@ def generate_tokens(
     q = residual_model.config.num_quantizers if residual_model is not None else 1
     empty = torch.full((*token_mask.shape, q), -1, device=sentence.device)
     return fill_tokens(mask_model, residual_model, empty, token_mask, token_mask, sentence,
-                       segments, segment_mask, options or SamplingOptions(), generator, precision)
+                       segments, segment_mask, options or SamplingOptions(), generator, precision,
+                       words, word_mask)
 
 
 def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from segmo.models.transformer import SelfAttention, Trunk
+from segmo.models.transformer import SelfAttention, Trunk, prefix_labels
 
 
 @dataclass
@@ -47,8 +47,8 @@ class AttentionMap:
     weights: (r, heads, m, keys) float32, post-softmax; keys = prefix slots, then motion
              positions 0..n−1.
     key_valid: (r, keys) bool, the keys that could be attended to.
-    key_labels: one label per key: "sentence", "segment k" (k from 1), "motion i", and the
-             model's further prefix kinds where it has them.
+    key_labels: one label per key: "sentence", "segment k" (k from 1), "word w" (w from 0,
+             the start token) where the model has word keys, then "motion i".
     """
 
     stage: str
@@ -76,11 +76,6 @@ class AttentionRecording:
 
     def steps(self, stage: str) -> int:
         return 1 + max((m.step for m in self.of(stage)), default=-1)
-
-
-def prefix_labels(num_prefix: int) -> list[str]:
-    """Labels of a `TextPrefix` layout of p = 1 + A slots: sentence, segment 1..A."""
-    return ["sentence", *(f"segment {k}" for k in range(1, num_prefix))]
 
 
 def _weights(q: torch.Tensor, k: torch.Tensor, key_valid: torch.Tensor) -> torch.Tensor:
@@ -124,7 +119,7 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
             counters[stage] = state.step + 1
             state.rows = torch.nonzero(mask.any(dim=1)).flatten()
             state.positions = positions
-            state.labels = [*prefix_labels(mask.shape[1]),
+            state.labels = [*(prefix.labels or prefix_labels(mask.shape[1] - 1)),
                             *(f"motion {i}" for i in range(tokens.shape[1]))]
             state.last_block = len(blocks) - 1
             try:

@@ -83,7 +83,8 @@ class MaskTransformer(nn.Module, Pretrained):
         self.mask_id = config.codebook_size
         self.pad_id = config.codebook_size + 1
         self.token_embedding = nn.Embedding(config.codebook_size + 2, config.dim)
-        self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments)
+        self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
+                                 config.text_tokens, config.max_words)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
                            config.norm_first, config.max_tokens)
         self.head = TokenHead(config.dim)
@@ -96,12 +97,17 @@ class MaskTransformer(nn.Module, Pretrained):
 
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
                   segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
-                  unordered: torch.Tensor | None = None) -> Condition:
+                  unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
+                  word_mask: torch.Tensor | None = None) -> Condition:
         """Prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which does not
         depend on the motion tokens: computed once per generation, reused at every step.
-        `unordered` (b,) bool: rows whose segments enter without order (`TextPrefix`)."""
-        condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered)
-        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        `unordered` (b,) bool: rows whose segments enter without order; `words`
+        (b, l, text_dim), `word_mask` (b, l): the caption's word features, used where
+        `config.text_tokens` is "words" (`TextPrefix`)."""
+        condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered,
+                                words, word_mask)
+        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask,
+                                                      condition.labels)
         return condition
 
     def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
@@ -122,19 +128,21 @@ class MaskTransformer(nn.Module, Pretrained):
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),
             motion_features=motion,
-            segment_features=condition.content[:, 1:],
+            segment_features=condition.content[:, 1:],  # the segments (content has no words)
             sentence_features=condition.content[:, 0],
         )
 
     def forward(self, indices: torch.Tensor, token_mask: torch.Tensor, sentence: torch.Tensor,
                 segments: torch.Tensor, segment_mask: torch.Tensor,
                 drop_condition: torch.Tensor | None = None,
-                unordered: torch.Tensor | None = None) -> MaskTransformerOutput:
+                unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
+                word_mask: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long with masked positions already replaced by `mask_id`;
         token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim) in
         execution order; segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free
         guidance); unordered (b,) bool (segments as a set, as grounding uses them)."""
-        condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered)
+        condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered,
+                                   words, word_mask)
         return self.forward_condition(indices, token_mask, condition)
 
 

@@ -69,7 +69,8 @@ class ResidualTransformer(nn.Module, Pretrained):
         )
         self.output_bias = nn.Parameter(torch.zeros(config.num_quantizers, config.codebook_size))
         self.layer_embeddings = nn.Parameter(torch.randn(config.num_quantizers, config.dim) * 0.02)
-        self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments)
+        self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
+                                 config.text_tokens, config.max_words)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
                            config.norm_first, config.max_tokens)
         self.head = TokenHead(config.dim)
@@ -82,12 +83,16 @@ class ResidualTransformer(nn.Module, Pretrained):
         return self.code_embeddings[layer]
 
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
-                  segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None
+                  segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
+                  words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
                   ) -> Condition:
         """Text prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which depends
-        on neither the motion nor the layer: computed once for all residual passes."""
-        condition = self.prefix(sentence, segments, segment_mask, drop_condition)
-        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask)
+        on neither the motion nor the layer: computed once for all residual passes. `words`
+        and `word_mask`: as in `MaskTransformer.condition`."""
+        condition = self.prefix(sentence, segments, segment_mask, drop_condition, None,
+                                words, word_mask)
+        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask,
+                                                      condition.labels)
         return condition
 
     def embed_layer(self, indices: torch.Tensor, layer: int) -> torch.Tensor:
@@ -140,12 +145,14 @@ class ResidualTransformer(nn.Module, Pretrained):
 
     def forward(self, indices: torch.Tensor, layer: torch.Tensor | int,
                 token_mask: torch.Tensor, sentence: torch.Tensor, segments: torch.Tensor,
-                segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None
+                segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
+                words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
                 ) -> ResidualTransformerOutput:
         """indices (b, n, q) codes (layers ≥ layer are ignored), layer (b,) long or int in
         1..q−1, token_mask (b, n), sentence (b, text_dim), segments (b, a, text_dim),
         segment_mask (b, a), drop_condition (b,) bool → logits of layer `layer`."""
-        condition = self.condition(sentence, segments, segment_mask, drop_condition)
+        condition = self.condition(sentence, segments, segment_mask, drop_condition, words,
+                                   word_mask)
         return self.forward_embedded(self.embed(indices, layer), layer, token_mask, condition)
 
     def _layer_tensor(self, layer: torch.Tensor | int, b: int, device) -> torch.Tensor:

@@ -44,6 +44,14 @@ class TransformerConfig:
     dropout: float = 0.2
     # MoMask uses PyTorch's default post-norm encoder layer; pre-norm trains more stably.
     norm_first: bool = False
+    # Word-level conditioning (MLA-Gen): "words" adds the caption's per-word features of the
+    # text encoder (start and end tokens included) as further prefix keys (`TextPrefix`);
+    # "none" is the model without them. max_words: the most word keys (CLIP's 77 tokens).
+    text_tokens: str = "none"
+    max_words: int = 77
+
+
+TEXT_TOKENS: tuple[str, ...] = ("none", "words")
 
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
@@ -95,6 +103,13 @@ class PrefixKeys:
     keys: torch.Tensor
     values: torch.Tensor
     mask: torch.Tensor
+
+
+def prefix_labels(num_segments: int, num_words: int = 0) -> list[str]:
+    """The kind of each prefix slot, in order: "sentence", "segment 1".."segment A", then
+    "word 0".."word L−1" where the model has word keys."""
+    return ["sentence", *(f"segment {k}" for k in range(1, num_segments + 1)),
+            *(f"word {w}" for w in range(num_words))]
 
 
 class SelfAttention(nn.Module):
@@ -171,18 +186,21 @@ class Block(nn.Module):
 class Condition:
     """Text conditioning as prefix tokens, computed once per generation.
 
-    tokens:  (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A).
+    tokens:  (b, p, dim) prefix embeddings (p = 1 + A: sentence, segments 1..A; + L word
+             slots in a model with word keys).
     mask:    (b, p) bool, True = the slot takes part in attention.
-    content: (b, p, dim) the projected text vectors alone, without type or order
-             embeddings: what each slot says, the text side of segment alignment.
+    content: (b, 1 + A, dim) the projected sentence and segment vectors alone, without type
+             or order embeddings: what each slot says, the text side of segment alignment.
     encoded: the prefix run through the trunk (the models' `condition()` fill it, so that
              one encoding serves every pass of a generation); None = encode on each call.
+    labels:  the kind of each of the p slots (`prefix_labels`).
     """
 
     tokens: torch.Tensor
     mask: torch.Tensor
     content: torch.Tensor
     encoded: EncodedPrefix | None = None
+    labels: list[str] | None = None
 
 
 class TextPrefix(nn.Module):
@@ -205,14 +223,29 @@ class TextPrefix(nn.Module):
     motion does rather than by where the caption put it. Dropping the condition
     (classifier-free guidance) masks the whole prefix out of attention, so the unconditional
     branch is a row of the same batch with no parameter of its own.
+
+    With `text_tokens="words"` the caption's per-word features (start and end tokens
+    included) follow as L further slots, through the same projection, with a word kind
+    embedding and a learned word-position embedding; padded words are masked out of
+    attention and dropped with the rest of the condition. A prefix without word keys
+    ignores `words`.
     """
 
-    def __init__(self, text_dim: int, dim: int, max_segments: int) -> None:
+    def __init__(self, text_dim: int, dim: int, max_segments: int, text_tokens: str = "none",
+                 max_words: int = 77) -> None:
         super().__init__()
+        if text_tokens not in TEXT_TOKENS:
+            raise ValueError(f"TextPrefix: text_tokens must be one of {', '.join(TEXT_TOKENS)}, "
+                             f"got {text_tokens!r}")
         self.max_segments = max_segments
+        self.text_tokens = text_tokens
+        self.max_words = max_words
         self.project = nn.Linear(text_dim, dim)
         self.types = nn.Parameter(torch.randn(2, dim) * 0.02)  # sentence, segment
         self.order = nn.Parameter(torch.randn(max_segments, dim) * 0.02)  # segment 1..A
+        if text_tokens == "words":  # absent otherwise: a model without words is unchanged
+            self.word_type = nn.Parameter(torch.randn(1, dim) * 0.02)
+            self.word_position = nn.Parameter(torch.randn(max_words, dim) * 0.02)
 
     def forward(
         self,
@@ -221,11 +254,15 @@ class TextPrefix(nn.Module):
         segment_mask: torch.Tensor,
         drop_condition: torch.Tensor | None = None,
         unordered: torch.Tensor | None = None,
+        words: torch.Tensor | None = None,
+        word_mask: torch.Tensor | None = None,
     ) -> Condition:
         """sentence (b, text_dim), segments (b, a, text_dim) in execution order,
         segment_mask (b, a) bool, drop_condition (b,) bool or None, unordered (b,) bool or
-        None: rows whose segments enter as a set, without order embeddings → Condition
-        with p = 1 + a."""
+        None: rows whose segments enter as a set, without order embeddings; words
+        (b, l, text_dim) and word_mask (b, l) bool: the caption's word features (a model
+        with word keys needs them, one without ignores them) → Condition with p = 1 + a
+        (+ l)."""
         b, a = segment_mask.shape
         if sentence.dim() != 2 or segments.shape[:2] != (b, a) or sentence.shape[0] != b:
             raise ValueError(
@@ -248,7 +285,26 @@ class TextPrefix(nn.Module):
         if drop_condition is not None:
             valid = valid & ~drop_condition.bool()[:, None]
         tokens = (content + slots).masked_fill(~valid[..., None], 0.0)
-        return Condition(tokens=tokens, mask=valid, content=content)
+        if self.text_tokens == "none":
+            return Condition(tokens=tokens, mask=valid, content=content, labels=prefix_labels(a))
+        if words is None or word_mask is None:
+            raise ValueError("TextPrefix: this model conditions on words (text_tokens='words'): "
+                             "give words and word_mask")
+        l = word_mask.shape[1]  # noqa: E741
+        if words.shape[:2] != (b, l) or word_mask.shape[0] != b or words.dim() != 3:
+            raise ValueError(f"TextPrefix: expected words (b, l, text_dim) and word_mask (b, l) "
+                             f"for b={b}; got {tuple(words.shape)}, {tuple(word_mask.shape)}")
+        if l > self.max_words:
+            raise ValueError(f"TextPrefix: {l} word slots given, the model has max_words={self.max_words}")
+        word_valid = word_mask.bool()
+        word_content = self.project(words.masked_fill(~word_valid[..., None], 0.0).to(sentence.dtype))
+        if drop_condition is not None:
+            word_valid = word_valid & ~drop_condition.bool()[:, None]
+        word_tokens = (word_content + self.word_type + self.word_position[:l]).masked_fill(
+            ~word_valid[..., None], 0.0)
+        return Condition(tokens=torch.cat([tokens, word_tokens], dim=1),
+                         mask=torch.cat([valid, word_valid], dim=1), content=content,
+                         labels=prefix_labels(a, l))
 
 
 @dataclass
@@ -258,6 +314,7 @@ class EncodedPrefix:
     serves every decoding step of a generation."""
 
     blocks: list[PrefixKeys]
+    labels: list[str] | None = None  # the kind of each prefix slot (`prefix_labels`)
 
 
 class Trunk(nn.Module):
@@ -278,8 +335,10 @@ class Trunk(nn.Module):
         # Post-norm blocks already end in a LayerNorm; pre-norm needs a final one.
         self.norm = nn.LayerNorm(dim) if norm_first else nn.Identity()
 
-    def encode_prefix(self, prefix: torch.Tensor, prefix_mask: torch.Tensor) -> EncodedPrefix:
-        """prefix (b, p, dim) tokens, prefix_mask (b, p) bool valid slots → EncodedPrefix.
+    def encode_prefix(self, prefix: torch.Tensor, prefix_mask: torch.Tensor,
+                      labels: list[str] | None = None) -> EncodedPrefix:
+        """prefix (b, p, dim) tokens, prefix_mask (b, p) bool valid slots, labels the kind
+        of each slot (kept for the attention recorder) → EncodedPrefix.
 
         A row without any valid slot (condition dropped) lets its slots attend to each
         other so that its keys and values stay finite; no motion token ever attends to them.
@@ -291,13 +350,13 @@ class Trunk(nn.Module):
         for block in self.blocks:
             x, (keys, values) = block(x, among)
             blocks.append(PrefixKeys(keys, values, prefix_mask))
-        return EncodedPrefix(blocks=blocks)
+        return EncodedPrefix(blocks=blocks, labels=labels)
 
     def encoded(self, condition: Condition) -> EncodedPrefix:
         """The condition's encoded prefix: the cached one from `condition()`, else a fresh one."""
         if condition.encoded is not None:
             return condition.encoded
-        return self.encode_prefix(condition.tokens, condition.mask)
+        return self.encode_prefix(condition.tokens, condition.mask, condition.labels)
 
     def forward_motion(self, tokens: torch.Tensor, token_mask: torch.Tensor,
                        prefix: EncodedPrefix, positions: torch.Tensor | None = None

@@ -29,8 +29,10 @@ def motion_attention(model: Any, texts: Sequence[str], segments: Sequence[Sequen
     token_mask = torch.zeros(len(tokens), n, dtype=torch.bool, device=model.device)
     for i, t in enumerate(tokens):
         indices[i, :len(t)], token_mask[i, :len(t)] = t, True
+    words, word_mask = model.word_condition(list(texts))
     with torch.inference_mode(), model.record_attention() as recording:
-        condition = model.mask.condition(sentence, vectors, segment_mask)
+        condition = model.mask.condition(sentence, vectors, segment_mask, words=words,
+                                         word_mask=word_mask)
         model.mask.forward_condition(indices, token_mask, condition)
     return recording.of("mask")
 
@@ -38,9 +40,9 @@ def motion_attention(model: Any, texts: Sequence[str], segments: Sequence[Sequen
 def segment_profile(m: AttentionMap, row: int) -> np.ndarray:
     """(A, n) the head-mean weight of each segment key at each motion position of the map's
     row `row` (an index into `m.rows`); NaN at positions it did not query."""
-    p = m.prefix_length
-    n = m.key_valid.shape[1] - p
-    weights = m.weights[row].mean(0)[:, 1:p]  # (q, A)
-    out = np.full((p - 1, n), np.nan, dtype=np.float32)
+    keys = [i for i, label in enumerate(m.key_labels) if label.startswith("segment ")]
+    n = m.key_valid.shape[1] - m.prefix_length
+    weights = m.weights[row].mean(0)[:, keys]  # (q, A)
+    out = np.full((len(keys), n), np.nan, dtype=np.float32)
     out[:, m.queries[row].numpy()] = weights.T.numpy()
     return out

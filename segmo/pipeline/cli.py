@@ -27,7 +27,13 @@ from segmo.errors import (
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.sampling import SamplingOptions
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
-from segmo.pipeline.grounding import MIN_TOKENS, PAPER_WINDOW, SEARCHES, plot_similarity_map
+from segmo.pipeline.grounding import (
+    METHODS,
+    MIN_TOKENS,
+    PAPER_WINDOW,
+    SEARCHES,
+    plot_similarity_map,
+)
 from segmo.pipeline.outputs import FORMATS
 from segmo.pipeline.segmo import SegMo
 
@@ -128,6 +134,9 @@ def ground_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--stride", type=positive_int, default=1, help="window stride in tokens")
     parser.add_argument("--min-tokens", type=positive_int, default=MIN_TOKENS,
                         help="shortest span of --search ordered/spans, in tokens")
+    parser.add_argument("--method", choices=METHODS, default="similarity",
+                        help="similarity (default): the learned segment space; attention: where "
+                             "the mask transformer's motion tokens look")
     parser.add_argument("--out", default=None, help="save the similarity map (e.g. map.png)")
     args = parser.parse_args(argv)
     motion = npy_argument(parser, "--motion", args.motion)
@@ -145,7 +154,8 @@ def ground_main(argv: list[str] | None = None) -> None:
     except SegmoError as error:
         raise SegmoError(f"--motion {args.motion}: {error}") from None
     out = model.ground(args.text, motion, search=args.search, window=args.window,
-                       stride=args.stride, min_tokens=args.min_tokens, segments=segments)
+                       stride=args.stride, min_tokens=args.min_tokens, segments=segments,
+                       method=args.method)
     print(out)
     if args.out:
         # matplotlib on use, its file backend chosen before plotting imports pyplot.

@@ -265,7 +265,8 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
         _, ax = plt.subplots(figsize=(max(4.0, 0.12 * sim.shape[1] + 2),
                                       0.5 * len(output.segments) + 1.5))
     image = ax.imshow(sim, aspect="auto", cmap=cmap, interpolation="nearest")
-    ax.figure.colorbar(image, ax=ax, label="cosine similarity")
+    label = "cosine similarity" if output.method == "similarity" else "share of the segment attention"
+    ax.figure.colorbar(image, ax=ax, label=label)
     for row, (start, end) in enumerate(output.best_spans_frames):
         if by_token:
             col, width = start // FRAMES_PER_TOKEN, -(-end // FRAMES_PER_TOKEN) - start // FRAMES_PER_TOKEN

@@ -81,7 +81,7 @@ class SegMo:
             if residual.config.num_quantizers > tokenizer.num_quantizers:
                 raise SegmoError(f"SegMo: residual num_quantizers={residual.config.num_quantizers}"
                                  f" > tokenizer num_quantizers={tokenizer.num_quantizers}")
-            for field in ("codebook_size", "text_dim", "max_segments"):
+            for field in ("codebook_size", "text_dim", "max_segments", "text_tokens"):
                 a, b = getattr(mask.config, field), getattr(residual.config, field)
                 if a != b:
                     raise SegmoError(f"SegMo: mask and residual transformers disagree on "
@@ -117,6 +117,7 @@ class SegMo:
         self._text_encoder = text_encoder
         self._text_segmenter = text_segmenter
         self._sentence_cache: dict[str, torch.Tensor] = {}
+        self._word_cache: dict[str, torch.Tensor] = {}
 
     # -- construction, saving --------------------------------------------------------------
 
@@ -265,6 +266,32 @@ class SegMo:
             k += len(segs)
         return self.encode_texts(list(texts)), vectors, mask, segments
 
+    @property
+    def uses_words(self) -> bool:
+        """Whether the transformers condition on the captions' words (text_tokens "words")."""
+        return self.mask.config.text_tokens == "words"
+
+    def word_condition(self, texts: list[str]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """texts (b) → their per-word features (b, l, text_dim) (the text encoder's tokens,
+        start and end tokens included, padded to the longest text) and word_mask (b, l)
+        bool, for transformers with word keys; (None, None) for the others. Cached in memory
+        per text like the sentence vectors."""
+        if not self.uses_words:
+            return None, None
+        texts = check_texts(texts)
+        missing = list(dict.fromkeys(t for t in texts if t not in self._word_cache))
+        if missing:
+            out = self.text_encoder.encode(missing)
+            for i, text in enumerate(missing):
+                self._word_cache[text] = out.tokens[i][out.token_mask[i].bool()].float().cpu()
+        rows = [self._word_cache[t][: self.mask.config.max_words] for t in texts]
+        length = max(len(r) for r in rows)
+        words = torch.zeros(len(texts), length, self.mask.config.text_dim, device=self.device)
+        mask = torch.zeros(len(texts), length, dtype=torch.bool, device=self.device)
+        for i, row in enumerate(rows):
+            words[i, : len(row)], mask[i, : len(row)] = row.to(self.device), True
+        return words, mask
+
     # -- motion side -------------------------------------------------------------------------
 
     def check_lengths(self, lengths: Any, b: int) -> torch.Tensor:
@@ -357,9 +384,10 @@ class SegMo:
         if lengths is None:
             lengths = self.sample_lengths(texts, generator)
         lengths = self.check_lengths(lengths, len(texts))
+        words, word_mask = self.word_condition(texts)
         tokens = generate_tokens(self.mask, self.residual, sentence, vectors, segment_mask,
                                  lengths, options=options, generator=generator,
-                                 precision=precision)
+                                 precision=precision, words=words, word_mask=word_mask)
         return self.decode(tokens, lengths, texts, segments, precision)
 
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
@@ -401,9 +429,11 @@ class SegMo:
         texts = [text] * b
         sentence, vectors, segment_mask, used = self.text_condition(
             texts, None if segments is None else [segments] * b)
+        words, word_mask = self.word_condition(texts)
         edited = edit_tokens(self.mask, self.residual, tokens, token_span((start, end)),
                              sentence, vectors, segment_mask, options=options,
-                             generator=generator, precision=precision)
+                             generator=generator, precision=precision, words=words,
+                             word_mask=word_mask)
         return self.decode(edited, lengths, texts, used, precision)
 
     @contextmanager
@@ -440,8 +470,9 @@ class SegMo:
         sentence, vectors, segment_mask, used = self.text_condition(texts, segments)
         if len(texts) != z.shape[0]:
             raise SegmoError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
+        words, word_mask = self.word_condition(texts)
         return embed_segments(self.tokenizer, self.mask, z, frames, sentence, vectors,
-                              segment_mask, used)
+                              segment_mask, used, words, word_mask)
 
     def _batch_motions(self, motions: Any, lengths: Any, normalized: bool
                        ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -85,12 +85,15 @@ def alignment_head(mask: MaskTransformer) -> AlignmentHead:
 
 def embed_segments(tokenizer: RVQVAE, mask: MaskTransformer, z: torch.Tensor,
                    frames: torch.Tensor, sentence: torch.Tensor, vectors: torch.Tensor,
-                   segment_mask: torch.Tensor, segments: list[list[str]]) -> SegmentEmbeddings:
+                   segment_mask: torch.Tensor, segments: list[list[str]],
+                   words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
+                   ) -> SegmentEmbeddings:
     """One unmasked pass of the mask transformer over b pairs.
 
     z (b, t, d) z-scored motions padded with zeros, frames (b,) their lengths (multiples
     of 4); sentence (b, text_dim), vectors (b, a, text_dim), segment_mask (b, a) bool and
-    segments: the text condition (`SegMo.text_condition`).
+    segments: the text condition (`SegMo.text_condition`); words, word_mask: the texts'
+    word features for a model with word keys (`SegMo.word_condition`).
     """
     head = alignment_head(mask)
     with torch.inference_mode():
@@ -101,7 +104,8 @@ def embed_segments(tokenizer: RVQVAE, mask: MaskTransformer, z: torch.Tensor,
         # Segments as a set: the motion features must say where each segment is from what
         # the motion does, not from where the caption put it (`TextPrefix`).
         unordered = torch.ones(len(segments), dtype=torch.bool, device=z.device)
-        out = mask(base, token_mask, sentence, vectors, segment_mask, unordered=unordered)
+        out = mask(base, token_mask, sentence, vectors, segment_mask, unordered=unordered,
+                   words=words, word_mask=word_mask)
         text = head.embed_text(out.segment_features)
     return SegmentEmbeddings(segments=segments, text=text, segment_mask=segment_mask,
                              num_tokens=num_tokens, latents=latents,

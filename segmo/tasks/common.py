@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -31,7 +31,9 @@ class TransformerTask(Task):
 
     Subclasses take their own arguments and pass the rest on (``**kwargs``); jsonargparse
     follows them, so `segmo fit --help` and every YAML list all arguments flat, as before.
-    ``max_segments`` (A) comes from ``data.init_args.max_segments`` under ``segmo fit``
+    ``max_segments`` (A) and ``text_tokens`` (word-level conditioning: "words" adds the
+    caption's per-word features as prefix keys, `TextPrefix`) come from
+    ``data.init_args.max_segments`` and ``data.init_args.text_tokens`` under ``segmo fit``
     (`segmo.training.cli`).
 
     ``motion_tokens``: "cached" (default) encodes every crop the data can draw once, at
@@ -55,6 +57,8 @@ class TransformerTask(Task):
         norm_first: bool = _DEFAULT.norm_first,
         max_segments: int = _DEFAULT.max_segments,
         max_tokens: int = _DEFAULT.max_tokens,
+        text_tokens: Literal["none", "words"] = "none",
+        max_words: int = _DEFAULT.max_words,
         lr: float = 2e-4,
         weight_decay: float = 1e-5,
         warmup_steps: int = 2000,
@@ -173,6 +177,17 @@ def text_condition(batch: dict) -> tuple[Tensor, Tensor, Tensor]:
         if key not in batch:
             raise KeyError(f"batch has no {key!r}: the DataModule needs text_features set")
     return batch["sentence"], batch["segment_features"], batch["segment_mask"].bool()
+
+
+def word_condition(batch: dict, model: Any) -> dict[str, Tensor]:
+    """The ``words``/``word_mask`` keyword arguments of `model` for a batch: the batch's
+    per-word features where the model conditions on words, nothing otherwise."""
+    if model.config.text_tokens == "none":
+        return {}
+    if "word_features" not in batch:
+        raise KeyError("batch has no 'word_features': the transformer conditions on words "
+                       "(text_tokens='words'), set data.init_args.text_tokens=words")
+    return {"words": batch["word_features"], "word_mask": batch["word_mask"].bool()}
 
 
 def token_lengths(lengths: Tensor) -> Tensor:

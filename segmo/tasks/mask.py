@@ -36,6 +36,7 @@ from segmo.tasks.common import (
     text_condition,
     token_lengths,
     token_mask,
+    word_condition,
 )
 
 ALIGNMENT_TEMPERATURE = 0.1  # τ of the alignment loss (spec §5)
@@ -167,7 +168,8 @@ class MaskTask(TransformerTask):
             drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
         if unordered is None:
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
-        out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered)
+        out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered,
+                         **word_condition(batch, self.model))
         mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
         terms = {"mask_loss": mask_loss,
@@ -221,7 +223,8 @@ class MaskTask(TransformerTask):
         any_rank = self.trainer.strategy.reduce(mask.any().float(), reduce_op="sum")
         if float(any_rank) == 0:
             return
-        out = self.model(base, valid, sentence, segments, segment_mask)
+        words = word_condition(batch, self.model)
+        out = self.model(base, valid, sentence, segments, segment_mask, **words)
         total = int(mask.sum())
         weight, total = total, max(total, 1)
         # Head-free score: mean motion feature over the span vs the segment's text vector.
@@ -249,12 +252,12 @@ class MaskTask(TransformerTask):
         # does not. Fed as a set (unordered, as grounding feeds them) only content is left.
         order = reversed_order(segment_mask)
         fed = segments.gather(1, order[..., None].expand_as(segments))
-        reversed_run = self.model(base, valid, sentence, fed, segment_mask)
+        reversed_run = self.model(base, valid, sentence, fed, segment_mask, **words)
         self.log(f"{prefix}/segment_top1_reversed", top1(reversed_run, order),
                  batch_size=weight, sync_dist=True)
         unordered = torch.ones(base.shape[0], dtype=torch.bool, device=base.device)
         unordered_run = self.model(base, valid, sentence, segments, segment_mask,
-                                   unordered=unordered)
+                                   unordered=unordered, **words)
         self.log(f"{prefix}/segment_top1_unordered", top1(unordered_run), batch_size=weight,
                  sync_dist=True)
 

@@ -24,6 +24,7 @@ from segmo.tasks.common import (
     TransformerTask,
     text_condition,
     token_mask,
+    word_condition,
 )
 
 
@@ -49,7 +50,8 @@ class ResidualTask(TransformerTask):
         layer = sample_layers(b, q, generator=generator).to(indices.device)
         if drop is None:
             drop = torch.rand(b, device=indices.device) < self.hparams.cond_drop_prob
-        out = self.model(indices, layer, valid, sentence, segments, segment_mask, drop)
+        out = self.model(indices, layer, valid, sentence, segments, segment_mask, drop,
+                         **word_condition(batch, self.model))
         target = indices.gather(2, layer[:, None, None].expand(b, n, 1))[..., 0]
         loss = masked_token_loss(out.logits, target, valid)
         correct = (out.logits.argmax(-1) == target) & valid

@@ -19,9 +19,11 @@ stage uses this same entry point. On top of Lightning's defaults it adds
 - a default seed of 0 (`--seed_everything`);
 - ``--trainer.precision auto``: bf16-mixed where the CPU or GPU computes bf16 natively,
   32-true elsewhere (`segmo.training.trainer`);
-- ``max_segments`` stated once, by the data: ``data.init_args.max_segments`` (the text
-  segments a sample carries, padded to that many slots) is linked to the transformer's
-  ``model.init_args.max_segments``. Configs written before state it for the model too;
+- ``max_segments`` and ``text_tokens`` stated once, by the data:
+  ``data.init_args.max_segments`` (the text segments a sample carries, padded to that many
+  slots) and ``data.init_args.text_tokens`` (whether a sample carries the caption's word
+  features) are linked to the transformer's ``model.init_args.max_segments`` and
+  ``model.init_args.text_tokens``. Configs written before state it for the model too;
   they still run when both agree, and a model value that differs is an error naming its
   place (jsonargparse would silently replace it).
 
@@ -47,7 +49,9 @@ from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step
 from segmo.training.trainer import SegmoTrainer
 
 SUBCOMMANDS = ("fit", "validate", "test")
-LINKED = ("data.init_args.max_segments", "model.init_args.max_segments")
+# Stated once, by the data, and linked to the transformers (source, target).
+LINKS = (("data.init_args.max_segments", "model.init_args.max_segments"),
+         ("data.init_args.text_tokens", "model.init_args.text_tokens"))
 
 
 class SegmoCLI(LightningCLI):
@@ -57,8 +61,9 @@ class SegmoCLI(LightningCLI):
             "--run_name", type=str | None, default=None,
             help="run directory name under runs_dir/<stage>/ (default: the config file's stem)",
         )
-        # Applied to the tasks that take max_segments (mask, residual); the others have none.
-        parser.link_arguments(LINKED[0], LINKED[1])
+        # Applied to the tasks that take them (mask, residual); the others have none.
+        for source, target in LINKS:
+            parser.link_arguments(source, target)
 
     @staticmethod
     def subcommands() -> dict[str, set[str]]:
@@ -128,16 +133,17 @@ class SegmoCLI(LightningCLI):
 
 
 def _check_linked(config: Any, argv: list[str]) -> None:
-    """A value given for the link's target (configs written before the link) that is not
+    """A value given for a link's target (configs written before the link) that is not
     the linked one: one `SegmoError` naming where it is set."""
-    source, target = LINKED
-    linked = config.get(target)
-    if linked is None:
-        return
-    for where, given in where_set(target, argv):
-        if given is not None and given.strip() != str(linked):
-            raise SegmoError(f"{where}: {target}={given.strip()}, but the model takes "
-                             f"max_segments from {source} ({linked}); set that one instead")
+    for source, target in LINKS:
+        linked = config.get(target)
+        if linked is None:
+            continue
+        name = target.rsplit(".", 1)[-1]
+        for where, given in where_set(target, argv):
+            if given is not None and given.strip() != str(linked):
+                raise SegmoError(f"{where}: {target}={given.strip()}, but the model takes "
+                                 f"{name} from {source} ({linked}); set that one instead")
 
 
 def _segmo_error(error: BaseException) -> SegmoError | None:

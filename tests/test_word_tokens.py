@@ -1,0 +1,184 @@
+"""Word-level conditioning (`text_tokens: words`): the captions' per-word features as further
+prefix keys; a model without them is exactly the model it was before."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import hash_encoder
+from test_attention_recorder import tiny_models
+from test_generation import TINY, text
+from test_generator_tasks import REPO, overrides
+
+from segmo.generation import SamplingOptions, generate_tokens
+from segmo.models.attention_recorder import record_attention
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+from segmo.models.pretrained import load_pretrained
+from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+from segmo.training.cli import main as cli_main
+
+
+def inputs():
+    sentence, segments, segment_mask = text(2)
+    g = torch.Generator().manual_seed(3)
+    indices = torch.randint(0, 16, (2, 10), generator=g)
+    token_mask = torch.ones(2, 10, dtype=torch.bool)
+    token_mask[1, 6:] = False
+    return indices, token_mask, sentence, segments, segment_mask, g
+
+
+def words(b: int = 2, length: int = 5, seed: int = 4):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.ones(b, length, dtype=torch.bool)
+    mask[1, 3:] = False
+    return torch.randn(b, length, TINY["text_dim"], generator=g), mask
+
+
+# Logits of `tiny_models()` on `inputs()`, computed on main before word keys existed: a
+# model without them must still compute these (float rounding aside).
+MASK_LOGITS_ROW = [[3.8244898319244385, -2.9240610599517822, 4.126480579376221, 5.125144958496094, 1.6032657623291016],
+                   [-0.3656159043312073, -5.4072794914245605, 3.8312976360321045, 4.483574867248535, -1.9620281457901]]
+MASK_LOGITS_SUM, MASK_LOGITS_ABS = -87.66730514541268, 1595.9209885410964
+RESIDUAL_LOGITS_ROW = [[-6.079143524169922, -3.6558046340942383, 8.553438186645508, -0.3893195688724518, 2.4926154613494873],
+                       [0.3306374251842499, 6.679159164428711, 8.05394172668457, 3.3818130493164062, -3.147921323776245]]
+RESIDUAL_LOGITS_SUM, RESIDUAL_LOGITS_ABS = 81.60692338785157, 1384.0146296904422
+
+
+def test_a_model_without_word_keys_computes_what_it_computed_before():
+    mask, residual = tiny_models()
+    indices, token_mask, sentence, segments, segment_mask, _ = inputs()
+    with torch.no_grad():
+        logits = mask(indices, token_mask, sentence, segments, segment_mask).logits
+        torch.testing.assert_close(logits[0, :2, :5], torch.tensor(MASK_LOGITS_ROW), atol=1e-4, rtol=1e-5)
+        assert float(logits.double().sum()) == pytest.approx(MASK_LOGITS_SUM, abs=1e-2)
+        assert float(logits.double().abs().sum()) == pytest.approx(MASK_LOGITS_ABS, rel=1e-5)
+        codes = torch.randint(0, 16, (2, 10, 3), generator=torch.Generator().manual_seed(3))
+        logits = residual(codes, 1, token_mask, sentence, segments, segment_mask).logits
+        torch.testing.assert_close(logits[0, :2, :5], torch.tensor(RESIDUAL_LOGITS_ROW), atol=1e-4, rtol=1e-5)
+        assert float(logits.double().sum()) == pytest.approx(RESIDUAL_LOGITS_SUM, abs=1e-2)
+        assert float(logits.double().abs().sum()) == pytest.approx(RESIDUAL_LOGITS_ABS, rel=1e-5)
+    assert not any("word" in name for name, _ in mask.named_parameters())
+    # It ignores words it is given.
+    with torch.no_grad():
+        again = mask(indices, token_mask, sentence, segments, segment_mask, words=words()[0],
+                     word_mask=words()[1]).logits
+        assert torch.equal(again, mask(indices, token_mask, sentence, segments, segment_mask).logits)
+
+
+def test_a_config_written_before_word_keys_loads_as_a_model_without_them(tmp_path):
+    mask, _ = tiny_models()
+    folder = mask.save_pretrained(tmp_path / "mask")
+    payload = json.loads((folder / "config.json").read_text())
+    assert payload["config"]["text_tokens"] == "none"
+    payload["config"] = {k: v for k, v in payload["config"].items() if k not in ("text_tokens", "max_words")}
+    (folder / "config.json").write_text(json.dumps(payload))
+    loaded = load_pretrained(folder)
+    assert loaded.config.text_tokens == "none"
+    indices, token_mask, sentence, segments, segment_mask, _ = inputs()
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.eval()(indices, token_mask, sentence, segments, segment_mask).logits,
+                                   mask(indices, token_mask, sentence, segments, segment_mask).logits)
+
+
+def word_models():
+    torch.manual_seed(0)
+    config = dict(TINY, text_tokens="words", max_words=8)
+    mask = MaskTransformer(MaskTransformerConfig(**config)).eval()
+    residual = ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3)).eval()
+    with torch.no_grad():
+        mask.classifier.weight.mul_(50)
+        residual.code_embeddings.mul_(50)
+    return mask, residual
+
+
+def test_words_are_conditioning_and_padded_words_change_nothing():
+    mask, _ = word_models()
+    indices, token_mask, sentence, segments, segment_mask, _ = inputs()
+    w, wm = words()
+    with torch.no_grad():
+        base = mask(indices, token_mask, sentence, segments, segment_mask, words=w, word_mask=wm).logits
+        other = mask(indices, token_mask, sentence, segments, segment_mask, words=w.flip(1), word_mask=wm).logits
+        assert (base - other).abs().max() > 1e-3  # the words are read
+        padded = torch.cat([w, torch.full((2, 3, w.shape[2]), float("nan"))], dim=1)
+        padded[1, 3:5] = 7.0  # padding inside the real length too
+        pad_mask = torch.cat([wm, torch.zeros(2, 3, dtype=torch.bool)], dim=1)
+        again = mask(indices, token_mask, sentence, segments, segment_mask, words=padded, word_mask=pad_mask).logits
+        torch.testing.assert_close(again, base, atol=1e-5, rtol=1e-5)
+        # A dropped condition drops the words with it: the unconditional row reads none.
+        drop = torch.ones(2, dtype=torch.bool)
+        u1 = mask(indices, token_mask, sentence, segments, segment_mask, drop, words=w, word_mask=wm).logits
+        u2 = mask(indices, token_mask, sentence, segments, segment_mask, drop, words=-w, word_mask=wm).logits
+        torch.testing.assert_close(u1, u2)
+    with pytest.raises(ValueError, match="conditions on words"):
+        mask(indices, token_mask, sentence, segments, segment_mask)
+    with pytest.raises(ValueError, match="max_words=8"):
+        mask(indices, token_mask, sentence, segments, segment_mask, words=torch.zeros(2, 9, 8),
+             word_mask=torch.ones(2, 9, dtype=torch.bool))
+
+
+def test_generation_with_words_is_seeded_recorded_and_survives_export(tmp_path):
+    mask, residual = word_models()
+    w, wm = words()
+    options = SamplingOptions(steps=3)
+
+    def run(m, r, ws):
+        return generate_tokens(m, r, *text(2), torch.tensor([40, 24]), options=options, words=ws, word_mask=wm,
+                               generator=torch.Generator().manual_seed(0))
+
+    first = run(mask, residual, w)
+    with record_attention({"mask": mask}) as recording:
+        assert torch.equal(run(mask, residual, w), first)
+    labels = recording.of("mask")[0].key_labels
+    assert labels[:4] == ["sentence", "segment 1", "segment 2", "segment 3"]
+    assert labels[4:9] == [f"word {i}" for i in range(5)] and labels[9] == "motion 0"
+    assert not bool(recording.of("mask")[0].key_valid[1, 4 + 3])  # row 1's padded word
+    loaded = [load_pretrained(m.save_pretrained(tmp_path / name)).eval()
+              for name, m in (("mask", mask), ("residual", residual))]
+    assert loaded[0].config.text_tokens == "words" and torch.equal(run(*loaded, w), first)
+    with pytest.raises(ValueError, match="conditions on words"):
+        generate_tokens(mask, residual, *text(2), torch.tensor([40, 24]), options=options)
+
+
+@pytest.mark.parametrize("stage", ["mask", "residual"])
+def test_both_transformers_train_on_words(stage, text_dataset, tokenizer_dir, tmp_path):
+    config = REPO / f"configs/{stage}/synthetic.yaml"
+    cli = cli_main(["fit", "--config", str(config), *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                    "--data.init_args.text_tokens=words", "--trainer.fast_dev_run=true"])
+    assert cli.trainer.state.finished and torch.isfinite(cli.trainer.callback_metrics["train/loss"])
+    assert cli.model.model.config.text_tokens == "words"
+    batch = next(iter(cli.datamodule.train_dataloader()))
+    assert batch["word_features"].shape[:2] == batch["word_mask"].shape and batch["word_mask"][:, 0].all()
+    grads = [p.grad for name, p in cli.model.model.named_parameters() if "word" in name]
+    assert len(grads) == 2
+
+
+def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir):
+    from test_pipeline import build_stages
+
+    from segmo.models.tokenizer import RVQVAE
+    from segmo.pipeline import SegMo
+    from segmo.pipeline.segmo import SegMoConfig
+
+    stages = build_stages(tmp_path, tokenizer_dir["t2m"])
+    torch.manual_seed(1)
+    config = dict(TINY, text_dim=8, max_segments=3, max_tokens=49, text_tokens="words")
+    model = SegMo(RVQVAE.from_pretrained(stages["tokenizer"]), MaskTransformer(MaskTransformerConfig(**config)),
+                  ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3)),
+                  config=SegMoConfig(text_encoder="hash"), text_encoder=hash_encoder("hash", 8))
+    assert model.uses_words
+    out = model.generate(["a person walks forward, then waves."], 48, generator=torch.Generator().manual_seed(0))
+    again = model.generate(["a person walks forward, then waves."], 48, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(out.tokens, again.tokens)
+    found = model.ground("a person walks forward, then waves.", out.motion(0), method="attention")
+    assert len(found.best_spans_frames) == 2
+    edited = model.edit(out, (8, 24), "a person jumps", generator=torch.Generator().manual_seed(1))
+    assert torch.equal(edited.tokens[0, :2], out.tokens[0, :2])
+    saved = model.save_pretrained(tmp_path / "bundle")
+    loaded = SegMo.from_pretrained(saved, text_encoder=hash_encoder("hash", 8))
+    assert loaded.uses_words and torch.equal(
+        loaded.generate(["a person walks forward, then waves."], 48, generator=torch.Generator().manual_seed(0)).tokens,
+        out.tokens)
+    assert Path(saved, "mask", "config.json").is_file()
