@@ -100,8 +100,7 @@ def locate(space: SegmentEmbeddings, text: str, num_frames: int, search: str,
     n = int(space.num_tokens[0])
     a = len(space.segments[0])
     spans = candidate_spans(n, search, window, stride, min_tokens)
-    spans_t = torch.from_numpy(spans)
-    similarity = space.similarity(spans_t)[0, :a].float().cpu()  # (a, k)
+    similarity = space.similarity(torch.from_numpy(spans))[0, :a].float().cpu()  # (a, k)
     if search == "ordered":
         if a * min_tokens > n:
             raise SegmoError(f"ground: {a} segments in order need {a * min_tokens} tokens of "
@@ -109,13 +108,20 @@ def locate(space: SegmentEmbeddings, text: str, num_frames: int, search: str,
         chosen = ordered_spans(similarity, spans, n)
     else:
         chosen = best_span(similarity, spans)
+    return _output(text, space.segments[0], spans, similarity, chosen, num_frames, search, "similarity")
+
+
+def _output(text: str, segments: list[str], spans: np.ndarray, scores: torch.Tensor,
+            chosen: np.ndarray, num_frames: int, search: str, method: str) -> GroundingOutput:
+    """The `GroundingOutput` of the chosen spans (a, 2) among the candidates `spans` with
+    their `scores` (a, k)."""
     index = {tuple(s): i for i, s in enumerate(spans.tolist())}
-    scores = [float(similarity[k, index[tuple(s)]]) for k, s in enumerate(chosen.tolist())]
+    best = [float(scores[k, index[tuple(s)]]) for k, s in enumerate(chosen.tolist())]
     frames = chosen * FRAMES_PER_TOKEN
     return GroundingOutput(
-        text=text, segments=space.segments[0], windows=spans_t, similarity=similarity,
+        text=text, segments=segments, windows=torch.from_numpy(spans), similarity=scores,
         best_spans_frames=[(int(s), int(min(e, num_frames))) for s, e in frames],
-        best_scores=scores, num_frames=num_frames, search=search)
+        best_scores=best, num_frames=num_frames, search=search, method=method)
 
 
 def candidate_spans(n: int, search: str, window: int | Sequence[int] | None, stride: int,
@@ -150,14 +156,8 @@ def attention_locate(model: Any, text: str, motion: Any, search: str,
         chosen = best_span(sums - 0.5 * lengths, spans)
     else:
         chosen = best_span(mean, spans)
-    index = {tuple(s): i for i, s in enumerate(spans.tolist())}
-    scores = [float(mean[k, index[tuple(s)]]) for k, s in enumerate(chosen.tolist())]
-    frames = chosen * FRAMES_PER_TOKEN
-    return GroundingOutput(
-        text=text, segments=segments, windows=torch.from_numpy(spans),
-        similarity=torch.from_numpy(mean).float(),
-        best_spans_frames=[(int(s), int(min(e, len(motion)))) for s, e in frames],
-        best_scores=scores, num_frames=len(motion), search=search, method="attention")
+    return _output(text, segments, spans, torch.from_numpy(mean).float(), chosen, len(motion),
+                   search, "attention")
 
 
 def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | None = None) -> np.ndarray:
