@@ -20,10 +20,12 @@ STEPS = 4
 LENGTHS = torch.tensor([40, 24])
 
 
-def tiny_models():
+def tiny_models(**overrides):
+    """The tiny mask and residual transformers of `TINY` (+ `overrides`), seeded, eval mode."""
     torch.manual_seed(0)
-    mask = MaskTransformer(MaskTransformerConfig(**TINY)).eval()
-    residual = ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3)).eval()
+    config = dict(TINY, **overrides)
+    mask = MaskTransformer(MaskTransformerConfig(**config)).eval()
+    residual = ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3)).eval()
     with torch.no_grad():
         mask.classifier.weight.mul_(50)
         residual.code_embeddings.mul_(50)

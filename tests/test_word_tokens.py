@@ -84,14 +84,7 @@ def test_a_config_written_before_word_keys_loads_as_a_model_without_them(tmp_pat
 
 
 def word_models():
-    torch.manual_seed(0)
-    config = dict(TINY, text_tokens="words", max_words=8)
-    mask = MaskTransformer(MaskTransformerConfig(**config)).eval()
-    residual = ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3)).eval()
-    with torch.no_grad():
-        mask.classifier.weight.mul_(50)
-        residual.code_embeddings.mul_(50)
-    return mask, residual
+    return tiny_models(text_tokens="words", max_words=8)
 
 
 def test_words_are_conditioning_and_padded_words_change_nothing():
