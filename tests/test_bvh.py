@@ -1,6 +1,8 @@
-"""Tests of segmo.motion.bvh: the written file is parsed by the independent `bvh` package
-and its forward kinematics (done here, from the parsed offsets and channels) must land on
-the input joints."""
+"""Tests of segmo.motion.bvh and segmo.motion.skeleton_fit.
+
+The written files are read back by three independent parsers (`bvh`, with forward
+kinematics done here from its offsets and channels; `bvhio` and `pybvh`, with their own),
+and the joints they compute must land on the input joints."""
 
 from __future__ import annotations
 
@@ -9,12 +11,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
-from segmo.motion import T2M, forward_kinematics, rest_offsets
-from segmo.motion.bvh import joints_to_bvh
+from segmo.motion import (
+    T2M,
+    features_to_joints,
+    forward_kinematics,
+    joints_to_features,
+    rest_offsets,
+)
+from segmo.motion.bvh import ORDERS, continuous_euler, joints_to_bvh
 from segmo.motion.quaternion import axis_angle_to_quat, euler_to_matrix
+from segmo.motion.skeleton_fit import fit_skeleton, foot_contacts, foot_skating
+from segmo.synth.sequence import sample_motion
 
 bvh = pytest.importorskip("bvh", reason="the `bvh` parser (dev extra) is not installed")
+bvhio = pytest.importorskip("bvhio", reason="the `bvhio` reader (dev extra) is not installed")
+pybvh = pytest.importorskip("pybvh", reason="the `pybvh` reader (dev extra) is not installed")
 
 FIXTURE = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "humanml3d" / "012314_joints.npy"
 
@@ -29,8 +42,26 @@ def _rigid_fk_joints(frames: int = 40) -> np.ndarray:
     return forward_kinematics(quats, root, rest_offsets(T2M, dtype=torch.float64), T2M.parents).numpy()
 
 
+def _corpus_joints(seed: int = 0) -> np.ndarray:
+    """Joints of one built-in corpus motion as the corpus stores them (via its features)."""
+    motion = sample_motion(np.random.default_rng(seed), version=3)
+    return features_to_joints(joints_to_features(motion.joints.astype(np.float64)))
+
+
+def _stretched(joints: np.ndarray, amount: float = 0.1, seed: int = 0) -> np.ndarray:
+    """Joints whose bones grow and shrink smoothly by up to `amount`, as generated ones do."""
+    rng = np.random.default_rng(seed)
+    parents = T2M.parents
+    bones = joints - joints[:, [max(p, 0) for p in parents]]
+    factor = 1 + amount * np.tanh(np.cumsum(rng.normal(0, 0.05, (len(joints), 22)), 0))
+    out = joints.copy()
+    for c in range(1, 22):
+        out[:, c] = out[:, parents[c]] + bones[:, c] * factor[:, c : c + 1]
+    return out
+
+
 def _bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
-    """Forward kinematics from the parsed BVH: (t, j, 3) in file order."""
+    """Forward kinematics from the `bvh` package's parse: (t, j, 3) in file order."""
     mocap = bvh.Bvh(path.read_text())
     names = mocap.get_joints_names()
     world_rot: dict[str, np.ndarray] = {}
@@ -49,29 +80,111 @@ def _bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
             positions[:, k] = offset + values[:, position_channels]
             world_rot[name] = local
         else:
-            parent = names[parent_index]
-            positions[:, k] = positions[:, parent_index] + np.einsum("tij,j->ti", world_rot[parent], offset)
-            world_rot[name] = world_rot[parent] @ local
+            positions[:, k] = positions[:, parent_index] + np.einsum("tij,j->ti", world_rot[names[parent_index]], offset)
+            world_rot[name] = world_rot[names[parent_index]] @ local
     return positions, names, mocap.frame_time
 
 
-@pytest.mark.parametrize("source", ["fixture", "fk"])
-def test_bvh_round_trip(tmp_path, source):
+def _read(path: Path, reader: str) -> np.ndarray:
+    """(t, 22, 3) joints in segmo's order by a third-party reader's forward kinematics."""
+    if reader == "bvh":
+        positions, names, _ = _bvh_positions(path)
+    elif reader == "pybvh":
+        mocap = pybvh.read_bvh_file(str(path))
+        positions, names = mocap.joint_positions(), list(mocap.joint_names)
+    else:
+        root = bvhio.readAsHierarchy(str(path))
+        joints = [j for j, *_ in root.layout()]
+        names = [j.Name for j in joints]
+        frames = []
+        for frame in range(len(_bvh_positions(path)[0])):
+            root.loadPose(frame)
+            frames.append([np.array(j.PositionWorld, dtype=np.float64) for j in joints])
+        positions = np.asarray(frames)
+    return positions[:, [names.index(name) for name in T2M.joint_names]]
+
+
+@pytest.mark.parametrize("reader", ["bvh", "bvhio", "pybvh"])
+@pytest.mark.parametrize("source", ["fixture", "fk", "corpus"])
+def test_bvh_round_trip(tmp_path, source, reader):
     if source == "fixture":
         if not FIXTURE.exists():
             pytest.skip(f"HumanML3D fixture {FIXTURE} not found (needs the shared fixtures folder)")
-        joints = np.load(FIXTURE)
-    else:
+        joints = np.load(FIXTURE).astype(np.float64)
+    elif source == "fk":
         joints = _rigid_fk_joints()
-    path = joints_to_bvh(joints, tmp_path / "motion.bvh", fps=20)
-    positions, names, frame_time = _bvh_positions(path)
-    assert sorted(names) == sorted(T2M.joint_names) and frame_time == pytest.approx(0.05)
-    positions = positions[:, [names.index(name) for name in T2M.joint_names]]
-    error = np.abs(positions - joints).max()
-    print(f"\nBVH ({source}) max joint position error: {error * 1000:.3f} mm")
-    assert positions.shape == joints.shape and error < 0.01
+    else:
+        joints = _corpus_joints()
+    path = joints_to_bvh(joints, tmp_path / "motion.bvh", fps=20, foot_lock=False,
+                         bone_lengths="motion" if source == "fk" else None)
+    assert _bvh_positions(path)[2] == pytest.approx(0.05)
+    error = np.linalg.norm(_read(path, reader) - joints, axis=-1)
+    print(f"\nBVH {source} via {reader}: mean {error.mean() * 1000:.3f} mm, max {error.max() * 1000:.3f} mm")
+    assert error.mean() < 0.001 and error.max() < (0.01 if source == "fixture" else 0.003)
+
+
+def test_fit_keeps_bones_fixed_and_does_not_carry_a_stretch_down_the_chain():
+    stretched = _stretched(_corpus_joints(1))
+    fit = fit_skeleton(stretched)
+    lengths = np.linalg.norm(fit.joints[:, 1:] - fit.joints[:, list(T2M.parents[1:])], axis=-1)
+    assert np.allclose(lengths, np.asarray(T2M.reference_bone_lengths[1:]), atol=1e-9)
+    error = np.linalg.norm(fit.joints - stretched, axis=-1)
+    start = np.linalg.norm(fit_skeleton(stretched, iterations=0).joints - stretched, axis=-1)
+    print(f"\nstretched bones: mean {error.mean() * 1000:.2f} mm (start {start.mean() * 1000:.2f}), "
+          f"max {error.max() * 1000:.1f} mm (start {start.max() * 1000:.1f})")
+    assert error.mean() < start.mean() and error.max() < start.max() and error.mean() < 0.01
+
+
+def test_heading_turns_do_not_flip_channels(tmp_path):
+    """A body turning twice round itself: no channel jumps more than 30 degrees between
+    frames (the old ZYX root order flipped at every quarter turn)."""
+    joints = _corpus_joints(2)
+    turn = np.linspace(0, 4 * np.pi, len(joints))
+    spin = Rotation.from_euler("y", turn[:, None]).as_matrix()  # (t, 3, 3)
+    centre = joints[:, :1, :] * np.array([1, 0, 1])
+    turned = np.einsum("tij,tkj->tki", spin, joints - centre) + centre
+    path = joints_to_bvh(turned, tmp_path / "spin.bvh", foot_lock=False)
+    lines = path.read_text().splitlines()
+    values = np.array([[float(v) for v in line.split()] for line in lines[lines.index("MOTION") + 3:]])
+    jumps = np.abs(np.diff(values[:, 3:], axis=0))
+    assert jumps.max() < 30.0, f"a channel jumps {jumps.max():.1f} degrees between frames"
+    assert np.linalg.norm(_read(path, "pybvh") - turned, axis=-1).max() < 0.003
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_continuous_euler_round_trips_through_gimbal_lock(order):
+    t = np.linspace(0, 3 * np.pi, 120)
+    middle = np.full_like(t, np.pi / 2)
+    middle[::2] -= 1e-9  # at and next to the lock
+    rotations = Rotation.from_euler(order, np.stack([t, middle, 0.5 * t], -1)).as_matrix()
+    angles = continuous_euler(rotations, order)
+    assert np.abs(Rotation.from_euler(order, angles).as_matrix() - rotations).max() < 1e-6
+    assert np.degrees(np.abs(np.diff(angles, axis=0))).max() < 30.0
+
+
+def test_foot_lock_reduces_skating(tmp_path):
+    joints = _stretched(_corpus_joints(3), amount=0.05, seed=3)
+    contacts = foot_contacts(joints)
+    assert contacts.any(), "the test motion never touches the ground"
+    skating = {}
+    for lock in (False, True):
+        path = joints_to_bvh(joints, tmp_path / f"lock_{lock}.bvh", foot_lock=lock)
+        skating[lock] = foot_skating(_read(path, "pybvh"), contacts)
+    print(f"\nfoot skating: {skating[False] * 100:.2f} cm/s unlocked, {skating[True] * 100:.2f} cm/s locked")
+    assert skating[True] < 0.5 * skating[False]
+
+
+def test_bvh_target_frame_rate(tmp_path):
+    joints = _corpus_joints(4)
+    path = joints_to_bvh(joints, tmp_path / "60.bvh", fps=20, target_fps=60, foot_lock=False)
+    positions, _, frame_time = _bvh_positions(path)
+    assert frame_time == pytest.approx(1 / 60, abs=1e-6) and len(positions) == 3 * (len(joints) - 1) + 1
+    original = _read(joints_to_bvh(joints, tmp_path / "20.bvh", foot_lock=False), "bvh")
+    assert np.abs(_read(path, "bvh")[::3] - original).max() < 1e-4  # the 20 fps frames are kept
 
 
 def test_bvh_rejects_wrong_shape(tmp_path):
     with pytest.raises(ValueError, match=r"\(t, 22, 3\)"):
         joints_to_bvh(np.zeros((5, 21, 3)), tmp_path / "x.bvh")
+    with pytest.raises(ValueError, match="NaN"):
+        joints_to_bvh(np.full((5, 22, 3), np.nan), tmp_path / "x.bvh", foot_lock=False)

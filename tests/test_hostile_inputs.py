@@ -64,6 +64,7 @@ CLI_CASES = [
         "`--guidance inf`"),
     Cli("generate-temperature-negative", GEN + " --text walk --temperature -1", "--temperature",
         "a negative temperature"),
+    Cli("generate-bvh-fps-zero", GEN + " --text walk --bvh-fps 0", "--bvh-fps", "a BVH frame rate of 0"),
     Cli("generate-steps-zero", GEN + " --text walk --steps 0", "--steps", "0 decoding steps"),
     Cli("generate-length-fraction", GEN + " --text walk --length 40.7", "--length",
         "`--length 40.7` (was truncated to 40)"),

@@ -423,6 +423,12 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
             assert np.array_equal(np.load(tmp_path / "again" / f"sample_{i:02d}_{what}.npy"),
                                   np.load(out / f"sample_{i:02d}_{what}.npy"))
     assert not (tmp_path / "again" / "sample_00.gif").exists()
+    # the BVH at another frame rate: 16 frames at 20 fps span 0.75 s, 46 frames at 60 fps
+    generate_main(["--model", str(bundle), "--text", PROMPTS[0], "--length", "16", "--seed", "3",
+                   "--out", str(tmp_path / "fps"), "--formats", "bvh", "--bvh-fps", "60",
+                   "--no-foot-lock"])
+    text = (tmp_path / "fps" / "sample_00.bvh").read_text()
+    assert "Frames: 46" in text and "Frame Time: 0.016667" in text
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -1,130 +1,160 @@
-"""Export joint positions to BVH (Biovision hierarchy) for Blender, MotionBuilder, etc.
+"""Export joint positions to BVH (Biovision hierarchy) for Blender, MotionBuilder, game engines.
 
-The hierarchy is the skeleton's own joint tree (t2m: the 22 SMPL joints). Each joint's
-rotation turns all of its child bones (the BVH convention), so a joint with several
-children (pelvis, spine3) gets the rotation that best maps its rest child offsets onto
-the observed ones (Kabsch); for recorded or HumanML3D-processed motions the children of
-a joint keep their relative geometry, and the fit is exact. Single-child joints use the
-shortest-arc rotation (twist about a bone cannot be seen in positions and is zero).
+The hierarchy is the skeleton's own joint tree (t2m: the 22 SMPL joints) with one rest
+pose (a T-pose; `segmo.motion.skeleton_fit`), and the motion is what a fixed skeleton
+fitted to the joints does: generated joints whose bones stretch become a skeleton whose
+bones do not, as close to them as fixed bones allow. With `foot_lock` the feet stay put
+while they touch the ground (the contact rule of HumanML3D's features), which removes
+the foot sliding a generator leaves.
 
-Rest pose: bones along the skeleton's raw_offsets directions (a T-pose for t2m) with the
-motion's mean bone lengths, except the children of multi-child joints, whose offsets
-come from frame 0 (heading removed) so that the hips and collars keep their real layout.
-
-Channels: the root has `Xposition Yposition Zposition Zrotation Yrotation Xrotation`,
-every other joint `Zrotation Yrotation Xrotation`, in degrees; the local rotation is
-R = Rz(z) @ Ry(y) @ Rx(x), and a child's position is parent + R_parent_global @ offset.
+Channels: the root has `Xposition Yposition Zposition` and three rotation channels, every
+other joint three rotation channels, in degrees. A Tait-Bryan order locks where its middle
+angle reaches 90 degrees, so each file picks, per joint, the order whose middle angle stays
+farthest from 90 degrees over the motion (`euler_orders`); the root's order turns about y
+first (``YXZ`` or ``YZX``), so that the heading of a walking, turning human is one channel
+and never the middle one. The angles are continuous from frame to frame (of the two
+triples of each rotation, and their turns by 360 degrees, the one nearest the previous
+frame), and at an exact lock the first angle keeps its previous value. The channel order
+is the BVH one: ``Zrotation Yrotation Xrotation`` means R = Rz(z) @ Ry(y) @ Rx(x), and a
+child's position is parent + R_parent_world @ offset.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
-import torch
+from scipy.spatial.transform import Rotation, Slerp
 
-from segmo.motion.kinematics import bone_lengths, facing_direction
-from segmo.motion.quaternion import matrix_to_euler, qbetween, quat_to_matrix
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
+from segmo.motion.skeleton_fit import (
+    SkeletonFit,
+    fit_skeleton,
+    foot_contacts,
+    lock_feet,
+)
 
-__all__ = ["joints_to_bvh"]
+__all__ = ["joints_to_bvh", "euler_orders", "continuous_euler", "write_bvh"]
 
 END_SITE_LENGTH = 0.05  # metres: the nominal tip drawn after leaf joints
+LOCK_WEIGHT = 10.0  # weight of a locked foot joint's squared error in the fit
+ROOT_ORDERS = ("YXZ", "YZX")  # heading (about y, up) first
+ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
 
 
-def _kabsch(rest: np.ndarray, observed: np.ndarray) -> np.ndarray:
-    """Rotations (t, 3, 3) minimising sum_k |R rest_k - observed_t,k|^2.
-    rest: (k, 3); observed: (t, k, 3)."""
-    h = np.einsum("ki,tkj->tij", rest, observed)  # (t, 3, 3) = sum rest_k observed_k^T
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
-    fix = np.ones((len(h), 3))
-    fix[:, 2] = d
-    return np.swapaxes(vt, 1, 2) @ (fix[:, :, None] * np.swapaxes(u, 1, 2))
+def euler_orders(local: np.ndarray) -> list[str]:
+    """Each joint's Euler order (intrinsic, the BVH channel order) for local rotations
+    (t, j, 3, 3): the one whose middle angle stays farthest from the lock (largest
+    smallest |cos| over the frames); the root chooses among `ROOT_ORDERS`, the others
+    among all six Tait-Bryan orders, ties going to the first listed."""
+    orders = []
+    for joint in range(local.shape[1]):
+        rotation = Rotation.from_matrix(local[:, joint])
+        best, margin = None, -1.0
+        for order in ROOT_ORDERS if joint == 0 else ORDERS:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # scipy's "gimbal lock detected"
+                middle = rotation.as_euler(order)[:, 1]
+            score = float(np.abs(np.cos(middle)).min())
+            if score > margin + 1e-9:
+                best, margin = order, score
+        orders.append(best)
+    return orders
 
 
-def _rest_offsets(positions: np.ndarray, spec: SkeletonSpec, children: list[list[int]]) -> np.ndarray:
-    lengths = bone_lengths(torch.from_numpy(positions), spec.parents).mean(0).numpy()
-    offsets = np.asarray(spec.raw_offsets, dtype=np.float64) * lengths[:, None]
-    forward = facing_direction(torch.from_numpy(positions[0]), spec.face_joints)
-    to_front = qbetween(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    frame0 = (quat_to_matrix(to_front).numpy() @ (positions[0] - positions[0, list(np.maximum(spec.parents, 0))]).T).T
-    for kids in children:
-        if len(kids) > 1:
-            for c in kids:
-                offsets[c] = frame0[c] / np.linalg.norm(frame0[c]) * lengths[c]
-    return offsets
+def continuous_euler(rotations: np.ndarray, order: str) -> np.ndarray:
+    """(t, 3, 3) rotations -> (t, 3) intrinsic Euler angles in radians, continuous in t.
 
-
-def _global_rotations(positions: np.ndarray, offsets: np.ndarray, spec: SkeletonSpec,
-                      children: list[list[int]]) -> np.ndarray:
-    """(t, j, 3, 3) world rotation of each joint (rotating its child bones)."""
-    t, j = positions.shape[:2]
-    rotations = np.empty((t, j, 3, 3))
-    for p in range(j):
-        kids = children[p]
-        if not kids:  # a leaf turns nothing: keep its parent's rotation
-            rotations[:, p] = rotations[:, spec.parents[p]]
-            continue
-        observed = positions[:, kids] - positions[:, p : p + 1]  # (t, k, 3)
-        if len(kids) == 1:
-            q = qbetween(torch.from_numpy(np.broadcast_to(offsets[kids[0]], observed[:, 0].shape).copy()),
-                         torch.from_numpy(observed[:, 0]))
-            rotations[:, p] = quat_to_matrix(q).numpy()
+    Of the two triples that give each rotation, the one nearer the previous frame's is
+    taken, each angle shifted by the multiple of 2 pi nearest its previous value; at (or
+    within 1e-6 of) the lock the first angle keeps its previous value and the third takes
+    the rest.
+    """
+    t = len(rotations)
+    out = np.zeros((t, 3))
+    if t == 0:
+        return out
+    rot = Rotation.from_matrix(rotations)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # scipy's "gimbal lock detected"
+        base = rot.as_euler(order)  # (t, 3); middle angle in [-pi/2, pi/2]
+    alternative = np.stack([base[:, 0] + np.pi, np.pi - base[:, 1], base[:, 2] + np.pi], -1)
+    axes = {"X": np.array([1.0, 0, 0]), "Y": np.array([0, 1.0, 0]), "Z": np.array([0, 0, 1.0])}
+    previous = None
+    for f in range(t):
+        locked = abs(np.cos(base[f, 1])) < 1e-6
+        if previous is None:
+            chosen = base[f]
+        elif locked:
+            a, b = previous[0], base[f, 1]
+            rest = (Rotation.from_rotvec(axes[order[1]] * b).inv()
+                    * Rotation.from_rotvec(axes[order[0]] * a).inv() * rot[f])
+            c = float(rest.as_rotvec() @ axes[order[2]])
+            chosen = np.array([a, b, c])
         else:
-            rotations[:, p] = _kabsch(offsets[kids], observed)
-    return rotations
+            candidates = []
+            for triple in (base[f], alternative[f]):
+                shifted = triple + 2 * np.pi * np.round((previous - triple) / (2 * np.pi))
+                candidates.append(shifted)
+            chosen = min(candidates, key=lambda c: float(((c - previous) ** 2).sum()))
+        if previous is not None:
+            chosen = chosen + 2 * np.pi * np.round((previous - chosen) / (2 * np.pi))
+        out[f] = chosen
+        previous = chosen
+    return out
 
 
-def joints_to_bvh(
-    joints: Any,
-    path: str | Path,
-    fps: float | None = None,
-    skeleton: str | SkeletonSpec = "t2m",
-    scale: float = 1.0,
-) -> Path:
-    """Write joints (t, j, 3) (numpy or torch, y up) as a BVH file and return its path.
+def _resample(fit: SkeletonFit, fps: float, target_fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Root (t', 3) and local rotations (t', j, 3, 3) at `target_fps` (linear / slerp)."""
+    t = len(fit.root)
+    if target_fps == fps or t < 2:
+        return fit.root, fit.local
+    times = np.arange(t) / fps
+    new_times = np.arange(int(np.floor(times[-1] * target_fps + 1e-9)) + 1) / target_fps
+    root = np.stack([np.interp(new_times, times, fit.root[:, k]) for k in range(3)], -1)
+    local = np.empty((len(new_times), *fit.local.shape[1:]))
+    for joint in range(fit.local.shape[1]):
+        local[:, joint] = Slerp(times, Rotation.from_matrix(fit.local[:, joint]))(new_times).as_matrix()
+    return root, local
 
-    fps: frame rate, default the skeleton's (t2m: 20). scale: multiplies all lengths
-    (1 keeps the data units, metres for t2m; 100 gives centimetres).
+
+def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec = "t2m",
+              fps: float | None = None, target_fps: float | None = None,
+              scale: float = 1.0) -> Path:
+    """Write a fitted skeleton (`segmo.motion.skeleton_fit.fit_skeleton`) as a BVH file.
+
+    fps: the fit's frame rate (default the skeleton's); target_fps: the file's (default
+    the same; other rates are resampled, rotations by slerp). scale multiplies lengths.
     """
     spec = get_skeleton(skeleton)
-    if hasattr(joints, "detach"):
-        joints = joints.detach().cpu().numpy()
-    positions = np.asarray(joints, dtype=np.float64)
-    if positions.ndim != 3 or positions.shape[1:] != (spec.num_joints, 3) or len(positions) < 1:
-        raise ValueError(
-            f"joints_to_bvh: joints must be (t, {spec.num_joints}, 3) for skeleton {spec.name!r}, "
-            f"got {positions.shape}"
-        )
-    fps = spec.fps if fps is None else fps
-    j = spec.num_joints
-    children: list[list[int]] = [[] for _ in range(j)]
+    fps = float(spec.fps if fps is None else fps)
+    target_fps = fps if target_fps is None else float(target_fps)
+    if not (fps > 0 and np.isfinite(fps)) or not (target_fps > 0 and np.isfinite(target_fps)):
+        raise ValueError(f"write_bvh: fps and target_fps must be positive, got {fps} and {target_fps}")
+    root, local = _resample(fit, fps, target_fps)
+    orders = euler_orders(local)
+    angles = np.stack([np.degrees(continuous_euler(local[:, j], orders[j]))
+                       for j in range(spec.num_joints)], 1)  # (t, j, 3) in each joint's order
+    children: list[list[int]] = [[] for _ in range(spec.num_joints)]
     for c, p in enumerate(spec.parents):
         if p >= 0:
             children[p].append(c)
-
-    offsets = _rest_offsets(positions, spec, children)
-    world = _global_rotations(positions, offsets, spec, children)
-    parent_world = world[:, [max(p, 0) for p in spec.parents]]
-    local = np.swapaxes(parent_world, -1, -2) @ world
-    local[:, 0] = world[:, 0]
-    angles = np.degrees(matrix_to_euler(torch.from_numpy(local), "ZYX").numpy())  # (t, j, 3)
 
     lines = ["HIERARCHY"]
 
     def write(joint: int, depth: int) -> None:
         pad = "  " * depth
-        name = spec.joint_names[joint]
-        offset = offsets[joint] * scale
-        lines.append(f"{pad}{'ROOT' if joint == 0 else 'JOINT'} {name}")
+        offset = fit.offsets[joint] * scale
+        rotation = " ".join(f"{axis}rotation" for axis in orders[joint])
+        lines.append(f"{pad}{'ROOT' if joint == 0 else 'JOINT'} {spec.joint_names[joint]}")
         lines.append(f"{pad}{{")
         lines.append(f"{pad}  OFFSET {offset[0]:.6f} {offset[1]:.6f} {offset[2]:.6f}")
         if joint == 0:
-            lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation")
+            lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition {rotation}")
         else:
-            lines.append(f"{pad}  CHANNELS 3 Zrotation Yrotation Xrotation")
+            lines.append(f"{pad}  CHANNELS 3 {rotation}")
         for child in children[joint]:
             write(child, depth + 1)
         if not children[joint]:
@@ -136,10 +166,10 @@ def joints_to_bvh(
         lines.append(f"{pad}}}")
 
     write(0, 0)
-    lines += ["MOTION", f"Frames: {len(positions)}", f"Frame Time: {1.0 / fps:.6f}"]
+    lines += ["MOTION", f"Frames: {len(root)}", f"Frame Time: {1.0 / target_fps:.6f}"]
     order = _depth_first(children)
-    for frame in range(len(positions)):
-        values = list(positions[frame, 0] * scale)
+    for frame in range(len(root)):
+        values = list(root[frame] * scale)
         for joint in order:
             values.extend(angles[frame, joint])
         lines.append(" ".join(f"{v:.6f}" for v in values))
@@ -147,6 +177,48 @@ def joints_to_bvh(
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def joints_to_bvh(
+    joints: Any,
+    path: str | Path,
+    fps: float | None = None,
+    skeleton: str | SkeletonSpec = "t2m",
+    scale: float = 1.0,
+    target_fps: float | None = None,
+    foot_lock: bool = True,
+    contacts: np.ndarray | None = None,
+    bone_lengths: Literal["skeleton", "motion"] | None = None,
+) -> Path:
+    """Write joints (t, j, 3) (numpy or torch, y up) as a BVH file and return its path.
+
+    fps: the joints' frame rate, default the skeleton's (t2m: 20); target_fps: the file's
+    (default the same). scale multiplies all lengths (1 keeps the data units, metres for
+    t2m; 100 gives centimetres). foot_lock: hold each foot joint still while it is in
+    contact (`contacts` (t, 4) bool: left ankle, left toe, right ankle, right toe; default
+    `skeleton_fit.foot_contacts` of the joints). bone_lengths: the skeleton's reference
+    lengths (default where it has them) or the motion's median ("motion").
+    """
+    spec = get_skeleton(skeleton)
+    if hasattr(joints, "detach"):
+        joints = joints.detach().cpu().numpy()
+    positions = np.asarray(joints, dtype=np.float64)
+    if positions.ndim != 3 or positions.shape[1:] != (spec.num_joints, 3) or len(positions) < 1:
+        raise ValueError(
+            f"joints_to_bvh: joints must be (t, {spec.num_joints}, 3) for skeleton {spec.name!r}, "
+            f"got {positions.shape}"
+        )
+    weights = None
+    if foot_lock:
+        contacts = foot_contacts(positions, spec) if contacts is None else np.asarray(contacts, dtype=bool)
+        if contacts.shape != (len(positions), 4):
+            raise ValueError(f"joints_to_bvh: contacts must be ({len(positions)}, 4), got {contacts.shape}")
+        feet = list(spec.feet_left) + list(spec.feet_right)
+        weights = np.ones(positions.shape[:2])
+        weights[:, feet] += (LOCK_WEIGHT - 1) * contacts
+        positions = lock_feet(positions, contacts, spec)
+    fit = fit_skeleton(positions, spec, bone_lengths=bone_lengths, weights=weights)
+    return write_bvh(fit, path, spec, fps=fps, target_fps=target_fps, scale=scale)
 
 
 def _depth_first(children: list[list[int]]) -> list[int]:

@@ -22,6 +22,7 @@ from segmo.errors import (
     finite_float,
     non_negative_int,
     npy_argument,
+    positive_float,
     positive_int,
 )
 from segmo.generation.allocator import keep_freed_memory
@@ -88,6 +89,10 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--formats", default=",".join(FORMATS),
                         help=f"comma-separated subset of {','.join(FORMATS)}")
+    parser.add_argument("--bvh-fps", type=positive_float, default=None,
+                        help="frame rate of the BVH files (default the motion's, 20 for t2m)")
+    parser.add_argument("--no-foot-lock", action="store_true",
+                        help="BVH: do not hold the feet still while they touch the ground")
     args = parser.parse_args(argv)
     formats = _formats(parser, args.formats)
     lengths = args.length
@@ -110,7 +115,7 @@ def generate_main(argv: list[str] | None = None) -> None:
                          residual_guidance_scale=args.residual_guidance, steps=args.steps,
                          temperature=args.temperature, generator=generator,
                          precision=args.precision)
-    for path in out.save(args.out, formats):
+    for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock):
         print(path)
 
 

@@ -57,11 +57,14 @@ class GenerationOutput:
         return self.joints[i, : int(self.lengths[i])].cpu().numpy()
 
     def save(self, directory: str | Path, formats: Sequence[str] = FORMATS,
-             prefix: str = "sample") -> list[Path]:
+             prefix: str = "sample", bvh_fps: float | None = None,
+             foot_lock: bool = True) -> list[Path]:
         """Write each sample as `{prefix}_{i:02d}` files into `directory`.
 
         npy: `_features.npy` (t, d), `_joints.npy` (t, j, 3), `_tokens.npy` (t // 4, q); gif: a stick-figure
-        animation titled with the prompt; bvh: a BVH file of the joints. A `prompts.json`
+        animation titled with the prompt; bvh: a BVH file of a fixed skeleton fitted to the joints
+        (`segmo.motion.bvh`), at `bvh_fps` frames per second (default the motion's), with
+        the feet locked while in contact unless `foot_lock` is False. A `prompts.json`
         lists texts, segments and lengths. Returns the written paths.
         """
         unknown = set(formats) - set(FORMATS)
@@ -87,7 +90,8 @@ class GenerationOutput:
                                               title=text, fps=self.fps))
             if "bvh" in formats:
                 written.append(joints_to_bvh(joints, f"{stem}.bvh", fps=self.fps,
-                                             skeleton=self.skeleton))
+                                             skeleton=self.skeleton, target_fps=bvh_fps,
+                                             foot_lock=foot_lock))
         index = [{"file": f"{prefix}_{i:02d}", "text": t, "segments": s, "frames": int(n)}
                  for i, (t, s, n) in enumerate(zip(self.texts, self.segments, self.lengths))]
         path = directory / "prompts.json"

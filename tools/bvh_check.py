@@ -1,0 +1,138 @@
+"""BVH export checked as an animation tool would see it, on corpus and generated motions.
+
+    python tools/bvh_check.py --data data/synth --split test [--model models/segmo] \\
+        [--limit N] [--out runs/bvh_check]
+
+For every motion of the split (the corpus' joints) and, with --model, one generated motion
+per motion (its first caption and length, seed 0): write the BVH with and without foot
+locking, read it back with two third-party readers (`pybvh` for every file, `bvhio` for the
+first --bvhio-files), and compare the joints of their forward kinematics with the input
+joints. Reports per source: position error (mean, 99th percentile, max; mm), the largest
+change of any rotation channel between frames, and of a joint that turned by less than
+30 degrees (a flip of the angles, not a fast motion; degrees), and foot skating (mean horizontal
+speed of the foot joints in contact, cm/s) of the input joints and of both BVH files, with
+the contacts of the input joints. The last printed line is a JSON object of these figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from segmo.motion import T2M
+from segmo.motion.bvh import joints_to_bvh
+from segmo.motion.skeleton_fit import foot_contacts, foot_skating
+
+
+def read_pybvh(path: Path) -> np.ndarray:
+    import pybvh
+
+    mocap = pybvh.read_bvh_file(str(path))
+    names = list(mocap.joint_names)
+    return mocap.joint_positions()[:, [names.index(n) for n in T2M.joint_names]]
+
+
+def read_bvhio(path: Path, frames: int) -> np.ndarray:
+    import bvhio
+
+    root = bvhio.readAsHierarchy(str(path))
+    joints = {j.Name: j for j, *_ in root.layout()}
+    out = []
+    for frame in range(frames):
+        root.loadPose(frame)
+        out.append([np.array(joints[n].PositionWorld, dtype=np.float64) for n in T2M.joint_names])
+    return np.asarray(out)
+
+
+def channel_jumps(path: Path) -> tuple[float, float]:
+    """(largest change of a rotation channel between consecutive frames, the largest such
+    change of a joint that turned by less than 30 degrees between those frames: a flip of
+    the Euler angles rather than a fast motion), in degrees."""
+    from scipy.spatial.transform import Rotation
+
+    lines = path.read_text().splitlines()
+    orders = ["".join(c[0] for c in line.split()[-3:]) for line in lines if "CHANNELS" in line]
+    values = np.array([[float(v) for v in line.split()] for line in lines[lines.index("MOTION") + 3:]])
+    if len(values) < 2:
+        return 0.0, 0.0
+    angles = values[:, 3:].reshape(len(values), len(orders), 3)
+    jump = np.abs(np.diff(angles, axis=0)).max(-1)  # (t-1, j)
+    turned = np.stack([(Rotation.from_euler(o, angles[1:, k], degrees=True)
+                        * Rotation.from_euler(o, angles[:-1, k], degrees=True).inv()).magnitude()
+                       for k, o in enumerate(orders)], -1)
+    flips = jump[np.degrees(turned) < 30.0]
+    return float(jump.max()), float(flips.max()) if flips.size else 0.0
+
+
+def check(motions: list[np.ndarray], out: Path, bvhio_files: int) -> dict:
+    errors = {False: [], True: []}
+    bvhio_errors = []
+    jumps, skating = [], {"input": [], "bvh": [], "bvh_foot_lock": []}
+    for k, joints in enumerate(motions):
+        contacts = foot_contacts(joints)
+        skating["input"].append(foot_skating(joints, contacts))
+        for lock in (False, True):
+            path = joints_to_bvh(joints, out / f"{k:04d}{'_lock' if lock else ''}.bvh", foot_lock=lock)
+            read = read_pybvh(path)
+            errors[lock].append(np.linalg.norm(read - joints, axis=-1).ravel())
+            skating["bvh_foot_lock" if lock else "bvh"].append(foot_skating(read, contacts))
+            jumps.append(channel_jumps(path))
+            if not lock and k < bvhio_files:
+                bvhio_errors.append(np.linalg.norm(read_bvhio(path, len(joints)) - joints, axis=-1).ravel())
+
+    def summary(e: list[np.ndarray]) -> dict:
+        e = np.concatenate(e) * 1000
+        return {"mean_mm": round(float(e.mean()), 3), "p99_mm": round(float(np.percentile(e, 99)), 2),
+                "max_mm": round(float(e.max()), 2)}
+
+    return {"files": len(motions), "error_pybvh": summary(errors[False]),
+            "error_bvhio": summary(bvhio_errors) if bvhio_errors else None,
+            "error_pybvh_foot_lock": summary(errors[True]), "max_channel_jump_deg": round(max(j for j, _ in jumps), 2),
+            "max_channel_jump_of_a_joint_turning_under_30_deg": round(max(f for _, f in jumps), 2),
+            "skating_cm_s": {k: round(100 * float(np.mean(v)), 3) for k, v in skating.items()}}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="dataset root (new_joints/, <split>.txt)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--model", help="SegMo bundle: also check generated motions")
+    p.add_argument("--limit", type=int, default=None, help="first N motions of the split")
+    p.add_argument("--bvhio-files", type=int, default=20, help="files also read with bvhio")
+    p.add_argument("--out", default="runs/bvh_check")
+    args = p.parse_args(argv)
+    root = Path(args.data)
+    ids = (root / f"{args.split}.txt").read_text().split()[: args.limit]
+    corpus = [np.load(root / "new_joints" / f"{i}.npy").astype(np.float64) for i in ids]
+    report: dict = {}
+    start = time.perf_counter()
+    out = Path(args.out)
+    (out / "corpus").mkdir(parents=True, exist_ok=True)
+    report["corpus"] = check(corpus, out / "corpus", args.bvhio_files)
+    print(f"corpus: {json.dumps(report['corpus'])}", flush=True)
+    if args.model:
+        from segmo import SegMo
+
+        model = SegMo.from_pretrained(args.model)
+        texts = [(root / "texts" / f"{i}.txt").read_text().splitlines()[0].split("#")[0] for i in ids]
+        lengths = [min(len(j) // 4 * 4, 196) for j in corpus]
+        generated = []
+        for b in range(0, len(texts), 32):
+            result = model.generate(texts[b:b + 32], lengths[b:b + 32],
+                                    generator=torch.Generator().manual_seed(b))
+            generated += [result.motion_joints(i).astype(np.float64) for i in range(len(result))]
+        (out / "generated").mkdir(parents=True, exist_ok=True)
+        report["generated"] = check(generated, out / "generated", args.bvhio_files)
+        print(f"generated: {json.dumps(report['generated'])}", flush=True)
+    report["seconds"] = round(time.perf_counter() - start, 1)
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
