@@ -16,11 +16,13 @@ Example: `segmo export runs/rvq/synthetic/version_0/checkpoints/last.ckpt --out 
 from __future__ import annotations
 
 import importlib
+import json
 from pathlib import Path
 
 import torch
 
 from segmo.errors import ArgumentParser, SegmoError
+from segmo.models.hub import portable_path
 
 SHOWN = 5  # non-finite tensors named in a message
 
@@ -74,15 +76,38 @@ def check_finite(state_dict: dict, path: str | Path) -> None:
                          "checkpoint")
 
 
+def training_data(hparams: dict) -> dict:
+    """What a model card says about the training data: the data folder (a portable path),
+    its text features and segments, and the built-in corpus' version, seed and size."""
+    root = hparams.get("root")
+    if not root:
+        return {}
+    data = {"root": portable_path(root)}
+    for key in ("text_features", "text_segments", "text_tokens"):
+        if hparams.get(key):
+            data[key] = hparams[key]
+    corpus = Path(root) / "corpus.json"
+    if corpus.is_file():
+        try:
+            info = json.loads(corpus.read_text())
+            data["corpus"] = {k: info[k] for k in ("name", "version", "seed", "num_motions") if k in info}
+        except (ValueError, OSError):
+            pass  # the card then says less; a broken corpus.json is not the export's business
+    return data
+
+
 def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None) -> Path:
     """Write the model directory of `checkpoint_path` to `out`; returns `out`."""
     module, class_path, checkpoint = load_task(checkpoint_path, task)
     model = module.export_model().eval()
     meta = {
         "task": class_path,
-        "checkpoint": str(Path(checkpoint_path).resolve()),
+        "checkpoint": portable_path(checkpoint_path),
         "global_step": int(checkpoint.get("global_step", 0)),
     }
+    data = training_data(checkpoint.get("datamodule_hyper_parameters") or {})
+    if data:
+        meta["data"] = data
     return model.save_pretrained(out, meta=meta)
 
 

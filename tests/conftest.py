@@ -8,8 +8,12 @@ exercising the real cache, dataset and collate code.
 from __future__ import annotations
 
 import importlib.util
+import os
 import zlib
 from pathlib import Path
+
+# No test reaches a model hub: huggingface_hub reads this when it is imported.
+os.environ["HF_HUB_OFFLINE"] = "1"
 
 import numpy as np
 import pytest

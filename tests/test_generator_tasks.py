@@ -140,6 +140,11 @@ def test_export_reproduces_the_task(text_dataset, tokenizer_dir, tmp_path):
     checkpoint = Path(cli.trainer.checkpoint_callback.last_model_path)
     model = load_pretrained(export(checkpoint, tmp_path / "mask"))
     assert model.alignment is not None and model.meta["text_encoder"] == "minilm"
+    # no absolute path of this machine in a model that may be published
+    for key in ("checkpoint", "tokenizer"):
+        assert not Path(model.meta[key]).is_absolute() and model.meta[key].endswith(
+            ("last.ckpt", "rvq", checkpoint.name, Path(str(tokenizer_dir["t2m"])).name)), model.meta[key]
+    assert model.meta["data"]["root"] and model.meta["global_step"] == 2
     task = MaskTask.load_from_checkpoint(checkpoint).eval()
     g = torch.Generator().manual_seed(0)
     b, n, a = 2, 6, 5

@@ -271,7 +271,11 @@ API_CASES = [
     Api("api-retrieve-top-k", lambda m, w: m.retrieve_texts(_motion(w), ["walk"], top_k=0),
         SegmoError, "top_k", "`retrieve_texts(top_k=0)`"),
     Api("api-from-pretrained-missing", lambda m, w: SegMo.from_pretrained(w["tmp"] / "nope"),
-        FileNotFoundError, "segmo.json", "`from_pretrained` of a missing folder"),
+        FileNotFoundError, "no such model folder", "`from_pretrained` of a missing folder"),
+    Api("api-from-pretrained-newer-stage-format", lambda m, w: SegMo.from_pretrained(w["newer_stage"]),
+        SegmoError, "reads format 1 and older", "a stage written in a newer format by a newer segmo"),
+    Api("api-from-pretrained-hub-offline", lambda m, w: SegMo.from_pretrained("someone/not-cached"),
+        SegmoError, "not in the Hugging Face cache", "a hub id that is not cached, offline"),
     Api("api-from-pretrained-device", lambda m, w: SegMo.from_pretrained(w["bundle"],
                                                                          device="cuda:3"),
         SegmoError, "cuda:3", "`from_pretrained(device='cuda:3')` without a GPU"),
@@ -329,6 +333,8 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
 
     variant("bad_bundle_json", lambda d: (d / "segmo.json").write_text('{"format": 1,\n'))
     variant("bad_format", lambda d: edit_json(d / "segmo.json", lambda p: p.update(format=99)))
+    variant("newer_stage", lambda d: edit_json(d / "mask" / "config.json",
+                                               lambda p: p.update(format=2, segmo_version="9.0")))
     variant("bad_guidance", lambda d: edit_json(d / "segmo.json",
                                                 lambda p: p.update(guidance_scale="high")))
     variant("bad_config_json", lambda d: (d / "mask" / "config.json").write_text("{kind"))

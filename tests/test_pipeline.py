@@ -9,6 +9,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -179,6 +182,79 @@ def test_bundle_round_trip_gives_identical_generations(model, generated, tmp_pat
     assert torch.equal(again.features, generated.features)
 
 
+def _hub_cache(cache: Path, repo_id: str, folder: Path, commit: str = "0" * 40) -> None:
+    """Put `folder` into a Hugging Face cache as repository `repo_id` at `commit` (the
+    cache layout huggingface_hub documents: refs/main names the snapshot)."""
+    repo = cache / f"models--{repo_id.replace('/', '--')}"
+    shutil.copytree(folder, repo / "snapshots" / commit)
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text(commit)
+
+
+def test_hub_id_loads_from_the_offline_cache_like_the_folder(model, generated, tmp_path, monkeypatch):
+    import huggingface_hub.constants
+
+    model.save_pretrained(tmp_path / "folder")
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    _hub_cache(tmp_path / "cache", "someone/segmo-tiny", tmp_path / "folder")
+    loaded = SegMo.from_pretrained("someone/segmo-tiny", text_encoder=hash_encoder("hash", TEXT_DIM))
+    again = loaded.generate(PROMPTS, [48, 32], generator=seeded())
+    assert torch.equal(again.tokens, generated.tokens) and torch.equal(again.features, generated.features)
+    with pytest.raises(SegmoError, match="not in the Hugging Face cache"):
+        SegMo.from_pretrained("someone/never-downloaded")
+
+
+def test_push_to_hub_creates_the_repository_and_uploads_the_folder(model, tmp_path, monkeypatch):
+    import huggingface_hub
+
+    calls = []
+
+    class FakeApi:  # nothing reaches a hub
+        def __init__(self, **kwargs):
+            calls.append(("init", kwargs.get("library_name")))
+
+        def create_repo(self, repo_id, private=False, exist_ok=False):
+            calls.append(("create", repo_id, private, exist_ok))
+
+        def upload_folder(self, repo_id, folder_path, commit_message):
+            calls.append(("upload", repo_id, sorted(p.name for p in Path(folder_path).iterdir())))
+
+    monkeypatch.setattr(huggingface_hub, "HfApi", FakeApi)
+    model.save_pretrained(tmp_path / "out", push_to_hub=True, repo_id="me/segmo-test", private=True)
+    assert calls[0] == ("init", "segmo") and calls[1] == ("create", "me/segmo-test", True, True)
+    assert calls[2] == ("upload", "me/segmo-test", ["README.md", "length", "mask", "residual",
+                                                   "segmo.json", "tokenizer"])
+    with pytest.raises(SegmoError, match="needs repo_id"):
+        model.save_pretrained(tmp_path / "out2", push_to_hub=True)
+
+
+def test_bundle_records_versions_and_writes_a_model_card(bundle, tmp_path):
+    from segmo import __version__
+    from segmo.cli import main
+
+    for config in [bundle / "segmo.json"] + [bundle / s / "config.json" for s in
+                                             ("tokenizer", "mask", "residual", "length")]:
+        payload = json.loads(config.read_text())
+        assert payload["format"] == 1 and payload["segmo_version"] == __version__, config
+        assert (config.stat().st_mode & 0o777) == 0o666 & ~_umask(), config
+    card = (bundle / "README.md").read_text()
+    assert card.startswith("---\nlibrary_name: segmo") and "| mask | mask |" in card
+    assert "## Evaluation" not in card  # no metrics given
+    metrics = tmp_path / "metrics.json"
+    metrics.write_text(json.dumps({"generation": {"generated": {"top1": {"mean": 0.5}, "fid": 1.25}}}))
+    main(["bundle", "--tokenizer", str(bundle / "tokenizer"), "--mask", str(bundle / "mask"),
+          "--metrics", str(metrics), "--out", str(tmp_path / "with_metrics")])
+    card = (tmp_path / "with_metrics" / "README.md").read_text()
+    assert "## Evaluation" in card and "| 0.500 | 1.250 |" in card
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def test_sampling_options_object_and_keywords_agree(model, generated):
     """`sampling=` takes a whole SamplingOptions; a keyword takes one option's place."""
     assert model.sampling == SamplingOptions(guidance_scale=4.0, residual_guidance_scale=5.0)
@@ -225,7 +301,7 @@ def test_missing_length_estimator_and_bad_inputs(model):
         model.generate(["x"], [16], segments=[["a", "b", "c", "d"]])
     with pytest.raises(ValueError, match=r"raw features \(t, 263\)"):
         model.ground("a person walks", np.zeros((40, 22, 3)))
-    with pytest.raises(FileNotFoundError, match="segmo.json"):
+    with pytest.raises(FileNotFoundError, match="no such model folder"):
         SegMo.from_pretrained("/nonexistent/segmo-model")
 
 

@@ -71,6 +71,7 @@ from segmo.evaluation.sections import (
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
 from segmo.generation.sampling import SamplingOptions
+from segmo.models.hub import is_hub_id
 from segmo.models.pretrained import load_pretrained, read_json
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.features import features_to_joints, joint_errors
@@ -377,7 +378,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--mm-repeats={args.mm_repeats} must exceed 10 (the pairs MultiModality draws)")
     for flag in ("model", "data", "evaluator"):
         value = getattr(args, flag)
-        if value is not None and not Path(value).is_dir():
+        if value is not None and not Path(value).is_dir() and not (flag != "data" and is_hub_id(value)):
             parser.error(f"--{flag} {value}: no such directory")
     if Path(args.out).exists() and not Path(args.out).is_dir():
         parser.error(f"--out {args.out}: exists and is not a directory")

@@ -4,7 +4,10 @@ Stages are coupled by a path to such a directory (conventions rule 5). A model c
 mixes in `Pretrained`, declares its `kind` and its config dataclass, and is rebuilt from
 the directory alone with `from_pretrained`, without a Lightning checkpoint or YAML.
 
-    config.json = {"kind": "rvq", "config": {...dataclass fields...}, "meta": {...}}
+    config.json = {"kind": "rvq", "config": {...dataclass fields...}, "meta": {...},
+                   "format": 1, "segmo_version": "0.1.0"}
+
+`from_pretrained` takes a folder or a Hugging Face hub id (`segmo.models.hub`).
 
 `meta` carries what is not a constructor argument but is needed to use the model:
 skeleton name, fps, the text encoder a transformer was trained with, and so on.
@@ -25,6 +28,7 @@ from safetensors.torch import load_file, save
 
 from segmo.errors import SegmoError
 from segmo.files import atomic_open, write_atomic
+from segmo.models.hub import FORMAT, check_format, push_folder, resolve, segmo_version
 
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
@@ -43,7 +47,13 @@ class Pretrained:
         if "kind" in cls.__dict__:
             _REGISTRY[cls.kind] = cls
 
-    def save_pretrained(self, directory: str | os.PathLike, meta: dict | None = None) -> Path:
+    def save_pretrained(self, directory: str | os.PathLike, meta: dict | None = None,
+                        push_to_hub: bool = False, repo_id: str | None = None,
+                        private: bool = False) -> Path:
+        """Write `directory` (config.json + model.safetensors); with `push_to_hub`, upload
+        it to the hub repository `repo_id` too."""
+        if push_to_hub and not repo_id:
+            raise SegmoError("save_pretrained: push_to_hub needs repo_id ('owner/name')")
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
@@ -53,15 +63,22 @@ class Pretrained:
             "kind": self.kind,
             "config": dataclasses.asdict(self.config),
             "meta": {**getattr(self, "meta", {}), **(meta or {})},
+            "format": FORMAT,
+            "segmo_version": segmo_version(),
         }
         write_atomic(directory / CONFIG_FILE, json.dumps(payload, indent=2) + "\n")
+        if push_to_hub:
+            push_folder(directory, repo_id, private=private)
         return directory
 
     @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu"):
-        """Rebuild the model of `directory`; SegmoError names the file of any problem (a
-        config that does not build this model, weights that are unreadable, do not fit the
-        config or hold NaN/inf)."""
+    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu",
+                        revision: str | None = None):
+        """Rebuild the model of `directory` (a folder or a hub id; `revision`: the hub's
+        branch, tag or commit); SegmoError names the file of any problem (a config that
+        does not build this model, weights that are unreadable, do not fit the config or
+        hold NaN/inf)."""
+        directory = resolve(directory, revision)
         path = Path(directory) / CONFIG_FILE
         payload = read_config(directory)
         if payload["kind"] != cls.kind:
@@ -134,11 +151,14 @@ def read_config(directory: str | os.PathLike) -> dict:
     for key in ("kind", "config"):
         if key not in payload:
             raise SegmoError(f"{path}: missing key {key!r}")
+    check_format(payload, path)
     return payload
 
 
-def load_pretrained(directory: str | os.PathLike, map_location: str = "cpu") -> torch.nn.Module:
-    """Load any model directory, dispatching on the `kind` recorded in its config."""
+def load_pretrained(directory: str | os.PathLike, map_location: str = "cpu",
+                    revision: str | None = None) -> torch.nn.Module:
+    """Load any model directory (or hub id), dispatching on the `kind` in its config."""
+    directory = resolve(directory, revision)
     kind = read_config(directory)["kind"]
     # Model classes register themselves on import; segmo/models/__init__.py imports them all.
     if kind not in _REGISTRY:

@@ -1,13 +1,16 @@
 """The bundle directory: every stage `SegMo` needs, and `segmo.json` saying how to use them.
 
-    DIR/segmo.json     {"format": 1, "text_encoder", "text_segmenter", "skeleton", "fps",
-                        "guidance_scale", "residual_guidance_scale", "motion_segmenter"}
+    DIR/segmo.json     {"format": 1, "segmo_version", "text_encoder", "text_segmenter",
+                        "skeleton", "fps", "guidance_scale", "residual_guidance_scale",
+                        "motion_segmenter"}
+    DIR/README.md      the model card (`segmo.pipeline.model_card`)
     DIR/tokenizer/     RVQ-VAE model directory (its buffers hold the feature statistics)
     DIR/mask/          mask transformer (+ alignment head)
     DIR/residual/      residual transformer (optional)
     DIR/length/        length estimator (optional)
 
-Each stage directory is a `segmo.models.pretrained` model directory (`segmo export`).
+Each stage directory is a `segmo.models.pretrained` model directory (`segmo export`). A
+bundle is read from a folder or a Hugging Face hub id (`segmo.models.hub`).
 """
 
 from __future__ import annotations
@@ -25,10 +28,12 @@ import torch
 from segmo.errors import SegmoError
 from segmo.files import write_atomic
 from segmo.generation.sampling import SamplingOptions
+from segmo.models.hub import FORMAT, check_format, push_folder, resolve, segmo_version
 from segmo.models.pretrained import load_pretrained, read_config, read_json
+from segmo.pipeline.model_card import CARD_FILE, model_card
 
 BUNDLE_FILE = "segmo.json"
-BUNDLE_FORMAT = 1
+BUNDLE_FORMAT = FORMAT
 STAGES = {"tokenizer": "rvq", "mask": "mask", "residual": "residual", "length": "length"}
 KIT_GUIDANCE_SCALE = 2.0  # spec §8: KIT's base-token guidance scale; HumanML3D's is the default
 
@@ -50,28 +55,26 @@ class SegMoConfig:
 
 
 def load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
-    """The model of a stage directory, which must hold a `kind` model."""
-    directory = Path(directory)
+    """The model of a stage directory (or hub id), which must hold a `kind` model."""
+    directory = resolve(directory)
     found = read_config(directory)["kind"]  # FileNotFoundError names the directory
     if found != kind:
         raise SegmoError(f"{directory}: holds a {found!r} model, expected a {kind!r} model")
     return load_pretrained(directory)
 
 
-def read_bundle(directory: str | os.PathLike
+def read_bundle(directory: str | os.PathLike, revision: str | None = None
                 ) -> tuple[SegMoConfig, dict[str, torch.nn.Module | None]]:
-    """`segmo.json` and the stages of a bundle; one SegmoError naming the file when either
-    is not what a bundle holds."""
-    directory = Path(directory)
+    """`segmo.json` and the stages of a bundle (a folder or a hub id); one SegmoError
+    naming the file when either is not what a bundle holds."""
+    directory = resolve(directory, revision)
     path = directory / BUNDLE_FILE
     if not path.is_file():
         hint = (" (it is a single model directory; assemble a bundle with `segmo bundle`)"
                 if (directory / "config.json").is_file() else "")
         raise FileNotFoundError(f"{path}: not a SegMo bundle (no {BUNDLE_FILE}){hint}")
     payload = read_json(path)
-    if payload.get("format") != BUNDLE_FORMAT:
-        raise SegmoError(f"{path}: format {payload.get('format')!r} is not supported "
-                         f"(expected {BUNDLE_FORMAT})")
+    check_format(payload, path)
     known = {f.name for f in dataclasses.fields(SegMoConfig)}
     config = SegMoConfig(**{k: v for k, v in payload.items() if k in known})
     if not isinstance(config.text_encoder, str):
@@ -91,12 +94,22 @@ def read_bundle(directory: str | os.PathLike
 
 
 def write_bundle(directory: str | os.PathLike, config: SegMoConfig,
-                 stages: dict[str, torch.nn.Module | None]) -> Path:
-    """Write every stage given and `segmo.json` to `directory`; returns it."""
+                 stages: dict[str, torch.nn.Module | None], metrics: dict | None = None,
+                 push_to_hub: bool = False, repo_id: str | None = None,
+                 private: bool = False) -> Path:
+    """Write every stage given, `segmo.json` and the model card (with `metrics`, a
+    `segmo evaluate` metrics.json, when given) to `directory`; with `push_to_hub`, upload
+    the folder to the hub repository `repo_id`. Returns `directory`."""
+    if push_to_hub and not repo_id:
+        raise SegmoError("save_pretrained: push_to_hub needs repo_id ('owner/name')")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     for name, module in stages.items():
         if module is not None:
             module.save_pretrained(directory / name)
-    write_atomic(directory / BUNDLE_FILE, json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+    payload = {**dataclasses.asdict(config), "format": BUNDLE_FORMAT, "segmo_version": segmo_version()}
+    write_atomic(directory / BUNDLE_FILE, json.dumps(payload, indent=2) + "\n")
+    write_atomic(directory / CARD_FILE, model_card(config, stages, metrics))
+    if push_to_hub:
+        push_folder(directory, repo_id, private=private)
     return directory

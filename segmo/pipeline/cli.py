@@ -27,6 +27,7 @@ from segmo.errors import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.sampling import SamplingOptions
+from segmo.models.hub import is_hub_id
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
 from segmo.pipeline.grounding import (
     METHODS,
@@ -35,13 +36,15 @@ from segmo.pipeline.grounding import (
     SEARCHES,
     plot_similarity_map,
 )
+from segmo.pipeline.model_card import read_metrics
 from segmo.pipeline.outputs import FORMATS
 from segmo.pipeline.segmo import SegMo
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):
-    if not Path(directory).is_dir():
-        parser.error(f"--model {directory}: no such directory (a bundle made by `segmo bundle`)")
+    if not Path(directory).is_dir() and not is_hub_id(directory):
+        parser.error(f"--model {directory}: no such directory (a bundle made by `segmo bundle`, "
+                     "or a hub id like owner/name)")
     try:
         return SegMo.from_pretrained(directory)
     except (FileNotFoundError, ValueError) as error:
@@ -188,13 +191,24 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--residual-guidance", type=finite_float, default=None,
                         help=f"default CFG scale of the residual tokens (default "
                              f"{SamplingOptions.residual_guidance_scale:g})")
+    parser.add_argument("--metrics", default=None,
+                        help="metrics.json of `segmo evaluate` (or its folder) for the model card")
+    parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
+                        help="also upload the bundle to this Hugging Face hub repository")
     parser.add_argument("--out", required=True, help="bundle directory to write")
     args = parser.parse_args(argv)
     _check_output_dir(parser, "--out", args.out)
     for flag in ("tokenizer", "mask", "residual", "length"):
         value = getattr(args, flag)
-        if value is not None and not Path(value).is_dir():
-            parser.error(f"--{flag} {value}: no such directory (a model made by `segmo export`)")
+        if value is not None and not Path(value).is_dir() and not is_hub_id(value):
+            parser.error(f"--{flag} {value}: no such directory (a model made by `segmo export`, "
+                         "or a hub id)")
+    metrics = None
+    if args.metrics is not None:
+        try:
+            metrics = read_metrics(args.metrics)
+        except (FileNotFoundError, OSError) as error:
+            parser.error(f"--metrics {args.metrics}: {error.strerror or error}")
     if args.segmenter not in ("rule", "openai", "transformers"):
         parser.error(f"--segmenter {args.segmenter!r}: choose rule, openai or transformers")
     model = SegMo.from_stages(args.tokenizer, args.mask, args.residual, args.length,
@@ -203,4 +217,5 @@ def bundle_main(argv: list[str] | None = None) -> None:
         model.config.guidance_scale = args.guidance
     if args.residual_guidance is not None:
         model.config.residual_guidance_scale = args.residual_guidance
-    print(model.save_pretrained(args.out))
+    print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
+                                repo_id=args.push_to_hub))

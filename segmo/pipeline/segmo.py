@@ -123,10 +123,12 @@ class SegMo:
 
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu",
-                        **kwargs: Any) -> SegMo:
-        """Load a bundle directory (see the module docstring); kwargs go to `__init__`."""
+                        revision: str | None = None, **kwargs: Any) -> SegMo:
+        """Load a bundle: a folder, or a Hugging Face hub id ("owner/name", from the hub's
+        cache when ``HF_HUB_OFFLINE=1``; `revision`: branch, tag or commit). kwargs go to
+        `__init__`."""
         device = resolve_device(device)
-        config, stages = read_bundle(directory)
+        config, stages = read_bundle(directory, revision)
         return cls(**stages, config=config, **kwargs).to(device)
 
     @classmethod
@@ -147,10 +149,15 @@ class SegMo:
         model.config.text_segmenter = segmenter
         return model
 
-    def save_pretrained(self, directory: str | os.PathLike) -> Path:
-        """Write the bundle (every stage + segmo.json) to `directory`; returns it."""
+    def save_pretrained(self, directory: str | os.PathLike, metrics: dict | None = None,
+                        push_to_hub: bool = False, repo_id: str | None = None,
+                        private: bool = False) -> Path:
+        """Write the bundle (every stage, segmo.json and the model card README.md, with
+        `metrics` from `segmo evaluate` when given) to `directory`; with `push_to_hub`,
+        upload it to the hub repository `repo_id` ("owner/name"). Returns `directory`."""
         return write_bundle(directory, self.config,
-                            {name: getattr(self, name) for name in STAGES})
+                            {name: getattr(self, name) for name in STAGES}, metrics=metrics,
+                            push_to_hub=push_to_hub, repo_id=repo_id, private=private)
 
     def modules(self) -> list[torch.nn.Module]:
         return [m for m in (self.tokenizer, self.mask, self.residual, self.length)

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from segmo.errors import SegmoError
 from segmo.models.alignment import AlignmentConfig
+from segmo.models.hub import portable_path
 from segmo.models.mask_transformer import (
     MaskTransformer,
     MaskTransformerConfig,
@@ -271,7 +272,7 @@ class MaskTask(TransformerTask):
 
     def export_model(self) -> MaskTransformer:
         self.model.meta = {
-            "tokenizer": str(self.hparams.tokenizer),
+            "tokenizer": portable_path(self.hparams.tokenizer),
             "text_encoder": self.hparams.text_encoder,
             "alignment": self.hparams.alignment,
             "segmenter": self.hparams.segmenter,

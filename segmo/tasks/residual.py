@@ -14,6 +14,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from segmo.models.hub import portable_path
 from segmo.models.mask_transformer import masked_token_loss
 from segmo.models.residual_transformer import (
     ResidualTransformer,
@@ -78,7 +79,7 @@ class ResidualTask(TransformerTask):
         self._evaluate("test", batch, batch_idx)
 
     def export_model(self) -> ResidualTransformer:
-        self.model.meta = {"tokenizer": str(self.hparams.tokenizer),
+        self.model.meta = {"tokenizer": portable_path(self.hparams.tokenizer),
                            "text_encoder": self.hparams.text_encoder,
                            "cond_drop_prob": self.hparams.cond_drop_prob}
         return self.model
