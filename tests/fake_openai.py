@@ -33,8 +33,12 @@ class FakeOpenAI:
     FAULTS = ("500", "429", "hang", "badjson", "invalidjson", "prose", "itisit", "copies",
               "dropped", "reversed", "400", "401")
 
-    def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None) -> None:
+    def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None,
+                 structured: bool = True) -> None:
         self.faults = dict(faults or {})
+        self.structured = structured  # False: refuse response_format with a 400, as old servers do
+        self.bodies: list[dict] = []  # every request body, in arrival order
+        self.connections: set[int] = set()  # client ports seen (one per kept-alive connection)
         self.calls: dict[str, int] = defaultdict(int)
         self.times: dict[str, list[float]] = defaultdict(list)
         self.total = 0
@@ -53,6 +57,9 @@ class FakeOpenAI:
 
             def do_POST(self):
                 body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+                with server._lock:
+                    server.bodies.append(body)
+                    server.connections.add(self.client_address[1])
                 code, headers, text = server.respond(self.path, body)
                 try:
                     self.send_response(code)
@@ -72,6 +79,8 @@ class FakeOpenAI:
     def respond(self, path: str, body: dict) -> tuple[int, dict[str, str], str]:
         if path != "/v1/chat/completions":
             return 404, {}, '{"error": {"message": "no such route"}}'
+        if "response_format" in body and not self.structured:
+            return 400, {}, '{"error": {"message": "response_format is not supported"}}'
         caption = next(m["content"] for m in reversed(body["messages"])
                        if m["role"] == "user" and not m["content"].startswith("Invalid answer"))
         with self._lock:

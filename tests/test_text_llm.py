@@ -198,6 +198,34 @@ def test_openai_good_answers_keep_order(monkeypatch):
     assert seg.fallbacks == 0 and all(server.calls[c] == 1 for c in captions)
 
 
+def test_structured_output_is_asked_for_and_connections_are_kept_alive():
+    captions = [f"a person jumps {i} times then waves" for i in range(5)]
+    with FakeOpenAI() as server:
+        seg = _client(server.url, concurrency=1)
+        assert seg.segment_with_fallbacks(captions)[1] == {}
+    formats = [b.get("response_format") for b in server.bodies]
+    assert len(formats) == 5 and all(f["type"] == "json_schema" and f["json_schema"]["strict"]
+                                     for f in formats)
+    schema = formats[0]["json_schema"]["schema"]
+    assert schema["required"] == ["segments"] and schema["properties"]["segments"]["maxItems"] == 5
+    assert len(server.connections) == 1  # five requests, one connection
+
+
+def test_a_server_without_structured_output_is_asked_without_it():
+    captions = [f"a person hops {i} times then bows" for i in range(4)]
+    with FakeOpenAI(structured=False) as server:
+        seg = _client(server.url, concurrency=1)
+        out, fell_back = seg.segment_with_fallbacks(captions)
+    assert fell_back == {} and out == RuleSegmenter().segment(captions)
+    sent = ["response_format" in b for b in server.bodies]
+    assert sent == [True, False, False, False, False]  # refused once, then never sent again
+    with FakeOpenAI() as server:
+        _client(server.url, structured_output="off").segment(captions[:1])
+    assert "response_format" not in server.bodies[0]
+    with pytest.raises(SegmoError, match="structured_output"):
+        _client("http://127.0.0.1:1/v1", structured_output="yes")
+
+
 def test_openai_base_url_from_the_environment(monkeypatch):
     with FakeOpenAI() as server:
         monkeypatch.setenv("OPENAI_BASE_URL", server.url)

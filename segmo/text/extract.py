@@ -300,6 +300,9 @@ def main(argv: list[str] | None = None) -> None:
                                            "(default: $OPENAI_BASE_URL)")
     parser.add_argument("--api-key-env", help="environment variable holding the API key (OPENAI_API_KEY)")
     parser.add_argument("--concurrency", type=positive_int, help="parallel requests (openai, default 8)")
+    parser.add_argument("--structured-output", choices=["auto", "json_schema", "off"], default="auto",
+                        help="openai: ask for a JSON-schema response_format (auto: unless the "
+                             "server refuses it)")
     parser.add_argument("--timeout", type=_seconds, help="seconds per request (openai, default 60)")
     parser.add_argument("--max-retries", type=non_negative_int,
                         help="retries of a failed request and re-asks of a rejected answer before "
@@ -336,7 +339,7 @@ def main(argv: list[str] | None = None) -> None:
         segmenter = get_text_segmenter("openai", base_url=base_url, model=args.model,
                                        api_key_env=args.api_key_env, concurrency=args.concurrency,
                                        timeout=args.timeout, max_retries=args.max_retries,
-                                       extra_body=extra)
+                                       extra_body=extra, structured_output=args.structured_output)
     else:
         if not args.model:
             parser.error("--backend transformers needs --model")

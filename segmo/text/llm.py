@@ -43,7 +43,7 @@ import torch
 
 from segmo.errors import SegmoError
 from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
-from segmo.text.validate import parse_answer, validate_segments
+from segmo.text.validate import answer_schema, parse_answer, validate_segments
 
 __all__ = ["LLMSegmenter", "LLMUnavailableError", "OpenAISegmenter", "Prompt", "TransformersSegmenter",
            "get_text_segmenter", "load_prompt", "parse_answer", "validate_segments"]
@@ -53,6 +53,8 @@ log = logging.getLogger(__name__)
 # The top-level prompts/ folder, shipped inside the package (pyproject.toml maps it to
 # segmo._prompts), so that an installed segmo finds it as well as a source checkout.
 PROMPT_DIR = files("segmo._prompts")
+# Words of a 400 that refuses response_format (not, say, a caption over the context length).
+_FORMAT_WORDS = ("response_format", "json_schema", "schema", "structured", "guided")
 UNREADABLE = "<unreadable response"  # how a backend hands a broken answer to the re-ask loop
 
 
@@ -221,15 +223,27 @@ class OpenAISegmenter(LLMSegmenter):
     than a bad caption. After `max_failures_in_a_row` failed requests (default
     ``max(16, 2 * concurrency)``) with no success in between, the rest is not asked and
     `LLMUnavailableError` is raised.
+
+    structured_output: "auto" (default) sends a strict JSON-schema ``response_format``
+    (`segmo.text.validate.answer_schema`), so that servers that constrain decoding (vLLM,
+    llama.cpp, Ollama, OpenAI) can only answer ``{"segments": [...]}``; a server that
+    refuses the field (an HTTP 400 that names it) is asked again without it, and not sent
+    it again.
+    "json_schema" always sends it, "off" never does. The answer is checked either way.
     """
 
     def __init__(self, base_url: str | None, model: str, api_key_env: str = "OPENAI_API_KEY",
                  concurrency: int = 8, timeout: float = 60.0, max_retries: int = 3,
                  temperature: float = 0.0, max_tokens: int = 512,
                  extra_body: dict[str, Any] | None = None, prompt: Prompt | None = None,
-                 max_segments: int = MAX_SEGMENTS, max_failures_in_a_row: int | None = None) -> None:
+                 max_segments: int = MAX_SEGMENTS, max_failures_in_a_row: int | None = None,
+                 structured_output: str = "auto") -> None:
         super().__init__(prompt, max_retries, max_segments)
         import openai  # import on use: `segmo --help` and the rule backend stay fast
+
+        if structured_output not in ("auto", "json_schema", "off"):
+            raise SegmoError(f"OpenAISegmenter: structured_output must be auto, json_schema or off, "
+                             f"got {structured_output!r}")
 
         base_url = base_url or os.environ.get("OPENAI_BASE_URL")
         if not base_url:
@@ -252,6 +266,10 @@ class OpenAISegmenter(LLMSegmenter):
         self._lock = threading.Lock()
         self._failures_in_a_row = 0
         self._last_failure = ""
+        self.structured_output = structured_output
+        self._schema_refused = False  # "auto": the server answered 400 to response_format
+        self.response_format = {"type": "json_schema", "json_schema": {
+            "name": "text_segments", "strict": True, "schema": answer_schema(max_segments)}}
 
     def _failed(self, reason: str) -> RuntimeError:
         with self._lock:
@@ -265,9 +283,25 @@ class OpenAISegmenter(LLMSegmenter):
 
         if self._failures_in_a_row >= self.max_failures_in_a_row:
             return RuntimeError("not asked: the server is down")
+        structured = self.structured_output == "json_schema" or (
+            self.structured_output == "auto" and not self._schema_refused)
         try:
-            completion = self.client.chat.completions.create(
-                model=self.model, messages=messages, extra_body=self.extra_body, **self.options)
+            try:
+                completion = self.client.chat.completions.create(
+                    model=self.model, messages=messages, extra_body=self.extra_body, **self.options,
+                    **({"response_format": self.response_format} if structured else {}))
+            except openai.BadRequestError as err:
+                about_format = any(w in str(err.message).lower() for w in _FORMAT_WORDS)
+                if not structured or self.structured_output != "auto" or not about_format:
+                    raise
+                # A server without structured output refuses the field: ask again without it.
+                completion = self.client.chat.completions.create(
+                    model=self.model, messages=messages, extra_body=self.extra_body, **self.options)
+                with self._lock:
+                    if not self._schema_refused:
+                        log.info("%s refused response_format (json_schema); asking without it",
+                                 self.base_url)
+                    self._schema_refused = True
         except (openai.AuthenticationError, openai.PermissionDeniedError, openai.NotFoundError) as err:
             raise SegmoError(f"{self.base_url} answered HTTP {err.status_code} for model "
                              f"{self.model!r} ({str(err.message)[:200]}); check --base-url, --model "

@@ -27,6 +27,8 @@ import json
 import re
 from collections import Counter
 
+from pydantic import BaseModel, ConfigDict, ValidationError
+
 from segmo.text import lexicon
 from segmo.text.rules import MAX_SEGMENTS, action_clauses, lemma
 
@@ -46,6 +48,22 @@ _THINK_RE = re.compile(r"<think>.*?(</think>|$)", re.DOTALL | re.IGNORECASE)
 _WORD_RE = re.compile(r"[A-Za-z]+|[0-9]+")
 
 
+class Answer(BaseModel):
+    """The answer's shape, ``{"segments": [str, ...]}`` (other keys ignored; no coercion:
+    a number is not a segment)."""
+
+    model_config = ConfigDict(strict=True, extra="ignore")
+    segments: list[str]
+
+
+def answer_schema(max_segments: int = MAX_SEGMENTS) -> dict:
+    """JSON schema of an answer, for servers that constrain their output to one
+    (``response_format`` of type ``json_schema``, strict)."""
+    return {"type": "object", "additionalProperties": False, "required": ["segments"],
+            "properties": {"segments": {"type": "array", "minItems": 1, "maxItems": max_segments,
+                                        "items": {"type": "string", "minLength": 1}}}}
+
+
 def parse_answer(text: str) -> list[str] | None:
     """Segments from a model answer, or None if there is no ``{"segments": [str, ...]}`` in it.
 
@@ -59,10 +77,11 @@ def parse_answer(text: str) -> list[str] | None:
             obj, _ = decoder.raw_decode(text, match.start())
         except json.JSONDecodeError:
             continue
-        if isinstance(obj, dict) and isinstance(obj.get("segments"), list):
-            segments = obj["segments"]
-            if all(isinstance(s, str) for s in segments):
-                return [s.replace("#", " ").strip().rstrip(".!?;,").strip() for s in segments]
+        try:
+            segments = Answer.model_validate(obj).segments
+        except ValidationError:
+            continue
+        return [s.replace("#", " ").strip().rstrip(".!?;,").strip() for s in segments]
     return None
 
 
