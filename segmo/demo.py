@@ -5,8 +5,12 @@ tokenizer, the mask transformer (with segment alignment), the residual transform
 the length estimator with the `configs/*/synthetic.yaml` recipes → export and bundle →
 generate motions for a few prompts → render GIFs and a grounding map.
 
-Each step prints the equivalent stand-alone command and is skipped when its output
-already exists, so an interrupted demo resumes where it stopped. Outputs:
+The demo keeps to a wall-clock budget (``--budget 20m`` by default): each training stage
+gets a share of what is left when it starts (Lightning's ``max_time``), so that the demo
+ends in about the budget on a slow host and trains longer on a fast one, up to the
+synthetic recipes' own step counts. ``--budget quick`` is the test suite's smoke run
+(two steps a stage). Each step prints the equivalent stand-alone command and is skipped
+when its output already exists, so an interrupted demo resumes where it stopped. Outputs:
 
     OUT/corpus/          the built-in corpus (HumanML3D layout)
     OUT/runs/<stage>/    training runs (logs, checkpoints, resolved configs)
@@ -18,7 +22,9 @@ already exists, so an interrupted demo resumes where it stopped. Outputs:
 
 from __future__ import annotations
 
+import argparse
 import logging
+import re
 import time
 from dataclasses import dataclass
 from importlib.resources import files
@@ -50,22 +56,46 @@ PROMPTS = [
 
 @dataclass(frozen=True)
 class Budget:
-    """Corpus size and training steps; `full` fits in about 20 minutes on 2 CPU cores."""
+    """Corpus size and how long each stage trains: `seconds` of wall clock for the whole
+    demo (None: exactly `*_steps` steps a stage), the stages' steps as a cap."""
 
     num_motions: int
     rvq_steps: int
     mask_steps: int
     residual_steps: int
     length_epochs: int
+    seconds: float | None = None
 
 
-BUDGETS = {
-    "full": Budget(num_motions=1000, rvq_steps=1200, mask_steps=1800, residual_steps=1000,
-                   length_epochs=20),
-    # For the test suite: every step runs, nothing is learnt.
-    "quick": Budget(num_motions=24, rvq_steps=2, mask_steps=2, residual_steps=2,
-                    length_epochs=1),
-}
+# Each training stage's share of the time left when it starts (of the stages still to come).
+SHARES = {"rvq": 0.30, "mask": 0.45, "residual": 0.20, "length": 0.05}
+# Seconds kept back for generating, rendering and grounding at the end, and for each
+# stage's start-up and export (measured: 25-40 s and 5-15 s on 2 cores).
+RESERVE_END, RESERVE_STAGE = 45.0, 15.0
+QUICK = Budget(num_motions=24, rvq_steps=2, mask_steps=2, residual_steps=2, length_epochs=1)
+
+
+def timed_budget(seconds: float) -> Budget:
+    """The demo on a wall-clock budget: the synthetic recipes' step counts as caps."""
+    return Budget(num_motions=1000, rvq_steps=3000, mask_steps=6000, residual_steps=4000,
+                  length_epochs=30, seconds=seconds)
+
+
+def parse_budget(text: str) -> Budget:
+    """`--budget`: "quick", or a duration such as 20m, 90s, 1h30m, 1200 (seconds)."""
+    if text == "quick":
+        return QUICK
+    match = re.fullmatch(r"\s*(?:(\d+(?:\.\d+)?)h)?\s*(?:(\d+(?:\.\d+)?)m)?\s*(?:(\d+(?:\.\d+)?)s?)?\s*",
+                         text)
+    if not text.strip() or not match or not any(match.groups()):
+        raise argparse.ArgumentTypeError(f"expected 'quick' or a duration like 20m, 90s or 1h30m, "
+                                         f"got {text!r}")
+    hours, minutes, seconds = (float(g) if g else 0.0 for g in match.groups())
+    total = 3600 * hours + 60 * minutes + seconds
+    if total < 120:
+        raise argparse.ArgumentTypeError(f"a budget of {text!r} is under the 2 minutes the fixed "
+                                         "steps (corpus, text features, rendering) take")
+    return timed_budget(total)
 
 
 def _step(title: str, command: str) -> float:
@@ -78,8 +108,10 @@ def _done(start: float, timings: dict[str, float], key: str) -> None:
     print(f"    done in {timings[key]:.0f} s", flush=True)
 
 
-def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
-    """`segmo fit` one synthetic config, then `segmo export` its last checkpoint."""
+def _train(stage: str, root: Path, out: Path, overrides: list[str],
+           max_seconds: float | None = None) -> Path:
+    """`segmo fit` one synthetic config, then `segmo export` its last weights. With
+    `max_seconds`, training stops when that time is up (or at the step cap)."""
     # Lightning takes seconds to import: kept out of `segmo demo --help`.
     from segmo.training.cli import main as fit
 
@@ -90,10 +122,19 @@ def _train(stage: str, root: Path, out: Path, overrides: list[str]) -> Path:
     if (model_dir / "config.json").is_file():
         print(f"    {model_dir} exists, skipped")
         return model_dir
+    if max_seconds is not None:
+        seconds = max(int(max_seconds), 10)
+        overrides = [*overrides, f"--trainer.max_time=00:{seconds // 3600:02d}:"
+                                 f"{seconds % 3600 // 60:02d}:{seconds % 60:02d}"]
+        print(f"    training for at most {seconds} s", flush=True)
     cli = fit(["fit", "--config", str(CONFIGS / stage / "synthetic.yaml"),
                f"--data.root={root}", f"--runs_dir={out / 'runs'}", "--run_name=demo",
                "--trainer.enable_model_summary=false", *overrides])
-    export(cli.trainer.checkpoint_callback.last_model_path, model_dir)
+    # Stopped by the clock, the run may end between checkpoints: save the final weights.
+    final = Path(cli.trainer.default_root_dir) / "final.ckpt"
+    cli.trainer.save_checkpoint(final)
+    print(f"    trained {cli.trainer.global_step} steps", flush=True)
+    export(final, model_dir)
     return model_dir
 
 
@@ -101,11 +142,21 @@ def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     root = out / "corpus"
     timings: dict[str, float] = {}
+    start = time.perf_counter()
 
     def steps(n: int) -> list[str]:
         # Validate once, on the last step, so that last.ckpt holds the final weights.
         return [f"--trainer.max_steps={n}", "--trainer.max_epochs=-1",
                 "--trainer.check_val_every_n_epoch=null", f"--trainer.val_check_interval={n}"]
+
+    def seconds_for(stage: str) -> float | None:
+        """This stage's share of the time left (None: no time budget)."""
+        if budget.seconds is None:
+            return None
+        later = list(SHARES)[list(SHARES).index(stage):]
+        left = (budget.seconds - (time.perf_counter() - start) - RESERVE_END
+                - RESERVE_STAGE * len(later))
+        return max(left, 0.0) * SHARES[stage] / sum(SHARES[s] for s in later)
 
     t = _step("1/8 build the built-in corpus",
               f"segmo synth --out {root} --num-motions {budget.num_motions} --seed {seed}")
@@ -124,25 +175,27 @@ def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
 
     t = _step("4/8 train the RVQ-VAE tokenizer",
               f"segmo fit --config configs/rvq/synthetic.yaml --data.root {root}")
-    tokenizer = _train("rvq", root, out, steps(budget.rvq_steps))
+    tokenizer = _train("rvq", root, out, steps(budget.rvq_steps), seconds_for("rvq"))
     _done(t, timings, "rvq")
 
     tok = [f"--model.init_args.tokenizer={tokenizer}"]
     t = _step("5/8 train the mask transformer with segment alignment",
               f"segmo fit --config configs/mask/synthetic.yaml --data.root {root} "
               f"--model.init_args.tokenizer {tokenizer}")
-    mask = _train("mask", root, out, [*tok, *steps(budget.mask_steps)])
+    mask = _train("mask", root, out, [*tok, *steps(budget.mask_steps)], seconds_for("mask"))
     _done(t, timings, "mask")
 
     t = _step("6/8 train the residual transformer",
               f"segmo fit --config configs/residual/synthetic.yaml --data.root {root} "
               f"--model.init_args.tokenizer {tokenizer}")
-    residual = _train("residual", root, out, [*tok, *steps(budget.residual_steps)])
+    residual = _train("residual", root, out, [*tok, *steps(budget.residual_steps)],
+                      seconds_for("residual"))
     _done(t, timings, "residual")
 
     t = _step("7/8 train the length estimator",
               f"segmo fit --config configs/length/synthetic.yaml --data.root {root}")
-    length = _train("length", root, out, [f"--trainer.max_epochs={budget.length_epochs}"])
+    length = _train("length", root, out, [f"--trainer.max_epochs={budget.length_epochs}"],
+                    seconds_for("length"))
     _done(t, timings, "length")
 
     t = _step("8/8 bundle, generate, render and ground",
@@ -192,14 +245,15 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
 def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="segmo demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
-    parser.add_argument("--budget", choices=sorted(BUDGETS), default="full",
-                        help="full: ~20 min on 2 CPU cores; quick: a smoke run for the tests")
+    parser.add_argument("--budget", type=parse_budget, default="20m",
+                        help="wall-clock time for the whole demo, e.g. 20m (default), 45m, 1h; "
+                             "quick: a smoke run for the tests")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     args = parser.parse_args(argv)
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out}: exists and is not a folder")
     start = time.perf_counter()
-    timings = run(args.out, BUDGETS[args.budget], args.seed)
+    timings = run(args.out, args.budget, args.seed)
     total = time.perf_counter() - start
     print("\nTimings: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items())
           + f"; total {total / 60:.1f} min")
