@@ -201,11 +201,16 @@ def save_animation(
     stride: int = 1,
     size: float = 4.0,
     dpi: int = 72,
+    segments: Sequence[tuple[str, int, int]] | None = None,
+    progress: bool = False,
 ) -> Path:
-    """Write an animated stick figure to `path` (.gif with Pillow, .mp4 with ffmpeg).
+    """Write an animated stick figure to `path` (.gif with Pillow, .mp4 with ffmpeg), with
+    a frame and time counter under it.
 
     stride: render every stride-th frame (fps is divided accordingly, so playback speed
     is unchanged). fps: playback rate of the source frames; default the skeleton's.
+    segments: (text, start, end) frame spans; the frame's segment is written under the
+    figure ("2/3 waves"). progress: a progress bar over the rendered frames.
     """
     spec = get_skeleton(skeleton)
     path = Path(path)
@@ -222,17 +227,38 @@ def save_animation(
     rate = (fps or spec.fps) / stride
     path.parent.mkdir(parents=True, exist_ok=True)
 
-    fig = _figure((size, size + (0.4 if title else 0.0)), dpi)
+    footer = 0.45 if segments else 0.25  # inches under the figure for the counter (and segment)
+    fig = _figure((size, size + (0.4 if title else 0.0) + footer), dpi)
     ax = fig.add_subplot(1, 1, 1, projection="3d")
-    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.9 if title else 1)
+    height = size + (0.4 if title else 0.0) + footer
+    fig.subplots_adjust(left=0, right=1, bottom=footer / height,
+                        top=1 - (0.4 / height if title else 0.0))
     if title:
         fig.suptitle(_wrap(title, int(10 * size)), fontsize=9)
+    counter = fig.text(0.02, 0.02 + (0.2 / height if segments else 0.0), "", fontsize=8,
+                       family="monospace", color="#444444")
+    active = fig.text(0.02, 0.02, "", fontsize=8, color="#1f4e9c") if segments else None
+    spans = [(str(text), int(start), int(end)) for text, start, end in (segments or [])]
+    source_fps = fps or spec.fps
     figure = _StickFigure(ax, joints, spec)
     frame_indices = range(0, len(joints), stride)
+
+    def draw(frame: int) -> None:
+        figure.update(frame)
+        counter.set_text(f"frame {frame + 1:>3}/{len(joints)}  {frame / source_fps:5.2f} s")
+        if active is not None:
+            now = [k for k, (_, start, end) in enumerate(spans) if start <= frame < end]
+            active.set_text(f"{now[0] + 1}/{len(spans)} {_wrap(spans[now[0]][0], int(12 * size))}"
+                            if now else "")
+
+    if progress:
+        from tqdm import tqdm  # on use, like matplotlib
+
+        frame_indices = tqdm(frame_indices, desc=f"render {path.name}", unit="frame", leave=False)
     if suffix == ".gif":
         images = []
         for frame in frame_indices:
-            figure.update(frame)
+            draw(frame)
             fig.canvas.draw()
             rgb = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
             images.append(rgb.quantize(colors=64, method=Image.Quantize.FASTOCTREE))
@@ -245,7 +271,7 @@ def save_animation(
         writer = FFMpegWriter(fps=rate)
         with writer.saving(fig, str(path), dpi):
             for frame in frame_indices:
-                figure.update(frame)
+                draw(frame)
                 writer.grab_frame()
     return path
 

@@ -562,3 +562,20 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     line = cli_failure(["bundle", "--tokenizer", str(tmp_path / "none"), "--mask",
                         str(stages["mask"]), "--out", str(tmp_path / "d")], capsys)
     assert "--tokenizer" in line and "no such directory" in line
+
+
+def test_ground_cli_finds_the_true_spans_of_a_corpus_caption(tmp_path):
+    from segmo.pipeline.cli import _true_spans
+
+    (tmp_path / "new_joint_vecs").mkdir()
+    (tmp_path / "segments").mkdir()
+    motion = tmp_path / "new_joint_vecs" / "000007.npy"
+    np.save(motion, np.zeros((40, 263), np.float32))
+    caption = {"text": "A man walks, then waves.", "segments": [
+        {"text": "a man walks", "action": "walk", "start": 0, "end": 24},
+        {"text": "a man waves", "action": "wave", "start": 24, "end": 40}]}
+    (tmp_path / "segments" / "000007.json").write_text(json.dumps({"captions": [caption]}))
+    assert _true_spans(motion, "a man walks,  then waves", ["a man walks", "a man waves"]) == [(0, 24), (24, 40)]
+    assert _true_spans(motion, "a man runs", ["a man runs"]) is None  # another caption
+    assert _true_spans(motion, "a man walks, then waves.", ["a man walks then waves"]) is None
+    assert _true_spans(tmp_path / "elsewhere.npy", "a man walks, then waves.", ["a", "b"]) is None

@@ -85,3 +85,21 @@ def test_long_titles_are_cut_to_three_lines():
     from segmo.render import _wrap
 
     assert _wrap("walk " * 10_000, 40).count("\n") == 2
+
+
+def test_gif_counts_frames_and_names_the_segment_of_each_frame(tmp_path):
+    """A figure standing still: only the footer (frame/time counter, active segment) may
+    change between frames, and it must change where the segment does."""
+    still = np.repeat(as_joints(np.zeros((1, 263), np.float32)), 8, axis=0)
+    out = save_animation(still, tmp_path / "still.gif", segments=[("walks", 0, 4), ("waves", 4, 8)])
+    with Image.open(out) as image:
+        frames = []
+        for k in range(image.n_frames):
+            image.seek(k)
+            frames.append(np.asarray(image.convert("L"), dtype=np.int16))
+    footer = int(0.45 / (4.0 + 0.45) * frames[0].shape[0]) + 2  # the strip under the figure
+    top = slice(0, frames[0].shape[0] - footer)
+    assert all(np.abs(f[top] - frames[0][top]).max() < 40 for f in frames)  # the figure stands still
+    changed = [np.abs(frames[k][-footer:] - frames[k - 1][-footer:]).sum() for k in range(1, 8)]
+    assert all(c > 0 for c in changed)  # the counter moves every frame
+    assert changed[3] == max(changed)  # frame 4 -> 5: "1/2 walks" becomes "2/2 waves"

@@ -211,6 +211,16 @@ def test_structured_output_is_asked_for_and_connections_are_kept_alive():
     assert len(server.connections) == 1  # five requests, one connection
 
 
+def test_progress_moves_with_each_first_answer():
+    counts: list[int] = []
+    captions = [f"a person bows {i} times then runs" for i in range(6)]
+    with FakeOpenAI({captions[0]: "prose-once"}) as server:
+        seg = _client(server.url)
+        seg.progress = counts.append
+        seg.segment(captions)
+    assert counts == [1] * 6  # the re-ask of the first caption does not count twice
+
+
 def test_a_server_without_structured_output_is_asked_without_it():
     captions = [f"a person hops {i} times then bows" for i in range(4)]
     with FakeOpenAI(structured=False) as server:

@@ -91,6 +91,13 @@ class Generator:
         self.seconds = 0.0
         self.bar: Any = None
 
+    def expect(self, total: int, what: str) -> None:
+        """Start a progress bar for the next `total` motions (one bar per section)."""
+        if self.bar is not None:
+            self.bar.close()
+        self.bar = tqdm(total=total, desc=f"generate ({what})", unit="motion",
+                        disable=not self.cfg.progress)
+
     def raw(self, captions: list[str], lengths: Any, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw features (b, t, d) and lengths (b,) of one generated batch."""
         start = time.perf_counter()
@@ -173,12 +180,15 @@ def generation_section(cfg: EvaluateConfig, evaluator: Any, ds: Any, batches: li
                        reconstruct: Reconstructor | None = None,
                        num_segments: dict[str, int] | None = None) -> dict[str, Any]:
     embed_text, embed_motion = t2m_embedders(evaluator, cfg.data, ds.mean, ds.std)
+    if generate is not None:
+        generate.expect(cfg.repeats * sum(len(b["id"]) for b in batches), "metrics")
     result = evaluate_generation(embed_text, embed_motion, generate, batches, repeats=cfg.repeats,
                                  batch_size=cfg.batch_size, mm_prompts=0, seed=cfg.seed,
                                  reconstruct=reconstruct, num_segments=num_segments)
     if reconstruct is not None:
         result["reconstruction"] |= reconstruct.errors
     if generate is not None and cfg.mm_prompts > 0 and cfg.mm_runs > 0:
+        generate.expect(cfg.mm_runs * cfg.mm_prompts * cfg.mm_repeats, "multimodality")
         runs = multimodality_runs(embed_motion, generate, batches, cfg.mm_runs, cfg.mm_prompts,
                                    cfg.mm_repeats, 10, cfg.seed)
         mean, interval = mean_and_interval(runs)
@@ -275,6 +285,8 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
         if has_truth:
             _log(cfg, "action order")
             clf = load_classifier(cfg, out)
+            if generate is not None:
+                generate.expect(len(first_rows(batches)), "action order")
             metrics["action_order"] = _timed(cfg, "action_order", action_order_section, cfg, clf, ds, batches,
                                              generate, reconstruct, num_segments)
             notes["action_order"] = report.NOTES["action_order"]

@@ -118,8 +118,33 @@ def generate_main(argv: list[str] | None = None) -> None:
                          residual_guidance_scale=args.residual_guidance, steps=args.steps,
                          temperature=args.temperature, generator=generator,
                          precision=args.precision)
-    for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock):
+    spans = None
+    if "gif" in formats:  # which segment each frame shows, from the model's own attention
+        spans = [model.ground(text, out.motion(i), segments=out.segments[i], method="attention")
+                 .best_spans_frames for i, text in enumerate(out.texts)]
+    for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,
+                         spans=spans, progress=True):
         print(path)
+
+
+def _true_spans(motion: Path, text: str, segments: list[str]) -> list[tuple[int, int]] | None:
+    """The ground-truth frame spans of `text` when `motion` is DATA/new_joint_vecs/<id>.npy
+    of a dataset with DATA/segments/<id>.json (the built-in corpus) holding that caption
+    with as many segments; None otherwise."""
+    from segmo.data.layout import read_ground_truth
+
+    if motion.parent.name != "new_joint_vecs":
+        return None
+    try:
+        record = read_ground_truth(motion.parent.parent, motion.stem)
+    except (FileNotFoundError, SegmoError):
+        return None
+    wanted = " ".join(text.lower().split()).rstrip(".!? ")
+    for caption in record.get("captions", []):
+        if " ".join(str(caption.get("text", "")).lower().split()).rstrip(".!? ") == wanted:
+            spans = [(int(s["start"]), int(s["end"])) for s in caption.get("segments", [])]
+            return spans if len(spans) == len(segments) else None
+    return None
 
 
 def ground_main(argv: list[str] | None = None) -> None:
@@ -170,7 +195,10 @@ def ground_main(argv: list[str] | None = None) -> None:
         import matplotlib
 
         matplotlib.use("Agg")
-        ax = plot_similarity_map(out)
+        truth = _true_spans(Path(args.motion), args.text, out.segments)
+        if truth is not None:
+            print(f"true spans (frames) from the dataset's segments/: {truth}")
+        ax = plot_similarity_map(out, truth=truth)
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         ax.figure.savefig(args.out, dpi=120, bbox_inches="tight")
         print(f"similarity map: {args.out}")

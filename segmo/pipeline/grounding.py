@@ -245,13 +245,15 @@ def token_map(output: GroundingOutput) -> torch.Tensor:
 
 
 def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = None,
-                        truth: Sequence[tuple[int, int]] | None = None, cmap: str = "viridis"):
-    """Paper Fig. 5, y = text segment, colour = similarity. "window": x = window start
-    (tokens), the best window of each segment outlined in red, `truth` (one (start, end)
-    frame span per segment) underlined in white over the windows lying inside the true span.
-    "spans"/"ordered": x = token, colour = the best span containing that token
-    (`token_map`), the chosen span outlined in red over its tokens, `truth` underlined over
-    its tokens. Returns the matplotlib Axes."""
+                        truth: Sequence[tuple[int, int]] | None = None, cmap: str = "viridis",
+                        fps: float | None = None):
+    """Paper Fig. 5, y = text segment, colour = similarity, x in seconds (`fps`: frames per
+    second of the motion, default the output's; a token is 4 frames). "window": x = window start, the best window
+    of each segment outlined in red, `truth` (one (start, end) frame span per segment)
+    underlined in white over the windows lying inside the true span. "spans"/"ordered":
+    x = token, colour = the best span containing that token (`token_map`), the chosen span
+    outlined in red over its tokens, `truth` underlined over its tokens. Returns the
+    matplotlib Axes."""
     # matplotlib on use: grounding and retrieval themselves do not plot.
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
@@ -285,14 +287,18 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
             ax.hlines(row + 0.35, first - 0.5, last + 0.5, colors="white", linewidth=3)
     ax.set_yticks(range(len(output.segments)))
     ax.set_yticklabels([s if len(s) <= 40 else s[:37] + "..." for s in output.segments])
+    seconds = FRAMES_PER_TOKEN / (fps or output.fps)  # per token
     if by_token:
-        labels, xlabel = [str(p) for p in range(sim.shape[1])], f"token ({output.search} search)"
+        labels = [f"{p * seconds:.1f}" for p in range(sim.shape[1])]
+        xlabel = f"time (s) of the token; {output.search} search"
     else:
         sizes = (output.windows[:, 1] - output.windows[:, 0]).unique()
         starts = output.windows[:, 0].tolist()
-        labels = ([str(s) for s in starts] if len(sizes) == 1
-                  else [f"{s}+{e - s}" for s, e in output.windows.tolist()])
-        xlabel = "window start (tokens)" if len(sizes) == 1 else "window start+size (tokens)"
+        labels = ([f"{s * seconds:.1f}" for s in starts] if len(sizes) == 1
+                  else [f"{s * seconds:.1f}+{(e - s) * seconds:.1f}" for s, e in output.windows.tolist()])
+        xlabel = "window start (s)" if len(sizes) == 1 else "window start + length (s)"
+    if truth:
+        xlabel += "; white: true span"
     step = max(1, len(labels) // 12)
     ax.set_xticks(range(0, len(labels), step))
     ax.set_xticklabels(labels[::step])

@@ -58,13 +58,16 @@ class GenerationOutput:
 
     def save(self, directory: str | Path, formats: Sequence[str] = FORMATS,
              prefix: str = "sample", bvh_fps: float | None = None,
-             foot_lock: bool = True) -> list[Path]:
+             foot_lock: bool = True, spans: Sequence[Sequence[tuple[int, int]]] | None = None,
+             progress: bool = False) -> list[Path]:
         """Write each sample as `{prefix}_{i:02d}` files into `directory`.
 
         npy: `_features.npy` (t, d), `_joints.npy` (t, j, 3), `_tokens.npy` (t // 4, q); gif: a stick-figure
         animation titled with the prompt; bvh: a BVH file of a fixed skeleton fitted to the joints
         (`segmo.motion.bvh`), at `bvh_fps` frames per second (default the motion's), with
-        the feet locked while in contact unless `foot_lock` is False. A `prompts.json`
+        the feet locked while in contact unless `foot_lock` is False. spans: per sample, a
+        (start, end) frame span per text segment (e.g. `SegMo.ground(method="attention")`):
+        the GIF names the segment of each frame. progress: progress bars while rendering. A `prompts.json`
         lists texts, segments and lengths. Returns the written paths.
         """
         unknown = set(formats) - set(FORMATS)
@@ -86,8 +89,12 @@ class GenerationOutput:
                     np.save(path, array)
                     written.append(path)
             if "gif" in formats:
+                labels = None
+                if spans is not None and len(spans[i]) == len(self.segments[i]):
+                    labels = [(seg, s, e) for seg, (s, e) in zip(self.segments[i], spans[i])]
                 written.append(save_animation(joints, f"{stem}.gif", skeleton=self.skeleton,
-                                              title=text, fps=self.fps))
+                                              title=text, fps=self.fps, segments=labels,
+                                              progress=progress))
             if "bvh" in formats:
                 written.append(joints_to_bvh(joints, f"{stem}.bvh", fps=self.fps,
                                              skeleton=self.skeleton, target_fps=bvh_fps,
@@ -116,6 +123,7 @@ class GroundingOutput:
     num_frames: frames of the motion that was grounded.
     search: "ordered", "spans" or "window" (`segmo.pipeline.grounding`).
     method: "similarity" or "attention".
+    fps: frames per second of the motion.
     """
 
     text: str
@@ -127,6 +135,7 @@ class GroundingOutput:
     num_frames: int
     search: str = "window"
     method: str = "similarity"
+    fps: float = 20.0  # frames per second of the motion (the map's time axis)
 
     def __str__(self) -> str:
         lines = [f"query: {self.text!r} ({self.num_frames} frames)"]

@@ -521,9 +521,11 @@ class SegMo:
         windows, the default when `window` is given); method "similarity" (default, the
         learned segment space) or "attention" (where the mask transformer's motion tokens
         look); see `segmo.pipeline.grounding`."""
-        return grounding.ground(self, text, motion, search=search, window=window,
-                                stride=stride, min_tokens=min_tokens, segments=segments,
-                                method=method)
+        out = grounding.ground(self, text, motion, search=search, window=window,
+                               stride=stride, min_tokens=min_tokens, segments=segments,
+                               method=method)
+        out.fps = self.fps  # the map's time axis
+        return out
 
     def embed_pairs(self, texts: list[str], motions: Any, spans: Any = None, *,
                     segments: list[list[str]] | None = None, lengths: Any = None,

@@ -221,18 +221,28 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
             log.warning("%s/%s; segmented, but the dataset reader will skip the line", data, problem)
         t0 = time.perf_counter()
         fallbacks_now = 0
-        with tqdm(total=len(jobs), desc=f"segment-texts [{segmenter.name}]", unit="file",
+        total = sum(1 for job in jobs for i in job.ask if has_words(job.lines[i].caption))
+        with tqdm(total=total, desc=f"segment-texts [{segmenter.name}]", unit="caption",
                   disable=not progress) as bar:
-            for batch in _batches(jobs, batch_captions):
-                asked = [(job, i) for job in batch for i in job.ask if has_words(job.lines[i].caption)]
-                results, fell_back = _segment(segmenter, [job.lines[i].caption for job, i in asked])
-                fallbacks_now += len(fell_back)
-                for job in batch:
-                    mine = {k: i for k, (owner, i) in enumerate(asked) if owner is job}
-                    _write(job, {i: results[k] for k, i in mine.items()},
-                           {i: fell_back[k] for k, i in mine.items() if k in fell_back},
-                           texts_file(data, job.motion_id), out_dir, manifest)
-                    bar.update(1)
+            # An LLM backend moves the bar as its answers arrive, the rules batch by batch.
+            live = hasattr(segmenter, "progress")
+            if live:
+                segmenter.progress = bar.update
+            try:
+                for batch in _batches(jobs, batch_captions):
+                    asked = [(job, i) for job in batch for i in job.ask if has_words(job.lines[i].caption)]
+                    results, fell_back = _segment(segmenter, [job.lines[i].caption for job, i in asked])
+                    fallbacks_now += len(fell_back)
+                    for job in batch:
+                        mine = {k: i for k, (owner, i) in enumerate(asked) if owner is job}
+                        _write(job, {i: results[k] for k, i in mine.items()},
+                               {i: fell_back[k] for k, i in mine.items() if k in fell_back},
+                               texts_file(data, job.motion_id), out_dir, manifest)
+                    if not live:
+                        bar.update(len(asked))
+            finally:
+                if live:
+                    segmenter.progress = None
         elapsed = time.perf_counter() - t0
         ids = [p.stem for p in files]
         manifest.compact({p.stem for p in out_dir.glob("*.txt")})

@@ -134,13 +134,18 @@ class LLMSegmenter:
         self.length_margin = length_margin
         self.fallback = RuleSegmenter(max_segments)
         self.stats = LLMStats()
+        # Called with a count as first answers arrive (a progress bar per caption);
+        # `segment-texts` sets it.
+        self.progress: Any = None
 
     @property
     def fallbacks(self) -> int:
         return self.stats.fallbacks
 
-    def _complete_many(self, conversations: list[list[dict[str, str]]]) -> list[str | Exception]:
-        """One answer (or the exception that prevented it) per conversation."""
+    def _complete_many(self, conversations: list[list[dict[str, str]]],
+                       progress: Any = None) -> list[str | Exception]:
+        """One answer (or the exception that prevented it) per conversation; `progress`,
+        when given, is called with the number of answers as they arrive."""
         raise NotImplementedError
 
     def segment(self, texts: list[str]) -> list[list[str]]:
@@ -163,7 +168,11 @@ class LLMSegmenter:
             if attempt:
                 self.stats.retries += len(pending)
             self.stats.requests += len(pending)
-            answers = self._complete_many([conversations[i] for i in pending])
+            asked = [conversations[i] for i in pending]
+            if attempt == 0 and self.progress is not None:
+                answers = self._complete_many(asked, progress=self.progress)
+            else:
+                answers = self._complete_many(asked)
             still = []
             for i, answer in zip(pending, answers):
                 if isinstance(answer, Exception):
@@ -324,12 +333,19 @@ class OpenAISegmenter(LLMSegmenter):
         message = getattr(choices[0], "message", None) if choices else None
         return getattr(message, "content", None) or ""  # an empty answer is re-asked upstream
 
-    def _complete_many(self, conversations: list[list[dict[str, str]]]) -> list[str | Exception]:
+    def _complete_many(self, conversations: list[list[dict[str, str]]],
+                       progress: Any = None) -> list[str | Exception]:
+        def ask(conversation: list[dict[str, str]]) -> str | Exception:
+            answer = self._request(conversation)
+            if progress is not None:
+                progress(1)
+            return answer
+
         if len(conversations) == 1:
-            answers = [self._request(conversations[0])]
+            answers = [ask(conversations[0])]
         else:
             with ThreadPoolExecutor(max_workers=self.concurrency) as pool:
-                answers = list(pool.map(self._request, conversations))
+                answers = list(pool.map(ask, conversations))
         if self._failures_in_a_row >= self.max_failures_in_a_row:
             raise LLMUnavailableError(
                 f"{self.base_url}: {self._failures_in_a_row} requests in a row failed (last: "
@@ -366,7 +382,8 @@ class TransformersSegmenter(LLMSegmenter):
         self.model_name = str(model_name_or_path)
         self.name = f"transformers-{_slug(str(model_name_or_path))}"
 
-    def _complete_many(self, conversations: list[list[dict[str, str]]]) -> list[str | Exception]:
+    def _complete_many(self, conversations: list[list[dict[str, str]]],
+                       progress: Any = None) -> list[str | Exception]:
         answers: list[str | Exception] = []
         for start in range(0, len(conversations), self.batch_size):
             chunk = conversations[start : start + self.batch_size]
@@ -382,6 +399,8 @@ class TransformersSegmenter(LLMSegmenter):
                                           pad_token_id=self.tokenizer.pad_token_id)
             new = out[:, batch["input_ids"].shape[1] :]  # (b, new tokens)
             answers += self.tokenizer.batch_decode(new, skip_special_tokens=True)
+            if progress is not None:
+                progress(len(chunk))
         return answers
 
 
