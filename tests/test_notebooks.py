@@ -6,6 +6,8 @@ built-in corpus, found through SEGMO_MODEL / SEGMO_DATA as a user would set them
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 
 import pytest
@@ -61,8 +63,23 @@ def test_notebook_runs(name, demo, monkeypatch):
     outputs = [o for cell in notebook.cells if cell.cell_type == "code" for o in cell.outputs]
     assert not [o for o in outputs if o.output_type == "error"]
     text = "".join(o.get("text", "") for o in outputs if o.output_type == "stream")
+    images = sum("image/png" in o.get("data", {}) for o in outputs)
     if name == "grounding":
-        assert "IoU with the truth" in text and "frames" in text
-        assert any("image/png" in o.get("data", {}) for o in outputs), "no similarity map"
+        ious = [float(v) for line in text.splitlines() if "IoU with the truth:" in line
+                for v in re.findall(r"\d+\.\d+|\d+", line.split(":", 1)[1])]
+        assert len(ious) >= 4 and all(0.0 <= v <= 1.0 for v in ious), text
+        assert "attention IoU with the truth" in text and images >= 3, "a map per method"
     else:
-        assert "R@1 among" in text and text.count("*") >= 1
+        found = re.search(r"R@1 among (\d+) captions: (\d\.\d+)", text)
+        n, recall = int(found.group(1)), float(found.group(2))
+        ranks = json.loads(re.search(r"rank of the true caption per motion: (\[[^]]*\])", text).group(1))
+        assert 0.0 <= recall <= 1.0 and len(ranks) == n and all(1 <= r <= n for r in ranks)
+        assert recall == pytest.approx(sum(r == 1 for r in ranks) / n, abs=0.005)  # both agree
+        assert text.count("*") >= 1 and images >= 1, "no score matrix"
+
+
+def test_notebooks_say_how_to_get_a_model():
+    for name in ("grounding", "retrieval"):
+        notebook = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
+        assert "make demo" in notebook.cells[0].source and "hub id" in notebook.cells[0].source
+        assert "run `make demo` first" in notebook.cells[1].source
