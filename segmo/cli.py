@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "generate": ("segmo.pipeline.cli", "generate_main", "generate motions from text"),
     "ground": ("segmo.pipeline.cli", "ground_main", "ground a text in a motion"),
     "evaluate": ("segmo.evaluation.cli", "main", "evaluate a model and write a report"),
+    "serve": ("segmo.serve", "main", "a web page around a model: caption in, motion and BVH out"),
 }
 
 

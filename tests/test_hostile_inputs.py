@@ -215,6 +215,8 @@ CLI_CASES = [
         "data.init_args.root", "`test` with a file as the dataset folder"),
     # -- segmo demo
     Cli("demo-out-is-file", "demo --out {file}", "--out", "`--out` naming an existing file"),
+    Cli("serve-model-missing", "serve --model {tmp}/nope", "no such directory",
+        "a model folder that does not exist"),
     Cli("demo-budget", "demo --out {tmp}/d --budget huge", "--budget", "an unknown budget"),
     Cli("demo-seed", "demo --out {tmp}/d --seed -3", "--seed", "a negative seed"),
 ]

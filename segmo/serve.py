@@ -1,0 +1,137 @@
+"""`segmo serve`: a web page (Gradio) around a bundle: type a caption, get a motion.
+
+    segmo serve --model runs/demo/model [--host 127.0.0.1] [--port 7860]
+
+The page shows the caption's text segments, the generated motion as a GIF (each frame
+labelled with its segment), the BVH and joints files to download, and where each segment
+happens in the motion (the similarity map of `SegMo.ground`, by the learned space or by
+attention). Everything the page does is also an HTTP API endpoint, ``/generate``
+(caption, seconds, seed, guidance, grounding method -> segments, GIF, BVH, joints, map),
+callable with `gradio_client`:
+
+    from gradio_client import Client
+    Client("http://127.0.0.1:7860").predict("a person walks, then waves", 4.0, 0, 4.0,
+                                            "attention", api_name="/generate")
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from segmo.errors import ArgumentParser, SegmoError, positive_int
+
+GROUNDING_METHODS = ("attention", "similarity")
+MAX_SECONDS = 9.8  # 196 frames at 20 fps
+
+
+def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance: float,
+                   method: str, out: Path) -> dict[str, Any]:
+    """One generation written under `out`: {"segments", "gif", "bvh", "joints", "map"}.
+    seconds <= 0 lets the length estimator choose."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from segmo.pipeline.grounding import plot_similarity_map
+
+    caption = " ".join(str(caption).split())
+    if not caption:
+        raise SegmoError("type a caption first")
+    if method not in GROUNDING_METHODS:
+        raise SegmoError(f"grounding method must be one of {GROUNDING_METHODS}, got {method!r}")
+    lengths = None
+    if seconds and seconds > 0:
+        frames = int(round(min(float(seconds), MAX_SECONDS) * model.fps / 4)) * 4
+        lengths = [max(frames, 4)]
+    result = model.generate([caption], lengths, guidance_scale=float(guidance),
+                            generator=torch.Generator().manual_seed(int(seed)))
+    segments = result.segments[0]
+    grounding = model.ground(caption, result.motion(0), segments=segments, method=method)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = result.save(out, formats=("npy", "gif", "bvh"), spans=[grounding.best_spans_frames])
+    ax = plot_similarity_map(grounding, title=caption)
+    map_path = out / "grounding.png"
+    ax.figure.savefig(map_path, dpi=100, bbox_inches="tight")
+    plt.close(ax.figure)
+    by_suffix = {p.name: p for p in paths}
+    return {"segments": segments, "spans": grounding.best_spans_frames,
+            "gif": by_suffix["sample_00.gif"], "bvh": by_suffix["sample_00.bvh"],
+            "joints": by_suffix["sample_00_joints.npy"], "map": map_path,
+            "frames": int(result.lengths[0])}
+
+
+def build_app(model: Any, workdir: str | os.PathLike | None = None):
+    """The Gradio Blocks app of `model` (a `SegMo`); outputs go to `workdir` (a temporary
+    folder by default), one subfolder per request."""
+    os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no telemetry calls
+    try:
+        import gradio as gr
+    except ImportError:
+        raise SegmoError("segmo serve needs Gradio: pip install 'segmo[serve]' (or gradio)") from None
+    root = Path(workdir or tempfile.mkdtemp(prefix="segmo-serve-"))
+    counter = iter(range(10**9))
+
+    def run(caption: str, seconds: float, seed: float, guidance: float, method: str):
+        try:
+            found = generate_files(model, caption, seconds, int(seed), guidance, method,
+                                   root / f"{next(counter):06d}")
+        except SegmoError as error:
+            raise gr.Error(str(error)) from None
+        lines = [f"{k + 1}. {text} — frames {s}–{e} ({s / model.fps:.1f}–{e / model.fps:.1f} s)"
+                 for k, (text, (s, e)) in enumerate(zip(found["segments"], found["spans"]))]
+        summary = (f"**{found['frames']} frames ({found['frames'] / model.fps:.1f} s), "
+                   f"{len(lines)} segment(s)**\n\n" + "\n".join(lines))
+        return summary, str(found["gif"]), [str(found["bvh"]), str(found["joints"])], str(found["map"])
+
+    with gr.Blocks(title="segmo", analytics_enabled=False) as app:
+        gr.Markdown("# segmo: text to 3-D human motion\nType a caption; its text segments, "
+                    "in order, condition the motion. Download the BVH for Blender or a game engine.")
+        with gr.Row():
+            with gr.Column():
+                caption = gr.Textbox(label="caption", value="a person walks forward, then waves",
+                                     lines=2)
+                seconds = gr.Slider(0, MAX_SECONDS, value=0, step=0.2,
+                                    label="length (s); 0: the model's estimate")
+                seed = gr.Number(value=0, precision=0, label="seed")
+                guidance = gr.Slider(1, 8, value=model.config.guidance_scale, step=0.5,
+                                     label="guidance scale")
+                method = gr.Radio(list(GROUNDING_METHODS), value="attention",
+                                  label="ground the segments by")
+                button = gr.Button("Generate", variant="primary")
+            with gr.Column():
+                segments = gr.Markdown(label="text segments")
+                animation = gr.Image(label="motion", type="filepath")
+                files = gr.File(label="BVH and joints", file_count="multiple")
+        grounding = gr.Image(label="where each segment happens", type="filepath")
+        button.click(run, [caption, seconds, seed, guidance, method],
+                     [segments, animation, files, grounding], api_name="generate")
+    return app
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = ArgumentParser(prog="segmo serve", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", required=True, help="bundle folder or hub id")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: all)")
+    parser.add_argument("--port", type=positive_int, default=7860)
+    args = parser.parse_args(argv)
+    from segmo.models.hub import is_hub_id
+    from segmo.pipeline import SegMo
+
+    if not Path(args.model).is_dir() and not is_hub_id(args.model):
+        parser.error(f"--model {args.model}: no such directory (a bundle made by `segmo bundle`, "
+                     "or a hub id like owner/name)")
+    model = SegMo.from_pretrained(args.model)
+    app = build_app(model)
+    print(f"segmo serve: http://{args.host}:{args.port}  (Ctrl-C stops)")
+    app.launch(server_name=args.host, server_port=args.port, show_error=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""`segmo serve` driven through its HTTP API (gradio_client) on a tiny random bundle:
+a caption in, the segments, a GIF, a BVH, the joints and a grounding map out."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import hash_encoder
+from test_pipeline import TEXT_DIM, build_stages
+
+from segmo.pipeline import SegMo
+
+gr = pytest.importorskip("gradio", reason="gradio (the serve extra) is not installed")
+gradio_client = pytest.importorskip("gradio_client")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory, tokenizer_dir):
+    from segmo.serve import build_app
+
+    root = tmp_path_factory.mktemp("serve")
+    dirs = build_stages(root / "stages", tokenizer_dir["t2m"])
+    model = SegMo.from_stages(dirs["tokenizer"], dirs["mask"], dirs["residual"], dirs["length"],
+                              text_encoder=hash_encoder("hash", TEXT_DIM))
+    app = build_app(model, root / "out")
+    port = _free_port()
+    app.launch(server_name="127.0.0.1", server_port=port, prevent_thread_lock=True, quiet=True)
+    yield f"http://127.0.0.1:{port}/", model
+    app.close()
+
+
+def test_a_caption_in_a_motion_file_out(served):
+    url, model = served
+    client = gradio_client.Client(url, verbose=False)
+    summary, gif, files, grounding = client.predict("a person walks forward, then waves", 2.4, 3,
+                                                    4.0, "attention", api_name="/generate")
+    assert "48 frames (2.4 s), 2 segment(s)" in summary and "walks forward" in summary
+    paths = {Path(f if isinstance(f, str) else f["path"]).name: Path(f if isinstance(f, str) else f["path"])
+             for f in files}
+    bvh = paths["sample_00.bvh"].read_text()
+    assert bvh.startswith("HIERARCHY") and "Frames: 48" in bvh
+    assert np.load(paths["sample_00_joints.npy"]).shape == (48, 22, 3)
+    assert Path(gif).read_bytes()[:3] == b"GIF" and Path(grounding).read_bytes()[:4] == b"\x89PNG"
+    # the same request gives the same motion; an empty caption is refused with its reason
+    again = client.predict("a person walks forward, then waves", 2.4, 3, 4.0, "attention",
+                           api_name="/generate")
+    again_joints = [f if isinstance(f, str) else f["path"] for f in again[2] if str(f).endswith(".npy") or
+                    (isinstance(f, dict) and f["path"].endswith(".npy"))][0]
+    assert np.array_equal(np.load(again_joints), np.load(paths["sample_00_joints.npy"]))
+    with pytest.raises(Exception, match="type a caption first"):
+        client.predict("   ", 2.4, 0, 4.0, "similarity", api_name="/generate")
