@@ -21,7 +21,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from segmo.errors import ArgumentParser, SegmoError, positive_int
