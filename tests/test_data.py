@@ -621,3 +621,22 @@ def test_datamodule_groups_batches_by_length_and_still_resumes(tmp_path):
     windows = MotionDataModule(str(tmp_path), batch_size=4, window=32, group_by_length=True)
     with pytest.raises(SegmoError, match="group_by_length: the MotionWindowDataset"):
         windows.train_dataloader()
+
+
+def test_action_attributes_and_the_modifiers_a_text_names():
+    from segmo.data.attributes import ATTRIBUTES, attribute_labels, named_attributes
+    from segmo.data.collate import IGNORE
+
+    assert attribute_labels("kick", {"side": "left", "height": 0.6}) == (0, IGNORE, IGNORE)
+    assert attribute_labels("wave", {"hand": "both", "count": 3}) == (2, 2, IGNORE)
+    assert attribute_labels("hop", {"foot": "right", "count": 2}) == (1, 1, IGNORE)
+    assert attribute_labels("turn", {"direction": "left", "angle": 90}) == (0, IGNORE, IGNORE)
+    assert attribute_labels("walk_forward", {"speed": 0.9}) == (IGNORE, IGNORE, 0)
+    assert attribute_labels("run", {"speed": 3.9, "steps": 8}) == (IGNORE, IGNORE, 2)  # steps is no count
+    assert attribute_labels("walk_backward", {"speed": 1.0}) == (IGNORE, IGNORE, 1)
+    assert named_attributes("a man kicks with his left foot twice") == ["side", "count"]
+    assert named_attributes("she walks forward slowly") == ["speed"]
+    assert named_attributes("a person walks in a circle counterclockwise") == ["side"]
+    assert named_attributes("he jumps three times") == ["count"]
+    assert named_attributes("someone leftovers fastener") == []  # whole words only
+    assert list(ATTRIBUTES) == ["side", "count", "speed"]

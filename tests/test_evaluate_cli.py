@@ -60,6 +60,14 @@ def setup(tmp_path_factory) -> dict[str, Path]:
     clf = ActionClassifier(ActionClassifierConfig(num_classes=len(classes), width=8, depth=1))
     clf.meta = {"classes": classes}
     paths["classifier"] = clf.save_pretrained(root / "classifier")
+    from segmo.data.attributes import num_attribute_classes
+    from segmo.models.action_classifier import AttributeClassifier
+    from segmo.tasks.action_classifier import AttributeClassifierTask
+
+    attributes = AttributeClassifier(ActionClassifierConfig(num_classes=num_attribute_classes(),
+                                                            width=8, depth=1))
+    attributes.meta = {"classes": AttributeClassifierTask.CLASSES}
+    paths["attributes"] = attributes.save_pretrained(root / "attributes")
     return paths
 
 
@@ -84,6 +92,7 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     out = tmp_path / "segmo"
     main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]),
           "--action-classifier", str(setup["classifier"]), "--mm-prompts", "2", "--mm-repeats", "11",
+          "--attribute-classifier", str(setup["attributes"]),
           "--retrieval-motions", "6", "--similarity-maps", "1", "--out", str(out), *COMMON])
     metrics = json.loads((out / "metrics.json").read_text())
     generation = metrics["generation"]
@@ -133,6 +142,12 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert 0 <= order["generated"]["sequence_accuracy"] <= 1
     assert order["reconstruction"]["motions"] == 10
     assert sum(v["count"] for v in order["by_num_segments"].values()) == 10
+    attributes = metrics["attributes"]
+    assert set(attributes) == {"real", "reconstruction", "generated"}
+    checks = attributes["real"]["checks"]
+    assert checks > 0 and all(v["checks"] == checks for v in attributes.values())
+    assert all(0 <= v["overall"] <= 1 and set(v) <= {"side", "count", "speed", "overall", "checks"}
+               for v in attributes.values())
     config = metrics["config"]
     assert config["repeats"] == 2 and config["seed"] == 0 and config["timings"]["total"] > 0
     assert config["model"] == str(setup["segmo"]) and config["motions"] == 10
@@ -142,7 +157,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert f"| Real | {real_cell} |" in text and "| segmo |" in text
     assert "| segmo tokenizer (reconstruction) |" in text and "### By number of text segments" in text
     assert f"MPJPE {reconstruction['mpjpe_mm']:.1f} mm" in text
-    for title in ("## Retrieval", "## Grounding", "## Intra-segment consistency", "## Action order"):
+    for title in ("## Retrieval", "## Grounding", "## Intra-segment consistency", "## Action order",
+                  "## Attribute accuracy"):
         assert title in text
     for row in ("| ordered spans |", "| best span |", "| sliding window |", "| uniform split |"):
         assert row in text

@@ -229,6 +229,31 @@ def test_fit_action_classifier_config(tiny_corpus: Path, tmp_path: Path) -> None
     np.testing.assert_allclose(loaded.frame_probabilities(x), model.frame_probabilities(x), atol=1e-6)
 
 
+@pytest.mark.slow
+def test_fit_attribute_classifier_config(tiny_corpus: Path, tmp_path: Path) -> None:
+    """configs/attribute_classifier/synthetic.yaml through `segmo fit` and `segmo export`;
+    the exported model reads a span's attributes the same as the trained one."""
+    from segmo.data.attributes import ATTRIBUTES
+    from segmo.data.layout import read_motion, read_split
+    from segmo.export import export
+    from segmo.models.action_classifier import AttributeClassifier
+    from segmo.training.cli import main as cli_main
+
+    cli = cli_main(["fit", "--config", str(REPO / "configs/attribute_classifier/synthetic.yaml"),
+                    f"--data.root={tiny_corpus}", f"--runs_dir={tmp_path / 'runs'}",
+                    "--trainer.max_epochs=2", "--trainer.enable_progress_bar=false",
+                    "--data.init_args.batch_size=8", "--model.init_args.width=8",
+                    "--model.init_args.depth=2"])
+    assert cli.trainer.global_step > 0 and "val/loss" in cli.trainer.callback_metrics
+    ckpt = next((tmp_path / "runs" / "attribute_classifier" / "synthetic").glob("version_*/checkpoints/last.ckpt"))
+    loaded = load_pretrained(export(ckpt, tmp_path / "exported"))
+    assert isinstance(loaded, AttributeClassifier) and len(loaded.classes) == 11
+    x = read_motion(tiny_corpus, read_split(tiny_corpus, "val")[0])
+    found = loaded.span_attributes(x, 0, 20)
+    assert found == cli.model.export_model().span_attributes(x, 0, 20)
+    assert all(found[name] in values for name, values in ATTRIBUTES.items())
+
+
 def test_action_classifier_fit_predict_save(tiny_corpus: Path, tmp_path: Path) -> None:
     from segmo.data.layout import read_actions as read_ground_truth
     from segmo.evaluation.action_order import evaluate_action_order

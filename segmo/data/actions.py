@@ -5,7 +5,9 @@ The data of the frame-wise action classifier behind the action-order metric
 (`segmo.data.layout.read_actions`): a frame inside an action's span gets that action's
 class (the main action; arm overlays, "with", are not labels), a frame outside every span
 gets `IGNORE`. Classes are the sorted action names of the train split, for every split;
-an action of val/test that the train split lacks is ignored as well.
+an action of val/test that the train split lacks is ignored as well. With
+``targets="attributes"`` each frame gets its action's (side, count, speed) classes instead
+(`segmo.data.attributes`), the data of the attribute classifier.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from segmo.data.attributes import attribute_frame_labels
 from segmo.data.checks import MAX_ABS_Z
 from segmo.data.collate import IGNORE
 from segmo.data.humanml3d import LoadReport, MotionStore
@@ -33,7 +36,7 @@ def action_classes(root: str | Path, split: str = "train") -> list[str]:
 class ActionFrameDataset(Dataset):
     """One entry per motion of a split: the whole clip (no crop, no length limits),
     z-scored, and its labels. A sample is ``{"motion": (t, d), "length": t, "id": str,
-    "labels": (t,) long}``. What is skipped and what raises is `MotionDataset`'s
+    "labels": (t,) long}`` ((t, 3) for attributes). What is skipped and what raises is `MotionDataset`'s
     (`segmo.data.humanml3d`); a motion without ground truth raises."""
 
     def __init__(
@@ -49,7 +52,10 @@ class ActionFrameDataset(Dataset):
         preload: bool = True,
         strict: bool = False,
         max_abs_z: float | None = MAX_ABS_Z,
+        targets: str = "actions",
     ) -> None:
+        if targets not in ("actions", "attributes"):
+            raise ValueError(f"ActionFrameDataset: targets must be 'actions' or 'attributes', got {targets!r}")
         self.root = Path(root)
         self.skeleton = get_skeleton(skeleton)
         self.mean, self.std = resolve_stats(self.root, self.skeleton, mean, std)
@@ -63,6 +69,9 @@ class ActionFrameDataset(Dataset):
         index = {c: i for i, c in enumerate(self.classes)}
         self.labels: dict[str, np.ndarray] = {}
         for mid in self.ids:
+            if targets == "attributes":
+                self.labels[mid] = attribute_frame_labels(self.root, mid, self.motions.lengths[mid])
+                continue
             labels = np.full(self.motions.lengths[mid], IGNORE, dtype=np.int64)
             for action, (start, end) in zip(*read_actions(self.root, mid), strict=True):
                 labels[start:end] = index.get(action, IGNORE)

@@ -30,7 +30,7 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     ``caption_index``, ``spans`` (whichever the samples have); and when text features are
     present ``sentence`` (b, dim), ``segment_features`` (b, A, dim), ``segment_mask``
     (b, A) bool; per-word ``word_features`` (b, l, dim) zero-padded to the longest caption
-    with ``word_mask`` (b, l) bool; frame ``labels`` (b, t) long padded with `IGNORE`;
+    with ``word_mask`` (b, l) bool; frame ``labels`` (b, t) or (b, t, k) long padded with `IGNORE`;
     cached motion ``tokens`` (b, t // 4, q) long padded with 0.
     """
     if not samples:
@@ -55,8 +55,9 @@ def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
         batch["word_features"], batch["word_mask"] = _pad([s["word_features"] for s in samples])
     if "tokens" in keys:  # padded tokens are 0, a code: the token mask leaves them out
         batch["tokens"] = _pad([s["tokens"] for s in samples])[0]
-    if "labels" in keys:
-        batch["labels"] = torch.full(mask.shape, IGNORE, dtype=torch.long)
+    if "labels" in keys:  # (t,) action labels or (t, k) attribute labels per sample
+        batch["labels"] = torch.full((*mask.shape, *samples[0]["labels"].shape[1:]), IGNORE,
+                                     dtype=torch.long)
         for i, s in enumerate(samples):
             batch["labels"][i, : len(s["labels"])] = s["labels"]
     return batch

@@ -41,7 +41,8 @@ class MotionDataModule(LightningDataModule):
     is saved in checkpoints (`segmo.data.sampling`), so a resumed run continues with the
     batches an uninterrupted one would have seen. Under DDP each rank takes its share of
     that order. With ``frame_labels`` (the action classifier; built-in corpus only) every
-    split is an `ActionFrameDataset`: whole clips with one action label per frame. The last
+    split is an `ActionFrameDataset`: whole clips with one action label per frame
+    (``frame_labels: attributes``: the action's side, count and speed classes per frame). The last
     incomplete batch is dropped only when a rank's share of the train set holds more than
     one batch. ``group_by_length`` (caption samples only) forms each train batch from clips
     of similar length (`segmo.data.sampling.group_by_length`): a batch pads to its own
@@ -76,7 +77,7 @@ class MotionDataModule(LightningDataModule):
         preload: bool = True,
         strict: bool = False,
         max_abs_z: float | None = MAX_ABS_Z,
-        frame_labels: bool = False,
+        frame_labels: bool | Literal["actions", "attributes"] = False,
         group_by_length: bool = False,
         text_tokens: Literal["none", "words"] = "none",
     ) -> None:
@@ -154,7 +155,8 @@ class MotionDataModule(LightningDataModule):
             return ActionFrameDataset(self.root, split, self.skeleton, classes=self.classes,
                                       mean=mean, std=std, max_motions=self.max_motions,
                                       preload=self.preload, strict=self.strict,
-                                      max_abs_z=self.max_abs_z)
+                                      max_abs_z=self.max_abs_z,
+                                      targets="attributes" if self.frame_labels == "attributes" else "actions")
         common = dict(skeleton=self.skeleton, mean=mean, std=std, random_crop=train,
                       seed=self.seed, max_motions=self.max_motions, preload=self.preload,
                       strict=self.strict, max_abs_z=self.max_abs_z)

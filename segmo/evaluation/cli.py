@@ -292,6 +292,18 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
             notes["action_order"] = report.NOTES["action_order"]
         else:
             notes["action_order"] = "Skipped: the dataset has no segments/ ground truth."
+    if cfg.attribute_classifier and "attributes" not in skip:
+        if has_truth:
+            _log(cfg, "attributes")
+            from segmo.evaluation.attributes import attribute_section
+            from segmo.models.action_classifier import AttributeClassifier
+
+            clf = AttributeClassifier.from_pretrained(cfg.attribute_classifier)
+            metrics["attributes"] = _timed(cfg, "attributes", attribute_section, cfg, clf, ds, batches,
+                                           generate, reconstruct)
+            notes["attributes"] = report.NOTES["attributes"]
+        else:
+            notes["attributes"] = "Skipped: the dataset has no segments/ ground truth."
     cfg.timings["total"] = round(time.perf_counter() - start, 2)
     if generate is not None and generate.motions:
         cfg.timings["generation_ms_per_motion"] = round(1000 * generate.seconds / generate.motions, 2)
@@ -353,6 +365,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mm-repeats", type=positive_int, default=30, help="generations per prompt (> 10)")
     p.add_argument("--mm-runs", type=non_negative_int, default=1, help="MultiModality repetitions")
     p.add_argument("--action-classifier", help="action-classifier directory, or 'train' to fit one")
+    p.add_argument("--attribute-classifier", help="attribute-classifier directory (built-in corpus): "
+                                                  "accuracy of the side/count/speed a caption names")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--max-motions", type=positive_int, help="keep the first N motions of the split")
     p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
@@ -401,6 +415,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.text_segments and not (Path(args.data) / "text_segments" / args.text_segments).is_dir():
         parser.error(f"--text-segments {args.text_segments}: no folder "
                      f"{Path(args.data) / 'text_segments' / args.text_segments}")
+    if args.attribute_classifier is not None and not Path(args.attribute_classifier).is_dir():
+        parser.error(f"--attribute-classifier {args.attribute_classifier}: no such directory")
     if args.action_classifier not in (None, "train") and not Path(args.action_classifier).is_dir():
         parser.error(f"--action-classifier {args.action_classifier}: no such directory (or 'train')")
     window = args.grounding_window

@@ -58,6 +58,10 @@ NOTES: dict[str, str] = {
         "real: the classifier on the real motions (its ceiling); generated: one motion per "
         "motion of the split, from its first caption at the true length, vs that caption's "
         "action sequence."),
+    "attributes": (
+        "The side, count and speed that a segment of each motion's first caption names, read by "
+        "the attribute classifier on the segment's true span (real: the classifier's ceiling; "
+        "generated: from the caption at its true length, read on the same frames)."),
 }
 
 
@@ -170,6 +174,13 @@ def action_order_table(action_order: dict[str, Any]) -> str:
     return table
 
 
+def attributes_table(attributes: dict[str, Any]) -> str:
+    names = [n for n in ("side", "count", "speed") if any(n in v for v in attributes.values())]
+    return _table(["Motions", "overall", *names, "checks"],
+                  [[row, cell(v.get("overall")), *[cell(v.get(n)) for n in names],
+                    str(int(v.get("checks", 0)))] for row, v in attributes.items()])
+
+
 def render_report(metrics: dict[str, Any]) -> str:
     """The whole report.md of one evaluation."""
     config = metrics.get("config", {})
@@ -194,7 +205,8 @@ def render_report(metrics: dict[str, Any]) -> str:
     notes = metrics.get("notes", {})
     sections = (("retrieval", "Retrieval", retrieval_table), ("grounding", "Grounding", grounding_table),
                 ("isc", "Intra-segment consistency (paper Fig. 4)", isc_table),
-                ("action_order", "Action order (built-in corpus)", action_order_table))
+                ("action_order", "Action order (built-in corpus)", action_order_table),
+                ("attributes", "Attribute accuracy (built-in corpus)", attributes_table))
     for key, title, table in sections:
         value = metrics.get(key)
         if not value and not notes.get(key):

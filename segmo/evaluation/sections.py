@@ -50,7 +50,7 @@ from segmo.segmentation import get_motion_segmenter, pool_tokens
 SEGMENTERS: tuple[str, ...] = ("uniform", "cpd", "kmeans")
 # Attention grounding's rows of the grounding section: key prefix → search.
 ATTENTION = {"attention": "ordered", "attention_spans": "spans"}
-SECTIONS: tuple[str, ...] = ("reconstruction", "retrieval", "grounding", "isc", "action_order")
+SECTIONS: tuple[str, ...] = ("reconstruction", "retrieval", "grounding", "isc", "action_order", "attributes")
 
 
 @dataclass
@@ -69,6 +69,7 @@ class EvaluateConfig:
     mm_repeats: int = 30
     mm_runs: int = 1
     action_classifier: str | None = None
+    attribute_classifier: str | None = None
     seed: int = 0
     max_motions: int | None = None
     precision: str = "fp32"

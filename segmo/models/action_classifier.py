@@ -102,3 +102,27 @@ class ActionClassifier(nn.Module, Pretrained):
                 start = i
         kept = [c for c, n in runs if n >= min_frames] or [max(runs, key=lambda r: r[1])[0]]
         return [self.classes[c] for c in collapse(kept)]
+
+
+class AttributeClassifier(ActionClassifier):
+    """The same network read as three frame-wise classifiers of the action's attributes
+    (`segmo.data.attributes`: side, count, speed); trained by
+    `segmo.tasks.action_classifier.AttributeClassifierTask`, used by
+    `segmo.evaluation.attributes`. `meta["classes"]` holds ``"attribute=value"`` names."""
+
+    kind: ClassVar[str] = "attribute_classifier"
+
+    def span_attributes(self, features: Any, start: int, end: int) -> dict[str, str]:
+        """Raw features (t, d) → each attribute's value over frames [start, end): the
+        class of the largest mean probability (softmax within the attribute)."""
+        from segmo.data.attributes import ATTRIBUTES, attribute_slices
+
+        self.eval()
+        x = torch.as_tensor(np.asarray(features), dtype=torch.float32, device=self.mean.device)
+        with torch.no_grad():
+            logits = self(((x - self.mean) / self.std)[None])[0, start:end]  # (span, classes)
+        out = {}
+        for name, part in attribute_slices().items():
+            mean = logits[:, part].softmax(-1).mean(0)
+            out[name] = ATTRIBUTES[name][int(mean.argmax())]
+        return out

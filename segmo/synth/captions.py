@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from segmo.data.attributes import SPEED_THRESHOLDS
 from segmo.synth.sequence import Segment
 
 # (subject, re-mention, possessive)
@@ -43,15 +44,15 @@ def _speed(v: float, slow: float, fast: float, rng) -> str:
 def _variants(action: str, p: dict, rng, poss: str) -> list[str]:
     """Finite-verb phrases for one action; the gerund is derived by `_gerund`."""
     if action == "walk_forward":
-        m = _speed(p["speed"], 1.2, 1.6, rng)
+        m = _speed(p["speed"], *SPEED_THRESHOLDS["walk_forward"], rng)
         return [f"walks forward{m}", f"walks straight ahead{m}", f"walks{m}"]
     if action == "walk_backward":
-        m = _speed(p["speed"], 0.72, 2.0, rng)
+        m = _speed(p["speed"], *SPEED_THRESHOLDS["walk_backward"], rng)
         return [f"walks backward{m}", f"walks backwards{m}", f"steps back{m}"]
     if action == "jog":
         return ["jogs forward", "jogs", "jogs ahead"]
     if action == "run":
-        m = _speed(p["speed"], 0.0, 3.4, rng)
+        m = _speed(p["speed"], *SPEED_THRESHOLDS["run"], rng)
         return [f"runs forward{m}", f"runs{m}", f"runs ahead{m}"]
     if action == "side_step":
         d = p["direction"]

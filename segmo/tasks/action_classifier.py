@@ -24,10 +24,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.data.attributes import ATTRIBUTES, attribute_slices, num_attribute_classes
 from segmo.data.collate import IGNORE
 from segmo.data.datamodule import MotionDataModule
 from segmo.errors import SegmoError
-from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig
+from segmo.models.action_classifier import (
+    ActionClassifier,
+    ActionClassifierConfig,
+    AttributeClassifier,
+)
 from segmo.motion.skeleton import SkeletonName, get_skeleton
 from segmo.tasks.base import Task
 
@@ -73,14 +78,18 @@ class ActionClassifierTask(Task):
         self.dataset = str(datamodule.root)
         if self.model is None:
             self.model = self._build(datamodule.classes)
-        elif self.model.classes != datamodule.classes:
-            raise SegmoError(f"ActionClassifierTask: the checkpoint's classes {self.model.classes} "
-                             f"are not those of {datamodule.root}'s train split "
-                             f"{datamodule.classes}")
+        else:
+            self._check_classes(datamodule)
         if stage == "fit":
             with torch.no_grad():
                 self.model.mean.copy_(datamodule.mean)
                 self.model.std.copy_(datamodule.std)
+
+    def _check_classes(self, datamodule) -> None:
+        if self.model.classes != datamodule.classes:
+            raise SegmoError(f"ActionClassifierTask: the checkpoint's classes {self.model.classes} "
+                             f"are not those of {datamodule.root}'s train split "
+                             f"{datamodule.classes}")
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         super().on_save_checkpoint(checkpoint)
@@ -134,6 +143,51 @@ class ActionClassifierTask(Task):
         self.model.meta.update({"dataset": self.dataset, "skeleton": self.skeleton.name,
                                 "fps": self.skeleton.fps})
         return self.model
+
+
+class AttributeClassifierTask(ActionClassifierTask):
+    """Trains `AttributeClassifier`: frames labelled with their action's side, count and
+    speed (`segmo.data.attributes`; data ``frame_labels: attributes``), one cross-entropy
+    per attribute over the frames where the action has it."""
+
+    stage: ClassVar[str] = "attribute_classifier"
+    CLASSES: ClassVar[list[str]] = [f"{a}={v}" for a, values in ATTRIBUTES.items() for v in values]
+
+    def _build(self, classes: list[str]) -> AttributeClassifier:
+        h = self.hparams
+        model = AttributeClassifier(ActionClassifierConfig(
+            feature_dim=self.skeleton.feature_dim, num_classes=num_attribute_classes(),
+            width=h.width, depth=h.depth, kernel=h.kernel, dropout=h.dropout))
+        model.meta = {"classes": list(classes)}
+        return model
+
+    def setup(self, stage: str) -> None:
+        datamodule = self.datamodule
+        if datamodule is not None and getattr(datamodule, "frame_labels", False) != "attributes":
+            raise SegmoError("AttributeClassifierTask: set data.init_args.frame_labels: attributes")
+        if datamodule is not None and self.model is None:
+            self.model = self._build(self.CLASSES)
+        super().setup(stage)
+
+    def _check_classes(self, datamodule) -> None:
+        if self.model.classes != self.CLASSES:
+            raise SegmoError(f"AttributeClassifierTask: the checkpoint's classes {self.model.classes} "
+                             f"are not {self.CLASSES}")
+
+    def _losses(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
+        logits = self.model(batch["motion"])  # (b, t, classes)
+        labels = batch["labels"]  # (b, t, attributes)
+        losses, correct, counted = [], 0, 0
+        for k, part in enumerate(attribute_slices().values()):
+            target = labels[..., k]
+            if (target != IGNORE).any():
+                losses.append(F.cross_entropy(logits[..., part].flatten(0, 1), target.flatten(),
+                                              ignore_index=IGNORE))
+            labelled = target != IGNORE
+            correct = correct + (logits[..., part].argmax(-1) == target)[labelled].sum()
+            counted = counted + labelled.sum()
+        loss = torch.stack(losses).sum() if losses else logits.sum() * 0.0
+        return loss, torch.as_tensor(correct), torch.as_tensor(counted)
 
 
 def train_action_classifier(root: str | Path, epochs: int = 15, batch_size: int = 32,
