@@ -114,15 +114,18 @@ class AttributeClassifier(ActionClassifier):
 
     def span_attributes(self, features: Any, start: int, end: int) -> dict[str, str]:
         """Raw features (t, d) → each attribute's value over frames [start, end): the
-        class of the largest mean probability (softmax within the attribute)."""
-        from segmo.data.attributes import ATTRIBUTES, attribute_slices
-
+        class of the largest mean probability (softmax within the attribute). The
+        attributes and their values come from the class names, "attribute=value"."""
+        groups: dict[str, list[tuple[int, str]]] = {}
+        for index, name in enumerate(self.classes):
+            attribute, _, value = name.partition("=")
+            groups.setdefault(attribute, []).append((index, value))
         self.eval()
         x = torch.as_tensor(np.asarray(features), dtype=torch.float32, device=self.mean.device)
         with torch.no_grad():
             logits = self(((x - self.mean) / self.std)[None])[0, start:end]  # (span, classes)
         out = {}
-        for name, part in attribute_slices().items():
-            mean = logits[:, part].softmax(-1).mean(0)
-            out[name] = ATTRIBUTES[name][int(mean.argmax())]
+        for attribute, members in groups.items():
+            mean = logits[:, [i for i, _ in members]].softmax(-1).mean(0)
+            out[attribute] = members[int(mean.argmax())][1]
         return out

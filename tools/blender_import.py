@@ -1,0 +1,54 @@
+"""Import a segmo BVH into Blender headless and compare its bones with segmo's joints.
+
+    blender -b --python tools/blender_import.py -- MOTION.bvh JOINTS.npy [--fps 20]
+
+Runs inside Blender (its own Python, `bpy`): imports the file with Blender's own BVH
+importer (native per-bone rotation orders, y up converted to Blender's z up), plays every
+frame, and measures each bone's head against the joints (t, 22, 3) in metres, and half way
+between frames against the mean of the two frames' joints (Blender interpolates the Euler
+curves: a flip of the angles would swing a limb there). The last printed line is a JSON
+object: bones, frames, scene fps, mean / max error and the half-frame deviation (mm).
+"""
+
+import builtins
+import json
+import sys
+
+import bpy
+import numpy as np
+
+# Debian's Blender 3.4 runs its BVH importer on Python 3.11, which no longer takes the
+# 'rU' mode the importer opens files with (ValueError: invalid mode: 'rU'); read as 'r'.
+_open = builtins.open
+builtins.open = lambda file, mode="r", *a, **k: _open(file, mode.replace("U", ""), *a, **k)
+
+argv = sys.argv[sys.argv.index("--") + 1:]
+bvh_path, joints_path = argv[0], argv[1]
+joints = np.load(joints_path).astype(np.float64)  # (t, j, 3), y up
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_anim.bvh(filepath=bvh_path, rotate_mode="NATIVE", axis_forward="-Z", axis_up="Y",
+                        update_scene_fps=True, update_scene_duration=True)
+armature = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
+names = [b.name for b in armature.pose.bones]
+scene = bpy.context.scene
+start = scene.frame_start
+heads = []
+for f in range(len(joints)):
+    scene.frame_set(start + f)
+    heads.append([list(armature.matrix_world @ armature.pose.bones[n].head) for n in names])
+heads = np.asarray(heads)  # (t, bones, 3), Blender z up
+halves = []  # Blender's interpolation half way between frames (where angle flips would show)
+for f in range(len(joints) - 1):
+    scene.frame_set(start + f, subframe=0.5)
+    halves.append([list(armature.matrix_world @ armature.pose.bones[n].head) for n in names])
+halves = np.asarray(halves)
+# Blender's axes from the file's y up, -z forward: (x, y, z)_bvh -> (x, -z, y)_blender
+expected = np.stack([joints[..., 0], -joints[..., 2], joints[..., 1]], -1)
+from_names = json.loads(argv[argv.index("--names") + 1]) if "--names" in argv else None
+order = [from_names.index(n) for n in names] if from_names else list(range(len(names)))
+error = np.linalg.norm(heads - expected[:, order], axis=-1) * 1000
+middle = (expected[1:, order] + expected[:-1, order]) / 2
+between = np.linalg.norm(halves - middle, axis=-1) * 1000 if len(halves) else np.zeros(1)
+print(json.dumps({"bones": len(names), "frames": len(heads), "fps": scene.render.fps,
+                  "mean_mm": round(float(error.mean()), 3), "max_mm": round(float(error.max()), 3),
+                  "half_frame_vs_mean_of_neighbours_max_mm": round(float(between.max()), 2)}))
