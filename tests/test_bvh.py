@@ -188,3 +188,18 @@ def test_bvh_rejects_wrong_shape(tmp_path):
         joints_to_bvh(np.zeros((5, 21, 3)), tmp_path / "x.bvh")
     with pytest.raises(ValueError, match="NaN"):
         joints_to_bvh(np.full((5, 22, 3), np.nan), tmp_path / "x.bvh", foot_lock=False)
+
+
+def test_a_bone_swinging_past_opposite_its_rest_direction_does_not_flip_its_twist():
+    """A shin (rest: down) swung round through straight up in 4-degree steps: the fitted
+    rotation turns about 4 degrees a frame too (the shortest arc from the rest direction
+    alone turns the bone ~180 degrees about itself as it passes straight up)."""
+    from segmo.motion.skeleton_fit import _transported
+
+    angle = np.radians(np.arange(0, 360, 4.0))
+    directions = np.stack([np.sin(angle), -np.cos(angle), 0.1 * np.ones_like(angle)], -1)
+    rotations = _transported(np.array([0.0, -1.0, 0.0]), directions)
+    assert np.allclose(np.einsum("tij,j->ti", rotations, [0.0, -1.0, 0.0]),
+                       directions / np.linalg.norm(directions, axis=-1, keepdims=True), atol=1e-9)
+    steps = np.degrees(Rotation.from_matrix(rotations[1:] @ np.swapaxes(rotations[:-1], 1, 2)).magnitude())
+    assert steps.max() < 5.0, f"the bone turns {steps.max():.0f} degrees in one frame"

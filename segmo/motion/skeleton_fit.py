@@ -132,12 +132,28 @@ def _rest_offsets(positions: np.ndarray, spec: SkeletonSpec, children: list[list
     return offsets
 
 
+def _transported(rest: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(t, 3, 3) rotations mapping `rest` (3,) onto each of `directions` (t, 3): the
+    shortest arc in frame 0, then each frame's rotation is the previous one turned by the
+    shortest arc between consecutive directions (parallel transport). The twist about the
+    bone, which positions do not show, then changes as little as possible from frame to
+    frame; the shortest arc from the rest direction alone flips it by up to 180 degrees
+    when a bone passes opposite its rest direction (a shin kicked up, an arm raised)."""
+    d = torch.from_numpy(directions)
+    step = quat_to_matrix(qbetween(d[:-1], d[1:])).numpy() if len(d) > 1 else np.zeros((0, 3, 3))
+    out = np.empty((len(directions), 3, 3))
+    out[0] = quat_to_matrix(qbetween(torch.from_numpy(rest), d[0])).numpy()
+    for f in range(1, len(directions)):
+        out[f] = step[f - 1] @ out[f - 1]
+    return out
+
+
 def _initial_pose(positions: np.ndarray, offsets: np.ndarray, children: list[list[int]],
                   parents: tuple[int, ...]) -> np.ndarray:
     """(t, j, 3, 3) world rotations, joint by joint from the root: each joint aims its
     rest child offsets at the observed children as seen from where the fitted skeleton
-    put the joint (shortest arc for one child, Kabsch for several), so that a bone that
-    is too long or short in the data moves its own end only and not the whole chain."""
+    put the joint (one child: `_transported`; several: Kabsch), so that a bone that is too
+    long or short in the data moves its own end only and not the whole chain."""
     t, j = positions.shape[:2]
     world = np.empty((t, j, 3, 3))
     fitted = np.empty_like(positions)
@@ -149,9 +165,7 @@ def _initial_pose(positions: np.ndarray, offsets: np.ndarray, children: list[lis
             continue
         observed = positions[:, kids] - fitted[:, p : p + 1]
         if len(kids) == 1:
-            rest = np.broadcast_to(offsets[kids[0]], observed[:, 0].shape).copy()
-            world[:, p] = quat_to_matrix(qbetween(torch.from_numpy(rest),
-                                                  torch.from_numpy(observed[:, 0]))).numpy()
+            world[:, p] = _transported(offsets[kids[0]], observed[:, 0])
         else:
             world[:, p] = _kabsch(offsets[kids], observed)
         for c in kids:
