@@ -9,10 +9,10 @@ the foot sliding a generator leaves.
 
 Channels: the root has `Xposition Yposition Zposition` and three rotation channels, every
 other joint three rotation channels, in degrees. A Tait-Bryan order locks where its middle
-angle reaches 90 degrees, so each file picks, per joint, the order whose middle angle stays
-farthest from 90 degrees over the motion (`euler_orders`); the root's order turns about y
-first (``YXZ`` or ``YZX``), so that the heading of a walking, turning human is one channel
-and never the middle one. The angles are continuous from frame to frame (of the two
+angle reaches 90 degrees, and near there a small turn moves its other two angles a lot; so
+each file picks, per joint, the order whose angle curves change least between frames
+(`euler_orders`); the root's order turns about y first (``YXZ`` or ``YZX``), so that the
+heading of a walking, turning human is one channel and never the middle one. The angles are continuous from frame to frame (of the two
 triples of each rotation, and their turns by 360 degrees, the one nearest the previous
 frame), and at an exact lock the first angle keeps its previous value. The channel order
 is the BVH one: ``Zrotation Yrotation Xrotation`` means R = Rz(z) @ Ry(y) @ Rx(x), and a
@@ -46,20 +46,19 @@ ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
 
 def euler_orders(local: np.ndarray) -> list[str]:
     """Each joint's Euler order (intrinsic, the BVH channel order) for local rotations
-    (t, j, 3, 3): the one whose middle angle stays farthest from the lock (largest
-    smallest |cos| over the frames); the root chooses among `ROOT_ORDERS`, the others
-    among all six Tait-Bryan orders, ties going to the first listed."""
+    (t, j, 3, 3): the one whose continuous angles (`continuous_euler`) change least from
+    one frame to the next (the smallest largest change); near its lock an order turns a
+    small rotation into a large change of its first and last angles. The root chooses
+    among `ROOT_ORDERS`, the others among all six Tait-Bryan orders, ties going to the
+    first listed."""
     orders = []
     for joint in range(local.shape[1]):
-        rotation = Rotation.from_matrix(local[:, joint])
-        best, margin = None, -1.0
+        best, smallest = None, np.inf
         for order in ROOT_ORDERS if joint == 0 else ORDERS:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # scipy's "gimbal lock detected"
-                middle = rotation.as_euler(order)[:, 1]
-            score = float(np.abs(np.cos(middle)).min())
-            if score > margin + 1e-9:
-                best, margin = order, score
+            angles = continuous_euler(local[:, joint], order)
+            change = float(np.abs(np.diff(angles, axis=0)).max()) if len(angles) > 1 else 0.0
+            if change < smallest - 1e-9:
+                best, smallest = order, change
         orders.append(best)
     return orders
 
