@@ -51,58 +51,67 @@ def euler_orders(local: np.ndarray) -> list[str]:
     small rotation into a large change of its first and last angles. The root chooses
     among `ROOT_ORDERS`, the others among all six Tait-Bryan orders, ties going to the
     first listed."""
+    t, j = local.shape[:2]
+    worst = {}
+    for order in ORDERS:
+        angles = continuous_euler(local, order)  # (t, j, 3)
+        worst[order] = (np.abs(np.diff(angles, axis=0)).max((0, 2)) if t > 1 else np.zeros(j))
     orders = []
-    for joint in range(local.shape[1]):
-        best, smallest = None, np.inf
-        for order in ROOT_ORDERS if joint == 0 else ORDERS:
-            angles = continuous_euler(local[:, joint], order)
-            change = float(np.abs(np.diff(angles, axis=0)).max()) if len(angles) > 1 else 0.0
-            if change < smallest - 1e-9:
-                best, smallest = order, change
-        orders.append(best)
+    for joint in range(j):
+        allowed = ROOT_ORDERS if joint == 0 else ORDERS
+        orders.append(min(allowed, key=lambda o: (round(float(worst[o][joint]), 9), allowed.index(o))))
     return orders
 
 
 def continuous_euler(rotations: np.ndarray, order: str) -> np.ndarray:
-    """(t, 3, 3) rotations -> (t, 3) intrinsic Euler angles in radians, continuous in t.
+    """(t, ..., 3, 3) rotations -> (t, ..., 3) intrinsic Euler angles in radians,
+    continuous in t.
 
-    Of the two triples that give each rotation, the one nearer the previous frame's is
-    taken, each angle shifted by the multiple of 2 pi nearest its previous value; at (or
-    within 1e-6 of) the lock the first angle keeps its previous value and the third takes
-    the rest.
+    Each rotation has two triples (a, b, c) and (a + pi, pi - b, c + pi); the sequence of
+    choices with the smallest summed squared change between frames is taken (a two-state
+    Viterbi pass), then each angle is unwrapped (shifted by the multiple of 2 pi nearest
+    its previous value). At (or within 1e-6 of) the lock, where only a combination of the
+    first and third angles is defined, the first keeps its previous value and the third
+    takes the rest.
     """
     t = len(rotations)
-    out = np.zeros((t, 3))
+    batch = rotations.shape[1:-2]
     if t == 0:
-        return out
-    rot = Rotation.from_matrix(rotations)
+        return np.zeros((0, *batch, 3))
+    flat = np.asarray(rotations, dtype=np.float64).reshape(t, -1, 3, 3)
+    n = flat.shape[1]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # scipy's "gimbal lock detected"
-        base = rot.as_euler(order)  # (t, 3); middle angle in [-pi/2, pi/2]
-    alternative = np.stack([base[:, 0] + np.pi, np.pi - base[:, 1], base[:, 2] + np.pi], -1)
+        base = Rotation.from_matrix(flat.reshape(-1, 3, 3)).as_euler(order).reshape(t, n, 3)
+    alternative = np.stack([base[..., 0] + np.pi, np.pi - base[..., 1], base[..., 2] + np.pi], -1)
+    candidates = np.stack([base, alternative], axis=2)  # (t, n, 2, 3)
+
+    def change(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        d = (b - a + np.pi) % (2 * np.pi) - np.pi
+        return (d * d).sum(-1)
+
+    cost = np.zeros((n, 2))
+    back = np.zeros((t, n, 2), dtype=np.int64)
+    for f in range(1, t):
+        total = cost[:, :, None] + change(candidates[f - 1][:, :, None], candidates[f][:, None, :])
+        back[f] = total.argmin(1)
+        cost = total.min(1)
+    choice = np.zeros((t, n), dtype=np.int64)
+    choice[-1] = cost.argmin(-1)
+    for f in range(t - 1, 0, -1):
+        choice[f - 1] = back[f, np.arange(n), choice[f]]
+    out = np.take_along_axis(candidates, choice[:, :, None, None], axis=2)[:, :, 0]
+    out = np.unwrap(out, axis=0)
     axes = {"X": np.array([1.0, 0, 0]), "Y": np.array([0, 1.0, 0]), "Z": np.array([0, 0, 1.0])}
-    previous = None
-    for f in range(t):
-        locked = abs(np.cos(base[f, 1])) < 1e-6
-        if previous is None:
-            chosen = base[f]
-        elif locked:
-            a, b = previous[0], base[f, 1]
-            rest = (Rotation.from_rotvec(axes[order[1]] * b).inv()
-                    * Rotation.from_rotvec(axes[order[0]] * a).inv() * rot[f])
-            c = float(rest.as_rotvec() @ axes[order[2]])
-            chosen = np.array([a, b, c])
-        else:
-            candidates = []
-            for triple in (base[f], alternative[f]):
-                shifted = triple + 2 * np.pi * np.round((previous - triple) / (2 * np.pi))
-                candidates.append(shifted)
-            chosen = min(candidates, key=lambda c: float(((c - previous) ** 2).sum()))
-        if previous is not None:
-            chosen = chosen + 2 * np.pi * np.round((previous - chosen) / (2 * np.pi))
-        out[f] = chosen
-        previous = chosen
-    return out
+    for f, k in zip(*np.nonzero(np.abs(np.cos(base[..., 1])) < 1e-6)):
+        if f == 0:
+            continue
+        a, b = out[f - 1, k, 0], out[f, k, 1]
+        rest = (Rotation.from_rotvec(axes[order[1]] * b).inv()
+                * Rotation.from_rotvec(axes[order[0]] * a).inv() * Rotation.from_matrix(flat[f, k]))
+        c = float(rest.as_rotvec() @ axes[order[2]])
+        out[f, k] = [a, b, c + 2 * np.pi * np.round((out[f - 1, k, 2] - c) / (2 * np.pi))]
+    return out.reshape(t, *batch, 3)
 
 
 def _resample(fit: SkeletonFit, fps: float, target_fps: float) -> tuple[np.ndarray, np.ndarray]:
