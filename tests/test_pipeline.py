@@ -579,3 +579,21 @@ def test_ground_cli_finds_the_true_spans_of_a_corpus_caption(tmp_path):
     assert _true_spans(motion, "a man runs", ["a man runs"]) is None  # another caption
     assert _true_spans(motion, "a man walks, then waves.", ["a man walks then waves"]) is None
     assert _true_spans(tmp_path / "elsewhere.npy", "a man walks, then waves.", ["a", "b"]) is None
+
+
+def test_saved_joints_gif_and_bvh_are_one_skeleton(model, generated, tmp_path):
+    """A random model's joints stretch their bones; the files of a sample show the fixed
+    skeleton fitted to them, so a BVH reader's forward kinematics gives the joints file."""
+    pybvh = pytest.importorskip("pybvh", reason="the `pybvh` reader (dev extra) is not installed")
+    from segmo.motion import T2M
+
+    generated.save(tmp_path / "fixed", formats=("npy", "bvh"))
+    joints = np.load(tmp_path / "fixed" / "sample_00_joints.npy")
+    mocap = pybvh.read_bvh_file(str(tmp_path / "fixed" / "sample_00.bvh"))
+    names = list(mocap.joint_names)
+    read = mocap.joint_positions()[:, [names.index(n) for n in T2M.joint_names]]
+    assert np.linalg.norm(read - joints, axis=-1).max() < 0.001
+    lengths = np.linalg.norm(joints[:, 1:] - joints[:, list(T2M.parents[1:])], axis=-1)
+    assert np.allclose(lengths, np.asarray(T2M.reference_bone_lengths[1:]), atol=1e-5)
+    generated.save(tmp_path / "raw", formats=("npy",), fixed_skeleton=False)
+    assert np.array_equal(np.load(tmp_path / "raw" / "sample_00_joints.npy"), generated.motion_joints(0))

@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from segmo.motion import T2M
-from segmo.motion.bvh import joints_to_bvh
-from segmo.motion.skeleton_fit import foot_contacts, foot_skating
+from segmo.motion.bvh import write_bvh
+from segmo.motion.skeleton_fit import fit_motion, foot_contacts, foot_skating
 
 
 def read_pybvh(path: Path) -> np.ndarray:
@@ -71,29 +71,33 @@ def channel_jumps(path: Path) -> tuple[float, float]:
 
 
 def check(motions: list[np.ndarray], out: Path, bvhio_files: int) -> dict:
-    errors = {False: [], True: []}
-    bvhio_errors = []
+    errors: dict[str, list[np.ndarray]] = {"pybvh": [], "pybvh_foot_lock": [], "bvhio": [],
+                                           "saved_joints": []}
     jumps, skating = [], {"input": [], "bvh": [], "bvh_foot_lock": []}
     for k, joints in enumerate(motions):
         contacts = foot_contacts(joints)
         skating["input"].append(foot_skating(joints, contacts))
         for lock in (False, True):
-            path = joints_to_bvh(joints, out / f"{k:04d}{'_lock' if lock else ''}.bvh", foot_lock=lock)
+            fit = fit_motion(joints, foot_lock=lock)
+            path = write_bvh(fit, out / f"{k:04d}{'_lock' if lock else ''}.bvh")
             read = read_pybvh(path)
-            errors[lock].append(np.linalg.norm(read - joints, axis=-1).ravel())
+            errors["pybvh_foot_lock" if lock else "pybvh"].append(np.linalg.norm(read - joints, axis=-1).ravel())
+            if lock:  # what `GenerationOutput.save` writes as the joints file, against its BVH
+                errors["saved_joints"].append(np.linalg.norm(read - fit.joints, axis=-1).ravel())
             skating["bvh_foot_lock" if lock else "bvh"].append(foot_skating(read, contacts))
             jumps.append(channel_jumps(path))
             if not lock and k < bvhio_files:
-                bvhio_errors.append(np.linalg.norm(read_bvhio(path, len(joints)) - joints, axis=-1).ravel())
+                errors["bvhio"].append(np.linalg.norm(read_bvhio(path, len(joints)) - joints, axis=-1).ravel())
 
-    def summary(e: list[np.ndarray]) -> dict:
+    def summary(e: list[np.ndarray]) -> dict | None:
+        if not e:
+            return None
         e = np.concatenate(e) * 1000
         return {"mean_mm": round(float(e.mean()), 3), "p99_mm": round(float(np.percentile(e, 99)), 2),
                 "max_mm": round(float(e.max()), 2)}
 
-    return {"files": len(motions), "error_pybvh": summary(errors[False]),
-            "error_bvhio": summary(bvhio_errors) if bvhio_errors else None,
-            "error_pybvh_foot_lock": summary(errors[True]), "max_channel_jump_deg": round(max(j for j, _ in jumps), 2),
+    return {"files": len(motions), **{f"error_{name}": summary(e) for name, e in errors.items()},
+            "max_channel_jump_deg": round(max(j for j, _ in jumps), 2),
             "max_channel_jump_of_a_joint_turning_under_30_deg": round(max(f for _, f in jumps), 2),
             "skating_cm_s": {k: round(100 * float(np.mean(v)), 3) for k, v in skating.items()}}
 

@@ -29,17 +29,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
-from segmo.motion.skeleton_fit import (
-    SkeletonFit,
-    fit_skeleton,
-    foot_contacts,
-    lock_feet,
-)
+from segmo.motion.skeleton_fit import SkeletonFit, fit_motion
 
 __all__ = ["joints_to_bvh", "euler_orders", "continuous_euler", "write_bvh"]
 
 END_SITE_LENGTH = 0.05  # metres: the nominal tip drawn after leaf joints
-LOCK_WEIGHT = 10.0  # weight of a locked foot joint's squared error in the fit
 ROOT_ORDERS = ("YXZ", "YZX")  # heading (about y, up) first
 ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
 
@@ -202,10 +196,8 @@ def joints_to_bvh(
 
     fps: the joints' frame rate, default the skeleton's (t2m: 20); target_fps: the file's
     (default the same). scale multiplies all lengths (1 keeps the data units, metres for
-    t2m; 100 gives centimetres). foot_lock: hold each foot joint still while it is in
-    contact (`contacts` (t, 4) bool: left ankle, left toe, right ankle, right toe; default
-    `skeleton_fit.foot_contacts` of the joints). bone_lengths: the skeleton's reference
-    lengths (default where it has them) or the motion's median ("motion").
+    t2m; 100 gives centimetres). foot_lock, contacts, bone_lengths: see
+    `segmo.motion.skeleton_fit.fit_motion`; `write_bvh` writes a fit made elsewhere.
     """
     spec = get_skeleton(skeleton)
     if hasattr(joints, "detach"):
@@ -216,16 +208,7 @@ def joints_to_bvh(
             f"joints_to_bvh: joints must be (t, {spec.num_joints}, 3) for skeleton {spec.name!r}, "
             f"got {positions.shape}"
         )
-    weights = None
-    if foot_lock:
-        contacts = foot_contacts(positions, spec) if contacts is None else np.asarray(contacts, dtype=bool)
-        if contacts.shape != (len(positions), 4):
-            raise ValueError(f"joints_to_bvh: contacts must be ({len(positions)}, 4), got {contacts.shape}")
-        feet = list(spec.feet_left) + list(spec.feet_right)
-        weights = np.ones(positions.shape[:2])
-        weights[:, feet] += (LOCK_WEIGHT - 1) * contacts
-        positions = lock_feet(positions, contacts, spec)
-    fit = fit_skeleton(positions, spec, bone_lengths=bone_lengths, weights=weights)
+    fit = fit_motion(positions, spec, foot_lock=foot_lock, contacts=contacts, bone_lengths=bone_lengths)
     return write_bvh(fit, path, spec, fps=fps, target_fps=target_fps, scale=scale)
 
 

@@ -38,7 +38,7 @@ from segmo.motion.kinematics import bone_lengths as measure_bone_lengths
 from segmo.motion.quaternion import qbetween, quat_to_matrix
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
-__all__ = ["SkeletonFit", "fit_skeleton", "foot_contacts", "foot_skating", "lock_feet"]
+__all__ = ["SkeletonFit", "fit_motion", "fit_skeleton", "foot_contacts", "foot_skating", "lock_feet"]
 
 # Squared displacement per frame (m^2) under which a foot joint is in contact: HumanML3D's
 # threshold, the one its features' contact channels use.
@@ -46,6 +46,7 @@ CONTACT_THRESHOLD = 0.002
 CONTACT_HEIGHT = 0.05  # metres above the motion's lowest foot height that still count as ground
 LOCK_BLEND = 3  # frames over which a locked foot moves to a new anchor or back to its own path
 LOCK_RADIUS = 0.04  # metres a foot may slide "in contact" before it is anchored anew
+LOCK_WEIGHT = 10.0  # weight of a locked foot joint's squared error in the fit
 
 
 @dataclass
@@ -274,6 +275,30 @@ def _refine(fit: SkeletonFit, target: np.ndarray, children: list[list[int]], ite
     with torch.no_grad():
         local, root = pose()
     return SkeletonFit(fit.offsets, root.numpy(), local.numpy(), fit.parents)
+
+
+def fit_motion(joints: Any, skeleton: str | SkeletonSpec = "t2m", foot_lock: bool = True,
+               contacts: np.ndarray | None = None,
+               bone_lengths: Literal["skeleton", "motion"] | None = None) -> SkeletonFit:
+    """The fixed skeleton that a BVH file (and a generated motion's joints) shows: with
+    `foot_lock`, each foot joint held where it touched down while in contact (`contacts`
+    (t, 4) bool: left ankle, left toe, right ankle, right toe; default `foot_contacts` of
+    the joints), its error weighted LOCK_WEIGHT times in the fit; bone lengths as in
+    `fit_skeleton`."""
+    spec = get_skeleton(skeleton)
+    if hasattr(joints, "detach"):
+        joints = joints.detach().cpu().numpy()
+    positions = np.asarray(joints, dtype=np.float64)
+    weights = None
+    if foot_lock and positions.ndim == 3 and positions.shape[1:] == (spec.num_joints, 3):
+        contacts = foot_contacts(positions, spec) if contacts is None else np.asarray(contacts, dtype=bool)
+        if contacts.shape != (len(positions), 4):
+            raise ValueError(f"fit_motion: contacts must be ({len(positions)}, 4), got {contacts.shape}")
+        feet = list(spec.feet_left) + list(spec.feet_right)
+        weights = np.ones(positions.shape[:2])
+        weights[:, feet] += (LOCK_WEIGHT - 1) * contacts
+        positions = lock_feet(positions, contacts, spec)
+    return fit_skeleton(positions, spec, bone_lengths=bone_lengths, weights=weights)
 
 
 # ---------------------------------------------------------------- feet

@@ -16,8 +16,9 @@ import torch
 
 from segmo.errors import SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.motion.bvh import joints_to_bvh
+from segmo.motion.bvh import write_bvh
 from segmo.motion.skeleton import SkeletonSpec
+from segmo.motion.skeleton_fit import fit_motion
 from segmo.render import save_animation
 
 FORMATS = ("npy", "gif", "bvh")
@@ -59,13 +60,16 @@ class GenerationOutput:
     def save(self, directory: str | Path, formats: Sequence[str] = FORMATS,
              prefix: str = "sample", bvh_fps: float | None = None,
              foot_lock: bool = True, spans: Sequence[Sequence[tuple[int, int]]] | None = None,
-             progress: bool = False) -> list[Path]:
+             progress: bool = False, fixed_skeleton: bool = True) -> list[Path]:
         """Write each sample as `{prefix}_{i:02d}` files into `directory`.
 
         npy: `_features.npy` (t, d), `_joints.npy` (t, j, 3), `_tokens.npy` (t // 4, q); gif: a stick-figure
         animation titled with the prompt; bvh: a BVH file of a fixed skeleton fitted to the joints
-        (`segmo.motion.bvh`), at `bvh_fps` frames per second (default the motion's), with
-        the feet locked while in contact unless `foot_lock` is False. spans: per sample, a
+        (`segmo.motion.skeleton_fit.fit_motion`), at `bvh_fps` frames per second (default the
+        motion's), with the feet locked while in contact unless `foot_lock` is False. With
+        `fixed_skeleton` (default) the joints file and the GIF show that same skeleton, so
+        that every file of a sample is one motion (the decoder's joints can stretch a bone;
+        `motion_joints` keeps them); False writes the decoder's joints. spans: per sample, a
         (start, end) frame span per text segment (e.g. `SegMo.ground(method="attention")`):
         the GIF names the segment of each frame. progress: progress bars while rendering. A `prompts.json`
         lists texts, segments and lengths. Returns the written paths.
@@ -80,6 +84,11 @@ class GenerationOutput:
         for i, text in enumerate(self.texts):
             stem = directory / f"{prefix}_{i:02d}"
             features, joints = self.motion(i), self.motion_joints(i)
+            fit = None
+            if fixed_skeleton or "bvh" in formats:
+                fit = fit_motion(joints, self.skeleton, foot_lock=foot_lock)
+                if fixed_skeleton:
+                    joints = fit.joints.astype(np.float32)
             if "npy" in formats:
                 n = int(self.lengths[i]) // FRAMES_PER_TOKEN
                 tokens = self.tokens[i, :n].cpu().numpy().astype(np.int64)
@@ -96,9 +105,8 @@ class GenerationOutput:
                                               title=text, fps=self.fps, segments=labels,
                                               progress=progress))
             if "bvh" in formats:
-                written.append(joints_to_bvh(joints, f"{stem}.bvh", fps=self.fps,
-                                             skeleton=self.skeleton, target_fps=bvh_fps,
-                                             foot_lock=foot_lock))
+                written.append(write_bvh(fit, f"{stem}.bvh", self.skeleton, fps=self.fps,
+                                         target_fps=bvh_fps))
         index = [{"file": f"{prefix}_{i:02d}", "text": t, "segments": s, "frames": int(n)}
                  for i, (t, s, n) in enumerate(zip(self.texts, self.segments, self.lengths))]
         path = directory / "prompts.json"
