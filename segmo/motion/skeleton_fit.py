@@ -34,15 +34,13 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from segmo.motion.features import FOOT_CONTACT_THRESHOLD
 from segmo.motion.kinematics import bone_lengths as measure_bone_lengths
 from segmo.motion.quaternion import qbetween, quat_to_matrix
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
 __all__ = ["SkeletonFit", "fit_motion", "fit_skeleton", "foot_contacts", "foot_skating", "lock_feet"]
 
-# Squared displacement per frame (m^2) under which a foot joint is in contact: HumanML3D's
-# threshold, the one its features' contact channels use.
-CONTACT_THRESHOLD = 0.002
 CONTACT_HEIGHT = 0.05  # metres above the motion's lowest foot height that still count as ground
 LOCK_BLEND = 3  # frames over which a locked foot moves to a new anchor or back to its own path
 LOCK_RADIUS = 0.04  # metres a foot may slide "in contact" before it is anchored anew
@@ -314,7 +312,7 @@ def foot_contacts(joints: np.ndarray, skeleton: str | SkeletonSpec = "t2m") -> n
     feet = list(spec.feet_left) + list(spec.feet_right)
     step = ((positions[1:, feet] - positions[:-1, feet]) ** 2).sum(-1)  # (t-1, 4)
     step = np.concatenate([step, step[-1:]], 0) if len(step) else np.zeros((len(positions), 4))
-    slow = step < CONTACT_THRESHOLD / spec.unit**2
+    slow = step < FOOT_CONTACT_THRESHOLD / spec.unit**2
     height = positions[:, feet, 1]
     low = height < height.min() + CONTACT_HEIGHT / spec.unit
     return slow & low
