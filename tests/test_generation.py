@@ -163,9 +163,58 @@ def test_one_batched_guidance_pass_per_step(models, monkeypatch):
     generate_tokens(mask, residual, *text(3), torch.tensor([16, 16, 8]),
                     options=SamplingOptions(steps=5),
                     generator=torch.Generator().manual_seed(0))
-    assert batches == [6] * 5
-    # Only the sampled positions reach the last block: ⌈γ(t)·4⌉ for t = 0, ¼, ½, ¾, 1.
-    assert computed == [4, 4, 3, 2, 1]
+    # Step 0: 3 conditional rows and 2 unconditional ones (the two 16-frame rows are all
+    # masked, the same input). Step 1 (t = ¼) masks everything again (⌈0.92·4⌉ = 4,
+    # ⌈0.92·2⌉ = 2): the same input as step 0, no pass. Then one pass per step, of 6 rows
+    # unless two unconditional rows happen to hold the same tokens.
+    assert batches[0] == 5 and len(batches) == 4 and all(5 <= rows <= 6 for rows in batches)
+    # Only the sampled positions reach the last block: ⌈γ(t)·4⌉ for t = 0, ½, ¾, 1.
+    assert computed == [4, 3, 2, 1]
+
+
+def plain_passes(monkeypatch):
+    """Masked decoding without its exact savings: every step's pass over all 2b rows."""
+    monkeypatch.setattr(generate_module, "is_recorded", lambda model: True)
+    monkeypatch.setattr(generate_module, "_guidance_pass",
+                        lambda model, ids, token_mask, condition, positions:
+                        model.forward_condition(ids, token_mask, condition, positions).logits)
+
+
+@pytest.mark.parametrize("lengths,steps", [([48, 48, 48, 20], 10), ([16, 40, 8], 4), ([48], 10)])
+def test_exact_savings_keep_every_token(models, monkeypatch, lengths, steps):
+    # Reusing a repeated step's pass and computing identical unconditional rows once
+    # change no token of a generation or an edit.
+    mask, residual = models
+    b = len(lengths)
+
+    def run():
+        tokens = generate_tokens(mask, residual, *text(b), torch.tensor(lengths),
+                                 options=SamplingOptions(steps=steps),
+                                 generator=torch.Generator().manual_seed(5))
+        edited = edit_tokens(mask, residual, tokens, (1, 5), *text(b, seed=6),
+                             options=SamplingOptions(steps=steps),
+                             generator=torch.Generator().manual_seed(6))
+        return torch.cat([tokens, edited])
+
+    saved = run()
+    plain_passes(monkeypatch)
+    assert torch.equal(saved, run())
+
+
+def test_unconditional_rows_computed_once_match_the_full_batch(models):
+    # The logits of a deduplicated pass equal those of the full guidance batch.
+    mask, _ = models
+    b, n = 4, 12
+    condition = guidance_condition(mask, *text(b))
+    ids = torch.full((2 * b, n), mask.mask_id)
+    token_mask = torch.ones(2 * b, n, dtype=torch.bool)
+    token_mask[[2, 6], 8:] = False
+    with torch.inference_mode():
+        mask.eval()
+        full = mask.forward_condition(ids, token_mask, condition).logits
+        deduplicated = generate_module._guidance_pass(mask, ids, token_mask, condition, None)
+    valid = token_mask[..., None].expand_as(full)
+    torch.testing.assert_close(deduplicated[valid], full[valid], rtol=1e-5, atol=1e-5)
 
 
 def test_sampling_only_the_drawn_positions_changes_no_token(models, monkeypatch):

@@ -34,7 +34,8 @@ Measured after one warm-up, over `--repeats` runs, median:
 - allocator_tuned: whether glibc malloc keeps freed memory (`keep_freed_memory`, as the
   `segmo generate` and `segmo evaluate` commands do); `--default-allocator` turns it off;
 - with --momask-floor: momask_floor_ms_per_motion, the MoMask reference's bare passes
-  (fp32, `momask_floor`) timed on this machine, interleaved with the runs above, and
+  (fp32, `momask_floor`, at its own 10 steps whatever --steps says) timed on this
+  machine, interleaved with the runs above, and
   speedup_vs_momask_floor = that time / ms_per_motion, a ratio that does not depend on
   the host;
 - *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
@@ -72,6 +73,8 @@ from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.pretrained import load_pretrained, read_config
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 
+# The MoMask reference decodes base tokens in 10 steps (its default), whatever --steps says.
+MOMASK_STEPS = 10
 PAPER = dict(codebook_size=512, text_dim=512, max_segments=5, dim=384, depth=8, heads=6,
              ff_dim=1024, num_quantizers=6)
 RANDOM_CONFIGS = {
@@ -289,7 +292,7 @@ def main(argv: list[str] | None = None) -> None:
         trunk, head = momask_models(dim=mask.config.dim, depth=mask.config.depth,
                                     heads=mask.config.heads, ff_dim=mask.config.ff_dim,
                                     codes=mask.config.codebook_size)
-        reference = functools.partial(momask_floor, trunk, head, b, n, args.steps,
+        reference = functools.partial(momask_floor, trunk, head, b, n, MOMASK_STEPS,
                                       residual.config.num_quantizers)
         reference()  # warm-up
     token_times, decode_times, floor_times, cpu_times, floor_cpu_times = [], [], [], [], []

@@ -23,6 +23,7 @@ from torch import nn
 
 from segmo import cpu
 from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_tokens
+from segmo.models.attention_recorder import is_recorded
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -153,6 +154,27 @@ def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
     return torch.where(counts > 0, num, 0)
 
 
+def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.Tensor,
+                   condition: Condition, positions: torch.Tensor | None) -> torch.Tensor:
+    """The logits (2b, m, v) of one mask pass over a guidance batch (rows b..2b−1
+    unconditional), computing unconditional rows with identical inputs once: they attend
+    to no text, so rows of the same ids, token mask and sampled positions have the same
+    output. (At the first step of a generation every token is masked, and every
+    unconditional row of one length is the same.)"""
+    b = ids.shape[0] // 2
+    key = [ids[b:], token_mask[b:].long()] + ([] if positions is None else [positions[b:]])
+    unique, inverse = torch.unique(torch.cat(key, dim=1), dim=0, return_inverse=True)
+    if unique.shape[0] == b:
+        return model.forward_condition(ids, token_mask, condition, positions).logits
+    rows = torch.arange(b, device=ids.device)
+    first = torch.full((unique.shape[0],), b, device=ids.device).scatter_reduce(
+        0, inverse, rows, "amin")  # the first unconditional row of each distinct input
+    keep = torch.cat([rows, b + first])
+    logits = model.forward_condition(ids[keep], token_mask[keep], condition.rows(keep),
+                                     None if positions is None else positions[keep]).logits
+    return logits[torch.cat([rows, b + inverse])]
+
+
 def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Tensor,
                   token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
                   generator: torch.Generator | None = None) -> torch.Tensor:
@@ -163,20 +185,31 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     ⌈γ(t)·m⌉ (≥ 1) lowest-confidence editable tokens are (re-)masked and predicted with
     `options.guidance_scale`, m = editable count. A token kept at one step is final (MoMask):
     its confidence becomes +inf.
+
+    A step whose masked input equals the previous step's reuses that pass' logits and
+    draws anew (exact: the model is a function of its input). With the cosine schedule
+    this is the second step whenever m < 66 (⌈γ(1/9)·m⌉ = m, everything masked again): one
+    pass of ten saved. Not while an attention recording is open, which wants every pass.
     """
     counts = editable.sum(dim=1)
     if not bool(counts.any()):
         return ids
     scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
+    reuse = not is_recorded(model)
+    previous: tuple[torch.Tensor, torch.Tensor] | None = None  # (input ids, logits)
     for t in torch.linspace(0, 1, options.steps).tolist():
         num = masked_count(t, counts)
         ranks = scores.argsort(dim=1).argsort(dim=1)
         is_masked = ranks < num[:, None]
         ids = ids.masked_fill(is_masked, model.mask_id)
         positions, picked = _sampled_positions(is_masked)
-        twice = None if positions is None else torch.cat([positions, positions])
-        logits = model.forward_condition(torch.cat([ids, ids]), mask2, condition, twice).logits
+        if previous is not None and torch.equal(previous[0], ids):
+            logits = previous[1]  # the same input: the same pass
+        else:
+            twice = None if positions is None else torch.cat([positions, positions])
+            logits = _guidance_pass(model, torch.cat([ids, ids]), mask2, condition, twice)
+            previous = (ids.clone(), logits) if reuse else None
         tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator)
         ids[is_masked] = tokens  # is_masked and picked list the same positions in one order
         scores = torch.full_like(scores, math.inf)

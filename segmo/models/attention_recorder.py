@@ -17,12 +17,15 @@ The weights are computed beside the model's own attention call, from the same qu
 keys, in fp32 with the same mask, and the model's call runs unchanged: recording cannot
 change an output, works on every attention path (SDPA and the CPU matmul path of
 `segmo.models.cpu_inference`), and costs nothing when no recording is open (nothing is
-wrapped then).
+wrapped then). While a recording is open, masked decoding runs every step's pass even where
+it could reuse the previous one (`is_recorded`), so that the recording has one pass per
+decoding step.
 """
 
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -31,6 +34,15 @@ import torch
 from torch import nn
 
 from segmo.models.transformer import SelfAttention, Trunk, prefix_labels
+
+
+# The trunks inside an open recording.
+_RECORDED: weakref.WeakSet[nn.Module] = weakref.WeakSet()
+
+
+def is_recorded(model: nn.Module) -> bool:
+    """Whether a recording is open on a trunk of `model`."""
+    return any(isinstance(m, Trunk) and m in _RECORDED for m in model.modules())
 
 
 @dataclass
@@ -129,6 +141,7 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
 
         trunk.forward_motion = forward_motion
         restore.append((trunk, "forward_motion", None))
+        _RECORDED.add(trunk)
         for index, block in enumerate(blocks):
             wrap_attention(index, block.attention)
 
@@ -160,6 +173,8 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
         yield recording
     finally:
         for obj, name, previous in reversed(restore):
+            if name == "forward_motion":
+                _RECORDED.discard(obj)
             if previous is None:
                 obj.__dict__.pop(name, None)  # the class' method again
             else:

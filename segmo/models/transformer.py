@@ -202,6 +202,15 @@ class Condition:
     encoded: EncodedPrefix | None = None
     labels: list[str] | None = None
 
+    def rows(self, index: torch.Tensor) -> Condition:
+        """The condition of batch rows `index` (r,) long, its encoding included."""
+        encoded = None if self.encoded is None else EncodedPrefix(
+            blocks=[PrefixKeys(k.keys[index], k.values[index], k.mask[index])
+                    for k in self.encoded.blocks],
+            labels=self.encoded.labels)
+        return Condition(tokens=self.tokens[index], mask=self.mask[index],
+                         content=self.content[index], encoded=encoded, labels=self.labels)
+
 
 class TextPrefix(nn.Module):
     """Projects pooled text vectors to prefix tokens: [sentence, segment 1..A].
