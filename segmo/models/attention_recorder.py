@@ -35,7 +35,6 @@ from torch import nn
 
 from segmo.models.transformer import SelfAttention, Trunk, prefix_labels
 
-
 # The trunks inside an open recording.
 _RECORDED: weakref.WeakSet[nn.Module] = weakref.WeakSet()
 
