@@ -314,3 +314,39 @@ def test_keep_freed_memory_takes_effect_on_glibc():
         pytest.skip("mallopt is glibc's")
     assert keep_freed_memory() is True
     assert keep_freed_memory() is True  # idempotent
+
+
+def test_unguided_residual_layers_run_the_conditional_rows_alone(models, monkeypatch):
+    mask, residual = models
+    lengths = torch.tensor([48, 20])
+
+    def run(**options):
+        return generate_tokens(mask, residual, *text(2), lengths,
+                               options=SamplingOptions(steps=4, **options),
+                               generator=torch.Generator().manual_seed(2))
+
+    every = run()
+    assert torch.equal(every, run(residual_guided_layers=2))  # q − 1 = 2 layers: all guided
+    rows: list[int] = []
+    original = ResidualTransformer.forward_embedded
+
+    def counting(self, x, layer, token_mask, condition, positions=None):
+        rows.append(x.shape[0])
+        assert condition.tokens.shape[0] == x.shape[0]
+        return original(self, x, layer, token_mask, condition, positions)
+
+    monkeypatch.setattr(ResidualTransformer, "forward_embedded", counting)
+    first = run(residual_guided_layers=1)
+    assert rows == [4, 2]  # layer 1 guided (2b rows), layer 2 conditional only (b rows)
+    # Base tokens and the guided layer do not depend on the layers above.
+    assert torch.equal(first[..., :2], every[..., :2])
+    rows.clear()
+    none = run(residual_guided_layers=0)
+    assert rows == [2, 2] and torch.equal(none[..., 0], every[..., 0])
+    assert (none[..., 1:] >= 0).sum() == (every[..., 1:] >= 0).sum()  # same valid positions
+
+
+def test_residual_guided_layers_refuses_what_it_cannot_use():
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(Exception, match="residual_guided_layers"):
+            SamplingOptions(residual_guided_layers=bad)

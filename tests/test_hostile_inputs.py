@@ -92,6 +92,10 @@ CLI_CASES = [
         "format 99", "a segmo.json of an unknown format"),
     Cli("generate-bundle-guidance", "generate --model {bad_guidance} --text walk --out {tmp}/g",
         "guidance_scale", "a segmo.json whose guidance scale is a string"),
+    Cli("generate-bundle-steps", "generate --model {bad_steps} --text walk --out {tmp}/g",
+        "segmo.json: steps", "a segmo.json with 0 decoding steps"),
+    Cli("generate-residual-layers", GEN + " --text walk --residual-guided-layers -1",
+        "--residual-guided-layers", "a negative number of guided residual layers"),
     Cli("generate-config-json", "generate --model {bad_config_json} --text walk --out {tmp}/g",
         "mask/config.json:1", "invalid JSON in a stage's config.json"),
     Cli("generate-config-field", "generate --model {extra_field} --text walk --out {tmp}/g",
@@ -339,6 +343,7 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
                                                lambda p: p.update(format=2, segmo_version="9.0")))
     variant("bad_guidance", lambda d: edit_json(d / "segmo.json",
                                                 lambda p: p.update(guidance_scale="high")))
+    variant("bad_steps", lambda d: edit_json(d / "segmo.json", lambda p: p.update(steps=0)))
     variant("bad_config_json", lambda d: (d / "mask" / "config.json").write_text("{kind"))
     variant("extra_field", lambda d: edit_json(d / "mask" / "config.json",
                                                lambda p: p["config"].update(wings=2)))

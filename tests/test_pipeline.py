@@ -257,7 +257,8 @@ def _umask() -> int:
 
 def test_sampling_options_object_and_keywords_agree(model, generated):
     """`sampling=` takes a whole SamplingOptions; a keyword takes one option's place."""
-    assert model.sampling == SamplingOptions(guidance_scale=4.0, residual_guidance_scale=5.0)
+    assert model.sampling == SamplingOptions(guidance_scale=4.0, residual_guidance_scale=5.0,
+                                             steps=10, residual_guided_layers=None)
     same = model.generate(PROMPTS, [48, 32], sampling=model.sampling, generator=seeded())
     assert torch.equal(same.tokens, generated.tokens)
     greedy = model.generate(PROMPTS, [48, 32], temperature=0.0, steps=3, generator=seeded())
@@ -553,9 +554,14 @@ def test_generation_output_save_rejects_unknown_format(generated, tmp_path):
 def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     out = tmp_path / "b"
     bundle_main(["--tokenizer", str(stages["tokenizer"]), "--mask", str(stages["mask"]),
-                 "--guidance", "2.5", "--out", str(out)])
+                 "--guidance", "2.5", "--steps", "6", "--residual-guided-layers", "2",
+                 "--out", str(out)])
     payload = json.loads((out / "segmo.json").read_text())
     assert payload["guidance_scale"] == 2.5 and not (out / "residual").exists()
+    assert payload["steps"] == 6 and payload["residual_guided_layers"] == 2
+    loaded = SegMo.from_pretrained(out)
+    assert (loaded.sampling.steps, loaded.sampling.residual_guided_layers) == (6, 2)
+    assert "6 decoding steps" in (out / "README.md").read_text()
     line = cli_failure(["bundle", "--tokenizer", str(stages["tokenizer"]), "--mask",
                         str(stages["tokenizer"]), "--out", str(tmp_path / "c")], capsys)
     assert "holds a 'rvq' model" in line

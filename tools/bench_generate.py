@@ -225,6 +225,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
                         help="auto: bf16 on CPUs with native bf16, else fp32 (segmo.cpu)")
     parser.add_argument("--steps", type=int, default=SamplingOptions.steps)
+    parser.add_argument("--residual-guided-layers", type=int, default=None,
+                        help="guided residual layers, from the first (default: all)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
@@ -257,7 +259,9 @@ def main(argv: list[str] | None = None) -> None:
 
     def generate(precision: str, seed: int) -> torch.Tensor:
         return generate_tokens(mask, residual, *text, lengths,
-                               options=SamplingOptions(steps=args.steps),
+                               options=SamplingOptions(
+                                   steps=args.steps,
+                                   residual_guided_layers=args.residual_guided_layers),
                                generator=torch.Generator().manual_seed(seed), precision=precision)
 
     if args.compare_precision:
@@ -335,7 +339,8 @@ def main(argv: list[str] | None = None) -> None:
         "floor_ratio": round(tokens_ms / floor_ms, 3),
         "peak_rss_mb": round(peak_rss_mb, 1),
         "batch": b, **host, "threads": args.threads,
-        "steps": args.steps, "repeats": args.repeats, "load_average": round(load, 2),
+        "steps": args.steps, "residual_guided_layers": args.residual_guided_layers,
+        "repeats": args.repeats, "load_average": round(load, 2),
         "allocator_tuned": allocator_tuned,
         "matmul_gmacs_before_after": [round(x) for x in gmacs],
         "gmac_per_motion": round(macs / 1e9, 3),

@@ -105,6 +105,7 @@ class Generator:
         device = getattr(self.model, "device", torch.device(self.cfg.device))
         out = self.model.generate(list(captions), [int(x) for x in lengths], segments=segments,
                                   steps=self.cfg.steps, precision=self.cfg.precision,
+                                  residual_guided_layers=self.cfg.residual_guided_layers,
                                   generator=torch.Generator(device=device).manual_seed(int(seed)))
         self.motions += len(captions)
         if self.bar is None:
@@ -374,8 +375,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=positive_int, help="torch CPU threads (1 avoids stalls on a busy machine)")
     p.add_argument("--text-segments", help="use DATA/text_segments/NAME instead of the bundle's segmenter")
-    p.add_argument("--steps", type=positive_int, default=SamplingOptions.steps,
-                   help="mask decoding steps")
+    p.add_argument("--steps", type=positive_int, default=None,
+                   help="mask decoding steps (default: the bundle's, "
+                        f"{SamplingOptions.steps} unless it says otherwise)")
+    p.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
+                   help="how many residual layers, from the first, are guided (default: the "
+                        "bundle's, all unless it says otherwise)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

@@ -75,7 +75,8 @@ class EvaluateConfig:
     precision: str = "fp32"
     device: str = "cpu"
     text_segments: str | None = None
-    steps: int = SamplingOptions.steps
+    steps: int | None = None  # None: the bundle's (`SegMo.sampling`)
+    residual_guided_layers: int | None = None  # None: the bundle's
     grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True

@@ -221,7 +221,9 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
                     token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
                     generator: torch.Generator | None = None) -> torch.Tensor:
     """Fill layers 1..q−1 one pass each, only where `regenerate` (b, n) is True, guided with
-    `options.residual_guidance_scale`.
+    `options.residual_guidance_scale` on the first `options.residual_guided_layers` layers
+    (all by default); the others are drawn from the conditional rows alone, a pass over b
+    rows instead of 2b.
 
     indices (b, n, q) long (layer 0 set; other layers kept where not regenerated) →
     (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
@@ -231,14 +233,23 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     regenerate = regenerate & token_mask
     if not bool(regenerate.any()):
         return indices
-    q = indices.shape[2]
+    b, _, q = indices.shape
+    guided = q - 1 if options.residual_guided_layers is None else options.residual_guided_layers
     mask2 = torch.cat([token_mask, token_mask])
+    conditional = condition.rows(torch.arange(b, device=indices.device))
     x = model.embed_layer(indices[..., 0], 0)
     positions, picked = _sampled_positions(regenerate)
     twice = None if positions is None else torch.cat([positions, positions])
     for layer in range(1, q):
-        logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition, twice).logits
-        tokens, _ = _draw(logits, picked, options.residual_guidance_scale, options, generator)
+        if layer <= guided:
+            logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition,
+                                            twice).logits
+            tokens, _ = _draw(logits, picked, options.residual_guidance_scale, options,
+                              generator)
+        else:
+            logits = model.forward_embedded(x, layer, token_mask, conditional, positions).logits
+            tokens, _ = sample_tokens(logits.float()[picked], options.top_k_ratio,
+                                      options.temperature, options.sampler, generator)
         codes = indices[..., layer].masked_fill(~token_mask, -1)
         codes[regenerate] = tokens
         indices[..., layer] = codes

@@ -28,6 +28,9 @@ class SamplingOptions:
     guidance_scale: classifier-free guidance scale of the base tokens (spec §8: 4 for
         HumanML3D, 2 for KIT; a bundle's own scales are `SegMo.sampling`);
     residual_guidance_scale: the same for the residual layers;
+    residual_guided_layers: how many residual layers, from the first, are guided (None =
+        all); the layers above run their conditional rows alone, half a pass each
+        (`segmo.generation.generate.residual_decode`);
     steps: masked-decoding steps of the base tokens;
     temperature: of the draws, 0 = greedy; top_k_ratio: share of the codebook a draw
         keeps (MoMask: 0.1, 52 of 512 codes); sampler: "categorical" or "gumbel".
@@ -41,6 +44,7 @@ class SamplingOptions:
     guidance_scale: float = 4.0
     residual_guidance_scale: float = 5.0
     steps: int = 10
+    residual_guided_layers: int | None = None
     temperature: float = 1.0
     top_k_ratio: float = 0.1
     sampler: Sampler = "categorical"
@@ -59,6 +63,11 @@ class SamplingOptions:
         steps = self.steps
         if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
             raise SegmoError(f"SegMo: steps must be a whole number >= 1, got {steps!r}")
+        layers = self.residual_guided_layers
+        if layers is not None and (isinstance(layers, bool) or not isinstance(layers, numbers.Integral)
+                                   or layers < 0):
+            raise SegmoError(f"SegMo: residual_guided_layers must be a whole number >= 0 or "
+                             f"None (all), got {layers!r}")
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

@@ -49,6 +49,8 @@ class SegMoConfig:
     # The defaults of `SamplingOptions` (KIT bundles: KIT_GUIDANCE_SCALE); `SegMo.sampling`.
     guidance_scale: float = SamplingOptions.guidance_scale
     residual_guidance_scale: float = SamplingOptions.residual_guidance_scale
+    steps: int = SamplingOptions.steps
+    residual_guided_layers: int | None = SamplingOptions.residual_guided_layers
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -85,6 +87,12 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
         if isinstance(value, bool) or not isinstance(value, numbers.Real) \
                 or not math.isfinite(value):
             raise SegmoError(f"{path}: {name!r} must be a finite number, got {value!r}")
+    try:  # the sampling defaults are checked as a generation would use them
+        SamplingOptions(guidance_scale=config.guidance_scale,
+                        residual_guidance_scale=config.residual_guidance_scale,
+                        steps=config.steps, residual_guided_layers=config.residual_guided_layers)
+    except SegmoError as error:
+        raise SegmoError(f"{path}: {str(error).removeprefix('SegMo: ')}") from None
     stages = {name: load_stage(directory / name, kind) if (directory / name).is_dir()
               else None for name, kind in STAGES.items()}
     for name in ("tokenizer", "mask"):

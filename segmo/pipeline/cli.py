@@ -83,6 +83,9 @@ def generate_main(argv: list[str] | None = None) -> None:
     # Unset options take the defaults of SamplingOptions (SegMo.generate).
     parser.add_argument("--steps", type=positive_int, default=None,
                         help=f"masked-decoding steps (default {SamplingOptions.steps})")
+    parser.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
+                        help="how many residual layers, from the first, are guided (bundle "
+                             "default; all unless it says otherwise)")
     parser.add_argument("--temperature", type=finite_float, default=None,
                         help=f"sampling temperature, 0 = greedy (default "
                              f"{SamplingOptions.temperature:g})")
@@ -116,6 +119,7 @@ def generate_main(argv: list[str] | None = None) -> None:
     keep_freed_memory()
     out = model.generate(args.text, lengths, guidance_scale=args.guidance,
                          residual_guidance_scale=args.residual_guidance, steps=args.steps,
+                         residual_guided_layers=args.residual_guided_layers,
                          temperature=args.temperature, generator=generator,
                          precision=args.precision)
     spans = None
@@ -219,6 +223,11 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--residual-guidance", type=finite_float, default=None,
                         help=f"default CFG scale of the residual tokens (default "
                              f"{SamplingOptions.residual_guidance_scale:g})")
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help=f"default masked-decoding steps (default {SamplingOptions.steps})")
+    parser.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
+                        help="default number of guided residual layers, from the first "
+                             "(default: all)")
     parser.add_argument("--metrics", default=None,
                         help="metrics.json of `segmo evaluate` (or its folder) for the model card")
     parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
@@ -245,5 +254,9 @@ def bundle_main(argv: list[str] | None = None) -> None:
         model.config.guidance_scale = args.guidance
     if args.residual_guidance is not None:
         model.config.residual_guidance_scale = args.residual_guidance
+    if args.steps is not None:
+        model.config.steps = args.steps
+    if args.residual_guided_layers is not None:
+        model.config.residual_guided_layers = args.residual_guided_layers
     print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
                                 repo_id=args.push_to_hub))

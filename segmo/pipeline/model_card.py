@@ -64,7 +64,10 @@ def model_card(config, stages: dict[str, torch.nn.Module | None], metrics: dict 
              f"Skeleton `{config.skeleton}` at {config.fps:g} fps; text encoder "
              f"`{config.text_encoder}`; text segments from the `{config.text_segmenter}` "
              f"segmenter; guidance scale {config.guidance_scale:g} (residual "
-             f"{config.residual_guidance_scale:g}).", "", "## Stages", "",
+             f"{config.residual_guidance_scale:g}, on "
+             f"{'every' if config.residual_guided_layers is None else config.residual_guided_layers} "
+             f"residual layer{'s' if config.residual_guided_layers != 1 else ''}); "
+             f"{config.steps} decoding steps.", "", "## Stages", "",
              "| stage | kind | parameters | training steps | trained on |",
              "| --- | --- | ---: | ---: | --- |"]
     for stage, module in stages.items():

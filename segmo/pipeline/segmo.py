@@ -360,7 +360,9 @@ class SegMo:
         its place, built, and so checked, once."""
         if sampling is None:
             fields = {"guidance_scale": self.config.guidance_scale,
-                      "residual_guidance_scale": self.config.residual_guidance_scale}
+                      "residual_guidance_scale": self.config.residual_guidance_scale,
+                      "steps": self.config.steps,
+                      "residual_guided_layers": self.config.residual_guided_layers}
         elif isinstance(sampling, SamplingOptions):
             fields = dataclasses.asdict(sampling)
         else:
@@ -370,7 +372,8 @@ class SegMo:
     def generate(self, texts: list[str], lengths: Any = None, *,
                  segments: list[list[str]] | None = None, sampling: SamplingOptions | None = None,
                  guidance_scale: float | None = None, residual_guidance_scale: float | None = None,
-                 steps: int | None = None, temperature: float | None = None,
+                 steps: int | None = None, residual_guided_layers: int | None = None,
+                 temperature: float | None = None,
                  top_k_ratio: float | None = None, sampler: Sampler | None = None,
                  generator: torch.Generator | None = None, precision: Precision = "auto"
                  ) -> GenerationOutput:
@@ -386,6 +389,7 @@ class SegMo:
         options = self._sampling(
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
+            residual_guided_layers=residual_guided_layers,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
         sentence, vectors, segment_mask, segments = self.text_condition(texts, segments)
         if lengths is None:
@@ -400,7 +404,8 @@ class SegMo:
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
              segments: list[str] | None = None, sampling: SamplingOptions | None = None,
              guidance_scale: float | None = None, residual_guidance_scale: float | None = None,
-             steps: int | None = None, temperature: float | None = None,
+             steps: int | None = None, residual_guided_layers: int | None = None,
+                 temperature: float | None = None,
              top_k_ratio: float | None = None, sampler: Sampler | None = None,
              generator: torch.Generator | None = None, precision: Precision = "auto"
              ) -> GenerationOutput:
@@ -431,6 +436,7 @@ class SegMo:
         options = self._sampling(
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
+            residual_guided_layers=residual_guided_layers,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
         b = tokens.shape[0]
         texts = [text] * b
