@@ -33,7 +33,6 @@ from segmo.evaluation.metrics import (
     t2m_embedders,
 )
 from segmo.evaluation.retrieval import batched_retrieval_metrics, retrieval_metrics
-from segmo.generation.sampling import SamplingOptions
 from segmo.models.action_classifier import ActionClassifier
 from segmo.models.alignment import isc_from_cosines, paired_cosine
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
