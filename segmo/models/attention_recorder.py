@@ -40,8 +40,17 @@ _RECORDED: weakref.WeakSet[nn.Module] = weakref.WeakSet()
 
 
 def is_recorded(model: nn.Module) -> bool:
-    """Whether a recording is open on a trunk of `model`."""
+    """Whether a recording (or an attention control, `segmo.models.attention_control`) is
+    open on a trunk of `model`."""
     return any(isinstance(m, Trunk) and m in _RECORDED for m in model.modules())
+
+
+def observe(trunk: Trunk, on: bool) -> None:
+    """Mark `trunk` as observed (on) or not: while marked, decoding runs every pass."""
+    if on:
+        _RECORDED.add(trunk)
+    else:
+        _RECORDED.discard(trunk)
 
 
 @dataclass
@@ -140,7 +149,7 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
 
         trunk.forward_motion = forward_motion
         restore.append((trunk, "forward_motion", None))
-        _RECORDED.add(trunk)
+        observe(trunk, True)
         for index, block in enumerate(blocks):
             wrap_attention(index, block.attention)
 
@@ -173,7 +182,7 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
     finally:
         for obj, name, previous in reversed(restore):
             if name == "forward_motion":
-                _RECORDED.discard(obj)
+                observe(obj, False)
             if previous is None:
                 obj.__dict__.pop(name, None)  # the class' method again
             else:

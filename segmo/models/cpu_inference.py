@@ -115,11 +115,17 @@ def matmul_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor,
     if (q.device.type != "cpu" or dropout > 0.0 or grad
             or k.shape[2] > _MATMUL_ATTENTION_MAX_KEYS):
         return attention(q, k, v, key_valid, dropout)
+    return torch.matmul(attention_weights(q, k, key_valid).to(v.dtype), v)
+
+
+def attention_weights(q: torch.Tensor, k: torch.Tensor, key_valid: torch.Tensor) -> torch.Tensor:
+    """The post-softmax weights of `matmul_attention`, fp32 (b, heads, l, m): what its
+    second matmul multiplies the values by (`segmo.models.attention_control` edits them)."""
     mask = key_valid[:, None, None, :]
     bias = torch.zeros(mask.shape, device=q.device).masked_fill(~mask, -math.inf)
     scores = torch.matmul(q, k.transpose(-1, -2)).float()  # a new fp32 tensor: edit in place
     scores.mul_(q.shape[-1] ** -0.5).add_(bias)  # (a broadcast masked_fill_ is 6× slower)
-    return torch.matmul(torch.softmax(scores, dim=-1).to(v.dtype), v)
+    return torch.softmax(scores, dim=-1)
 
 
 def use_cpu_kernels(model: nn.Module) -> nn.Module:

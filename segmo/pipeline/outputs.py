@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.generation.sampling import SamplingOptions
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.bvh import write_bvh
 from segmo.motion.skeleton import SkeletonSpec
@@ -45,6 +46,11 @@ class GenerationOutput:
     segments: list[list[str]]
     skeleton: SkeletonSpec
     fps: float
+    # How the tokens were drawn, so that an attention edit can replay the generation
+    # (`SegMo.edit_text`): the sampling options and the generator's state just before the
+    # tokens were drawn. None for motions that were not generated (edits, encodings).
+    sampling: SamplingOptions | None = None
+    generator_state: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.texts)

@@ -28,6 +28,16 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.generation.attention_edit import (
+    EDIT_MODES,
+    INJECT_UNTIL,
+    EditMode,
+    TextSide,
+    attended_span,
+    attention_edit_tokens,
+    segment_counterparts,
+    source_attention,
+)
 from segmo.generation.editing import edit_tokens, token_span
 from segmo.generation.generate import Precision, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions
@@ -396,10 +406,16 @@ class SegMo:
             lengths = self.sample_lengths(texts, generator)
         lengths = self.check_lengths(lengths, len(texts))
         words, word_mask = self.word_condition(texts)
+        if generator is None:  # a generator of its own, so that the draws can be replayed
+            seed = int(torch.randint(0, 2**62, (1,)))
+            generator = torch.Generator(device=self.device).manual_seed(seed)
+        state = generator.get_state()
         tokens = generate_tokens(self.mask, self.residual, sentence, vectors, segment_mask,
                                  lengths, options=options, generator=generator,
                                  precision=precision, words=words, word_mask=word_mask)
-        return self.decode(tokens, lengths, texts, segments, precision)
+        out = self.decode(tokens, lengths, texts, segments, precision)
+        out.sampling, out.generator_state = options, state
+        return out
 
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
              segments: list[str] | None = None, sampling: SamplingOptions | None = None,
@@ -448,6 +464,122 @@ class SegMo:
                              generator=generator, precision=precision, words=words,
                              word_mask=word_mask)
         return self.decode(edited, lengths, texts, used, precision)
+
+    def edit_text(self, source: GenerationOutput, target_text: str | list[str] | None = None,
+                  mode: EditMode = "swap", *, target_segments: list[list[str]] | None = None,
+                  weights: dict[str | int, float] | None = None,
+                  inject_until: float = INJECT_UNTIL, keep_outside: bool = False,
+                  precision: Precision = "auto") -> GenerationOutput:
+        """Edit generated motions by their attention (SALAD's zero-shot edits,
+        `segmo.generation.attention_edit`): decode `target_text` (one for all samples or
+        one per sample; None: the source's texts, for "reweight") from the source's own
+        generator state while the attention is edited:
+
+            out = model.generate(["a man walks forward, then jumps"], 120, generator=g)
+            swapped = model.edit_text(out, "a man walks forward, then kicks")
+            stronger = model.edit_text(out, mode="reweight", weights={"jumps": 2.0})
+
+        mode "swap" (a segment's text replaced), "add" (a segment added), "refine" (a
+        segment's text refined, e.g. a modifier added): the source's attention for the first
+        `inject_until` share of the decoding steps, on the keys with a counterpart (segments
+        matched by `segment_counterparts`). "reweight": `weights` maps a segment (its number
+        from 1, its text, or a key label "segment k" / "word w") to the factor its attention
+        is multiplied by. keep_outside: decode only the tokens whose segment attention in the
+        source went to a changed (or reweighted) segment, keeping every other token of the
+        source (a span edit whose span comes from the attention). The same text with any
+        `inject_until`, or factors of 1, gives the source's tokens bit for bit.
+        """
+        if not isinstance(source, GenerationOutput) or source.generator_state is None \
+                or source.sampling is None:
+            raise SegmoError("SegMo.edit_text: source must be a GenerationOutput of "
+                             "SegMo.generate (it records the generator state to replay)")
+        if mode not in EDIT_MODES:
+            raise SegmoError(f"SegMo.edit_text: mode must be one of {', '.join(EDIT_MODES)}, "
+                             f"got {mode!r}")
+        if not (isinstance(inject_until, numbers.Real) and 0.0 <= inject_until <= 1.0):
+            raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
+                             f"{inject_until!r}")
+        b = len(source)
+        if target_text is None:
+            if mode != "reweight":
+                raise SegmoError(f"SegMo.edit_text: mode {mode!r} needs a target_text")
+            targets = list(source.texts)
+        else:
+            targets = [target_text] * b if isinstance(target_text, str) else list(target_text)
+        if len(targets) != b:
+            raise SegmoError(f"SegMo.edit_text: {len(targets)} target texts for {b} samples")
+        if target_segments is None and target_text is None:
+            target_segments = source.segments
+        device = self.device
+        lengths = source.lengths.to(device)
+        sides = []
+        for texts, segments in ((source.texts, source.segments), (targets, target_segments)):
+            sentence, vectors, segment_mask, used = self.text_condition(list(texts), segments)
+            words, word_mask = self.word_condition(list(texts))
+            sides.append((TextSide(sentence, vectors, segment_mask, words, word_mask), used))
+        (source_side, _), (target_side, used) = sides
+        segment_map = [segment_counterparts(s, t, mode) for s, t in zip(source.segments, used)]
+        reweight = None
+        if mode == "reweight":
+            if not weights:
+                raise SegmoError("SegMo.edit_text: mode 'reweight' needs weights, e.g. "
+                                 "{1: 2.0} or {'jumps': 2.0}")
+            reweight = [self._weight_labels(weights, segs, self.uses_words) for segs in used]
+        editable = None
+        if keep_outside:
+            changed = [sorted({int(label.split()[1]) for label in row if label.startswith("segment ")})
+                       for row in reweight] if reweight is not None else [
+                [segment_map[i][k] for k, text in enumerate(used[i], 1)
+                 if k in segment_map[i] and source.segments[i][segment_map[i][k] - 1] != text]
+                for i in range(b)]
+            if not all(changed):
+                raise SegmoError("SegMo.edit_text: keep_outside needs a changed segment with a "
+                                 "counterpart in the source (swap, refine, reweight of a segment)")
+            control = source_attention(self.mask, self.residual, source_side, lengths,
+                                       options=source.sampling, generator_state=source.generator_state,
+                                       precision=precision)
+            n = source.tokens.shape[1]
+            editable = torch.zeros(b, n, dtype=torch.bool, device=device)
+            for i, ks in enumerate(changed):
+                spans = [attended_span(control, i, k, int(lengths[i]) // FRAMES_PER_TOKEN)
+                         for k in ks]
+                editable[i, min(a for a, _ in spans):max(e for _, e in spans)] = True
+        tokens, _ = attention_edit_tokens(
+            self.mask, self.residual, source_side, target_side, lengths, mode=mode,
+            segment_map=segment_map, inject_until=float(inject_until), reweight=reweight,
+            editable=editable, source_tokens=None if editable is None else source.tokens.to(device),
+            options=source.sampling, generator_state=source.generator_state, precision=precision)
+        return self.decode(tokens, lengths, targets, used, precision)
+
+    @staticmethod
+    def _weight_labels(weights: dict[str | int, float], segments: list[str],
+                       words: bool) -> dict[str, float]:
+        """`edit_text`'s weights → {key label: factor} for one caption's segments."""
+        labels: dict[str, float] = {}
+        for key, factor in weights.items():
+            if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
+                    or not np.isfinite(factor):
+                raise SegmoError(f"SegMo.edit_text: weight of {key!r} must be a finite number, "
+                                 f"got {factor!r}")
+            if isinstance(key, numbers.Integral) and not isinstance(key, bool):
+                label = f"segment {int(key)}"
+            elif isinstance(key, str) and (key.startswith("segment ") or key.startswith("word ")):
+                label = key
+            elif isinstance(key, str) and key in segments:
+                label = f"segment {segments.index(key) + 1}"
+            elif isinstance(key, str) and [s for s in segments if key in s]:
+                label = f"segment {[i for i, s in enumerate(segments) if key in s][0] + 1}"
+            else:
+                raise SegmoError(f"SegMo.edit_text: weights key {key!r} names no segment of "
+                                 f"{segments!r} (give its number, its text, or 'segment k')")
+            if label.startswith("word ") and not words:
+                raise SegmoError(f"SegMo.edit_text: {label!r}: this model has no word keys "
+                                 "(text_tokens 'none')")
+            if label.startswith("segment ") and not 1 <= int(label.split()[1]) <= len(segments):
+                raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has "
+                                 f"{len(segments)} segments")
+            labels[label] = float(factor)
+        return labels
 
     @contextmanager
     def record_attention(self) -> Iterator[AttentionRecording]:

@@ -1,0 +1,188 @@
+"""Editing by attention (SALAD's zero-shot edits): `segmo.models.attention_control`,
+`segmo.generation.attention_edit` and `SegMo.edit_text`, on tiny random models."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import hash_encoder
+from test_pipeline import TEXT_DIM, build_stages
+
+from segmo.errors import SegmoError
+from segmo.generation import SamplingOptions, generate_tokens
+from segmo.generation.attention_edit import (
+    TextSide,
+    attention_edit_tokens,
+    inject,
+    segment_counterparts,
+)
+from segmo.models.attention_control import AttentionControl, Site, Stored
+from segmo.models.cpu_inference import use_cpu_kernels
+from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+from segmo.pipeline import SegMo
+
+TINY = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2,
+            heads=2, ff_dim=64, dropout=0.1)
+
+
+@pytest.fixture(scope="module")
+def models():
+    torch.manual_seed(0)
+    mask = use_cpu_kernels(MaskTransformer(MaskTransformerConfig(**TINY)))
+    residual = use_cpu_kernels(ResidualTransformer(ResidualTransformerConfig(**TINY,
+                                                                             num_quantizers=3)))
+    with torch.no_grad():  # sharper logits, a stronger text prefix and peaked attention,
+        mask.classifier.weight.mul_(10)  # so that the text and the attention weights matter
+        residual.code_embeddings.mul_(10)
+        for model in (mask, residual):
+            model.prefix.project.weight.mul_(50)
+            for block in model.trunk.blocks:
+                block.attention.qkv.weight.mul_(4)
+    return mask, residual
+
+
+def side(seed: int, b: int = 2) -> TextSide:
+    g = torch.Generator().manual_seed(seed)
+    segment_mask = torch.ones(b, 3, dtype=torch.bool)
+    segment_mask[0, 2] = False
+    return TextSide(torch.randn(b, 8, generator=g), torch.randn(b, 3, 8, generator=g),
+                    segment_mask)
+
+
+LENGTHS = torch.tensor([48, 36])
+STATE = torch.Generator().manual_seed(7).get_state()
+
+
+def plain(models, text: TextSide, steps: int = 10) -> torch.Tensor:
+    mask, residual = models
+    return generate_tokens(mask, residual, text.sentence, text.segments, text.segment_mask,
+                           LENGTHS, options=SamplingOptions(steps=steps),
+                           generator=torch.Generator().set_state(STATE))
+
+
+def edited(models, source, target, **kwargs):
+    return attention_edit_tokens(*models, source, target, LENGTHS, generator_state=STATE,
+                                 **kwargs)[0]
+
+
+def test_the_same_text_reproduces_the_source_bit_for_bit(models):
+    source = side(1)
+    for until in (0.0, 0.5, 1.0):
+        assert torch.equal(edited(models, source, source, inject_until=until),
+                           plain(models, source))
+
+
+def test_inject_until_zero_is_plain_generation_from_the_target(models):
+    source, target = side(1), side(2)
+    assert torch.equal(edited(models, source, target, inject_until=0.0), plain(models, target))
+
+
+def test_injection_changes_the_target(models):
+    source, target = side(1), side(2)
+    src, tgt = plain(models, source), plain(models, target)
+    assert not torch.equal(src, tgt)
+    # The source's weights with the target's values: neither the source nor the target.
+    full = edited(models, source, target, inject_until=1.0)
+    assert not torch.equal(full, tgt) and not torch.equal(full, src)
+
+
+def test_reweight_by_one_changes_nothing_and_by_four_changes_tokens(models):
+    source = side(1)
+    base = plain(models, source)
+    one = edited(models, source, source, mode="reweight", reweight=[{"segment 1": 1.0}] * 2)
+    assert torch.equal(one, base)
+    four = edited(models, source, source, mode="reweight", reweight=[{"segment 1": 4.0}] * 2)
+    assert not torch.equal(four, base)
+
+
+def test_editing_weights_reach_the_attention(models):
+    # The edit function's weights are what the values are multiplied by.
+    mask, residual = models
+    control = AttentionControl({"mask": mask, "residual": residual})
+    seen: list[Site] = []
+
+    def zero_motion(site, weights, stored):
+        seen.append(site)
+        keep = torch.tensor([not label.startswith("motion ") for label in site.labels])
+        return weights * keep
+    with control.editing(zero_motion):
+        a = plain(models, side(1), steps=4)
+    assert {s.stage for s in seen} == {"mask", "residual"}
+    # 4 mask steps and 2 residual layers, 2 blocks each: one pass per step while controlled.
+    assert sorted({(s.stage, s.step) for s in seen}) == [
+        ("mask", 0), ("mask", 1), ("mask", 2), ("mask", 3), ("residual", 0), ("residual", 1)]
+    assert not torch.equal(a, plain(models, side(1), steps=4))
+    assert "forward_motion" not in mask.trunk.__dict__  # unwrapped afterwards
+
+
+def test_inject_takes_source_weights_only_where_there_is_a_counterpart():
+    c, heads, n = 1, 1, 3
+    labels = ["sentence", "segment 1", "segment 2", *(f"motion {i}" for i in range(n))]
+    target = torch.full((2, heads, n, len(labels)), 0.5)
+    stored = Stored(weights=torch.full((c, heads, n, 4), 0.25),
+                    queries=None, key_valid=torch.tensor([[True, True, False, True]]),
+                    labels=["sentence", "segment 1", "segment 2", "motion 0"])
+    key_index = torch.tensor([[0, 1, 2, 3, -1, -1]])  # motions 1, 2: no counterpart
+    site = Site("mask", 0, 0, labels, None, conditional=c)
+    out = inject(site, target, stored, key_index)
+    assert torch.equal(out[0, 0, :, [0, 1, 3]], torch.full((n, 3), 0.25))
+    assert torch.equal(out[0, 0, :, [2, 4, 5]], torch.full((n, 3), 0.5))  # invalid, none
+    assert torch.equal(out[1], target[1])  # unconditional rows keep their own
+
+
+def test_segment_counterparts():
+    assert segment_counterparts(["walk", "jump"], ["walk", "kick"], "swap") == {1: 1, 2: 2}
+    # An added segment has no counterpart; the kept ones keep theirs.
+    assert segment_counterparts(["walk", "jump"], ["walk", "wave", "jump"], "add") == {1: 1, 3: 2}
+    # A refined text is the one in its place.
+    assert segment_counterparts(["walk", "jump"], ["walk quickly", "jump"], "refine") == {1: 1, 2: 2}
+
+
+@pytest.fixture(scope="module")
+def segmo_model(tmp_path_factory, tokenizer_dir):
+    stages = build_stages(tmp_path_factory.mktemp("edit"), tokenizer_dir["t2m"])
+    return SegMo.from_stages(stages["tokenizer"], stages["mask"], stages["residual"],
+                             stages["length"], text_encoder=hash_encoder("hash", TEXT_DIM))
+
+
+def test_edit_text_through_the_pipeline(segmo_model):
+    model = segmo_model
+    g = torch.Generator().manual_seed(3)
+    source = model.generate(["a person walks forward, then jumps.", "someone waves, then sits"],
+                            [48, 40], generator=g)
+    same = model.edit_text(source, list(source.texts))
+    assert torch.equal(same.tokens, source.tokens)
+    one = model.edit_text(source, mode="reweight", weights={1: 1.0})
+    assert torch.equal(one.tokens, source.tokens)
+    swapped = model.edit_text(source, "a person walks forward, then kicks.")
+    assert swapped.texts[0] == "a person walks forward, then kicks."
+    assert swapped.tokens.shape == source.tokens.shape
+    # keep_outside: tokens outside the segment's attended span stay the source's.
+    kept = model.edit_text(source, ["a person walks forward, then kicks.",
+                                    "someone claps, then sits"], keep_outside=True)
+    changed = (kept.tokens != source.tokens).any(dim=2)
+    assert changed.any()
+    for row in range(2):
+        where = torch.nonzero(changed[row]).flatten()
+        if len(where):  # the changed tokens form one span
+            assert int(where.max() - where.min()) + 1 <= int(source.lengths[row]) // 4
+
+
+def test_edit_text_refuses_what_it_cannot_do(segmo_model):
+    model = segmo_model
+    source = model.generate(["a person walks, then jumps."], [40],
+                            generator=torch.Generator().manual_seed(0))
+    with pytest.raises(SegmoError, match="mode"):
+        model.edit_text(source, "x", mode="mirror")
+    with pytest.raises(SegmoError, match="needs a target_text"):
+        model.edit_text(source, mode="swap")
+    with pytest.raises(SegmoError, match="weights"):
+        model.edit_text(source, mode="reweight")
+    with pytest.raises(SegmoError, match="names no segment"):
+        model.edit_text(source, mode="reweight", weights={"dances": 2.0})
+    with pytest.raises(SegmoError, match="inject_until"):
+        model.edit_text(source, "a person runs, then jumps.", inject_until=1.5)
+    edit = model.edit(source, (0, 8), "a person runs")
+    with pytest.raises(SegmoError, match="generator state"):
+        model.edit_text(edit, "a person runs, then jumps.")
