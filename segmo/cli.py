@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "export": ("segmo.export", "main", "export a checkpoint to a self-describing model directory"),
     "bundle": ("segmo.pipeline.cli", "bundle_main", "assemble exported stages into one SegMo model"),
     "generate": ("segmo.pipeline.cli", "generate_main", "generate motions from text"),
+    "edit": ("segmo.pipeline.cli", "edit_main", "edit a generated motion by its attention"),
     "ground": ("segmo.pipeline.cli", "ground_main", "ground a text in a motion"),
     "evaluate": ("segmo.evaluation.cli", "main", "evaluate a model and write a report"),
     "serve": ("segmo.serve", "main", "a web page around a model: caption in, motion and BVH out"),

@@ -508,6 +508,28 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
     assert "Frames: 46" in text and "Frame Time: 0.016667" in text
 
 
+def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, capsys):
+    from segmo.pipeline.cli import edit_main
+
+    out = tmp_path / "edit"
+    edit_main(["--model", str(bundle), "--source-text", PROMPTS[0], "--target-text",
+               PROMPTS[0], "--length", "24", "--seed", "2", "--out", str(out), "--formats", "npy"])
+    # The same text: the edit is the source, token for token.
+    assert np.array_equal(np.load(out / "edit_00_tokens.npy"), np.load(out / "source_00_tokens.npy"))
+    edit_main(["--model", str(bundle), "--source-text", PROMPTS[0], "--mode", "reweight",
+               "--weight", "1=1", "--length", "24", "--seed", "2", "--out", str(tmp_path / "w"),
+               "--formats", "npy"])
+    assert np.array_equal(np.load(tmp_path / "w" / "edit_00_tokens.npy"),
+                          np.load(out / "source_00_tokens.npy"))
+    for argv, message in (
+            (["--mode", "reweight"], "--weight"), (["--mode", "swap"], "--target-text"),
+            (["--mode", "reweight", "--weight", "jumps"], "SEGMENT=FACTOR"),
+            (["--target-text", "x", "--inject-until", "2"], "--inject-until")):
+        line = cli_failure(["edit", "--model", str(bundle), "--source-text", "walk",
+                            "--out", str(tmp_path / "bad"), *argv], capsys)
+        assert message in line
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),

@@ -1,4 +1,4 @@
-"""`segmo generate`, `segmo ground` and `segmo bundle` (registered in segmo/cli.py).
+"""`segmo generate`, `segmo edit`, `segmo ground` and `segmo bundle` (registered in segmo/cli.py).
 
     segmo bundle --tokenizer models/rvq --mask models/mask --residual models/residual \
         --length models/length --out models/segmo
@@ -7,11 +7,14 @@
     segmo ground --model models/segmo --text "a person walks, then waves" \
         --motion runs/gen/sample_00_features.npy --out map.png     # ordered spans
     segmo ground ... --window 5                                     # the paper's window
+    segmo edit --model models/segmo --source-text "a person walks, then jumps" \
+        --target-text "a person walks, then kicks" --seed 0 --out runs/edit   # attention swap
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import torch
@@ -26,6 +29,7 @@ from segmo.errors import (
     positive_int,
 )
 from segmo.generation.allocator import keep_freed_memory
+from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.hub import is_hub_id
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
@@ -129,6 +133,68 @@ def generate_main(argv: list[str] | None = None) -> None:
     for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,
                          spans=spans, progress=True):
         print(path)
+
+
+def _weight(parser: argparse.ArgumentParser, value: str) -> tuple[str | int, float]:
+    """`--weight KEY=C` → (segment number or text or key label, factor)."""
+    key, sep, factor = value.rpartition("=")
+    try:
+        number = float(factor)
+    except ValueError:
+        number = None
+    if not sep or not key.strip() or number is None or not math.isfinite(number):
+        parser.error(f"--weight {value!r}: expected SEGMENT=FACTOR, e.g. 2=1.5 or jumps=-1")
+    key = key.strip()
+    return (int(key) if key.isdigit() else key), number
+
+
+def edit_main(argv: list[str] | None = None) -> None:
+    parser = ArgumentParser(
+        prog="segmo edit",
+        description="edit a generated motion by its attention: swap, add or refine a segment's "
+                    "text, or reweight a segment")
+    parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
+    parser.add_argument("--source-text", required=True, help="the prompt of the source motion")
+    parser.add_argument("--target-text", default=None,
+                        help="the edited prompt (swap, add, refine; reweight: the source's)")
+    parser.add_argument("--mode", choices=EDIT_MODES, default="swap")
+    parser.add_argument("--weight", action="append", default=None, metavar="SEGMENT=FACTOR",
+                        help="reweight: a segment (number from 1, or its text) and its factor; "
+                             "repeat for several")
+    parser.add_argument("--inject-until", type=finite_float, default=INJECT_UNTIL,
+                        help=f"share of decoding steps with the source's attention (default "
+                             f"{INJECT_UNTIL:g})")
+    parser.add_argument("--keep-outside", action="store_true",
+                        help="keep every token outside the changed segment's attended span")
+    parser.add_argument("--length", type=positive_int, default=None,
+                        help="frames (multiple of 4); default: sampled by the length estimator")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--formats", default=",".join(FORMATS),
+                        help=f"comma-separated subset of {','.join(FORMATS)}")
+    args = parser.parse_args(argv)
+    formats = _formats(parser, args.formats)
+    if args.mode == "reweight" and not args.weight:
+        parser.error("--mode reweight needs --weight SEGMENT=FACTOR")
+    if args.mode != "reweight" and args.target_text is None:
+        parser.error(f"--mode {args.mode} needs --target-text")
+    if not 0.0 <= args.inject_until <= 1.0:
+        parser.error(f"argument --inject-until: expected a number in [0, 1], got "
+                     f"{args.inject_until:g}")
+    weights = dict(_weight(parser, w) for w in args.weight or [])
+    _check_output_dir(parser, "--out", args.out)
+    model = _load(parser, args.model)
+    keep_freed_memory()
+    generator = torch.Generator().manual_seed(args.seed)
+    source = model.generate([args.source_text], None if args.length is None else [args.length],
+                            generator=generator, precision=args.precision)
+    out = model.edit_text(source, args.target_text, args.mode, weights=weights or None,
+                          inject_until=args.inject_until, keep_outside=args.keep_outside,
+                          precision=args.precision)
+    for prefix, motion in (("source", source), ("edit", out)):
+        for path in motion.save(args.out, formats, prefix=prefix, progress=True):
+            print(path)
 
 
 def _true_spans(motion: Path, text: str, segments: list[str]) -> list[tuple[int, int]] | None:
