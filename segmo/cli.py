@@ -28,6 +28,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "bundle": ("segmo.pipeline.cli", "bundle_main", "assemble exported stages into one SegMo model"),
     "generate": ("segmo.pipeline.cli", "generate_main", "generate motions from text"),
     "edit": ("segmo.pipeline.cli", "edit_main", "edit a generated motion by its attention"),
+    "compose": ("segmo.pipeline.cli", "compose_main",
+                "one long motion from a list of prompts, joined by transitions"),
     "ground": ("segmo.pipeline.cli", "ground_main", "ground a text in a motion"),
     "evaluate": ("segmo.evaluation.cli", "main", "evaluate a model and write a report"),
     "serve": ("segmo.serve", "main", "a web page around a model: caption in, motion and BVH out"),

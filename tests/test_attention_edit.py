@@ -142,8 +142,14 @@ def test_segment_counterparts():
 @pytest.fixture(scope="module")
 def segmo_model(tmp_path_factory, tokenizer_dir):
     stages = build_stages(tmp_path_factory.mktemp("edit"), tokenizer_dir["t2m"])
-    return SegMo.from_stages(stages["tokenizer"], stages["mask"], stages["residual"],
-                             stages["length"], text_encoder=hash_encoder("hash", TEXT_DIM))
+    model = SegMo.from_stages(stages["tokenizer"], stages["mask"], stages["residual"],
+                              stages["length"], text_encoder=hash_encoder("hash", TEXT_DIM))
+    with torch.no_grad():  # a stronger text prefix and peaked attention: the text matters
+        for transformer in (model.mask, model.residual):
+            transformer.prefix.project.weight.mul_(50)
+            for block in transformer.trunk.blocks:
+                block.attention.qkv.weight.mul_(4)
+    return model
 
 
 def test_edit_text_through_the_pipeline(segmo_model):
@@ -186,3 +192,48 @@ def test_edit_text_refuses_what_it_cannot_do(segmo_model):
     edit = model.edit(source, (0, 8), "a person runs")
     with pytest.raises(SegmoError, match="generator state"):
         model.edit_text(edit, "a person runs, then jumps.")
+
+
+def test_compose_of_one_part_is_generate(segmo_model):
+    model = segmo_model
+    one = model.compose([("a person walks forward, then jumps.", 48)],
+                        generator=torch.Generator().manual_seed(4))
+    plain = model.generate(["a person walks forward, then jumps."], [48],
+                           generator=torch.Generator().manual_seed(4))
+    assert torch.equal(one.tokens, plain.tokens) and torch.equal(one.features, plain.features)
+    assert one.spans == [[(0, 48)]]
+
+
+def test_compose_joins_parts_longer_than_a_clip(segmo_model):
+    model = segmo_model
+    parts = [("a person walks forward.", 160), ("someone jumps twice.", 120),
+             ("a person sits down.", 140)]
+    long = model.compose(parts, transition=20, generator=torch.Generator().manual_seed(5))
+    total = 160 + 120 + 140 + 2 * 20
+    assert long.features.shape[1] == total > model.max_frames
+    assert long.tokens.shape[1] == total // 4 and int(long.lengths[0]) == total
+    assert long.spans == [[(0, 160), (180, 300), (320, 460)]]
+    assert long.segments == [[p[0] for p in parts]]
+    # The root keeps going across parts: no jump between neighbouring frames larger than
+    # the largest inside a part.
+    root = long.joints[0, :, 0]
+    steps = (root[1:] - root[:-1]).norm(dim=1)
+    inside = torch.cat([steps[a:b - 1] for a, b in long.spans[0]])
+    assert float(steps.max()) <= float(inside.max()) * 3 + 1e-6
+
+    # Changing one part's text changes that part and its transitions, no other frame.
+    changed = model.compose([parts[0], parts[1], ("a person waves.", 140)], transition=20,
+                            generator=torch.Generator().manual_seed(5))
+    differs = (changed.features[0] != long.features[0]).any(dim=1)
+    start_of_transition = 300 - 8  # the fade into the second transition
+    assert not differs[:start_of_transition].any() and differs[320:].any()
+
+
+def test_compose_refuses_what_it_cannot_join(segmo_model):
+    model = segmo_model
+    with pytest.raises(SegmoError, match="parts"):
+        model.compose([])
+    with pytest.raises(SegmoError, match="transition"):
+        model.compose([("walk", 40), ("jump", 40)], transition=10)
+    with pytest.raises(SegmoError, match="at least"):
+        model.compose([("walk", 12), ("jump", 40)])

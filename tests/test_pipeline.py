@@ -508,6 +508,20 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
     assert "Frames: 46" in text and "Frame Time: 0.016667" in text
 
 
+def test_cli_compose_writes_one_long_motion(bundle, tmp_path, hash_text_encoder, capsys):
+    from segmo.pipeline.cli import compose_main
+
+    out = tmp_path / "long"
+    compose_main(["--model", str(bundle), "--text", PROMPTS[0], "--length", "160", "--text",
+                  PROMPTS[1], "--length", "120", "--transition", "16", "--out", str(out),
+                  "--formats", "npy,bvh"])
+    assert np.load(out / "sample_00_features.npy").shape == (296, 263)
+    assert "Frames: 296" in (out / "sample_00.bvh").read_text()
+    line = cli_failure(["compose", "--model", str(bundle), "--text", "walk", "--text", "jump",
+                        "--length", "40", "--out", str(tmp_path / "bad")], capsys)
+    assert "--length given 1 times for 2 --text" in line
+
+
 def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, capsys):
     from segmo.pipeline.cli import edit_main
 

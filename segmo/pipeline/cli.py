@@ -1,4 +1,5 @@
-"""`segmo generate`, `segmo edit`, `segmo ground` and `segmo bundle` (registered in segmo/cli.py).
+"""`segmo generate`, `segmo edit`, `segmo compose`, `segmo ground` and `segmo bundle`
+(registered in segmo/cli.py).
 
     segmo bundle --tokenizer models/rvq --mask models/mask --residual models/residual \
         --length models/length --out models/segmo
@@ -9,6 +10,8 @@
     segmo ground ... --window 5                                     # the paper's window
     segmo edit --model models/segmo --source-text "a person walks, then jumps" \
         --target-text "a person walks, then kicks" --seed 0 --out runs/edit   # attention swap
+    segmo compose --model models/segmo --text "a person walks forward" --length 160 \
+        --text "he jumps twice" --length 80 --transition 20 --out runs/long
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from segmo.pipeline.grounding import (
 )
 from segmo.pipeline.model_card import read_metrics
 from segmo.pipeline.outputs import FORMATS
-from segmo.pipeline.segmo import SegMo
+from segmo.pipeline.segmo import COMPOSE_TRANSITION, SegMo
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):
@@ -195,6 +198,43 @@ def edit_main(argv: list[str] | None = None) -> None:
     for prefix, motion in (("source", source), ("edit", out)):
         for path in motion.save(args.out, formats, prefix=prefix, progress=True):
             print(path)
+
+
+def compose_main(argv: list[str] | None = None) -> None:
+    parser = ArgumentParser(
+        prog="segmo compose",
+        description="one motion longer than a clip from a list of prompts, joined by "
+                    "inpainted transitions")
+    parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
+    parser.add_argument("--text", action="append", required=True,
+                        help="a part's prompt, in order; repeat for each part")
+    parser.add_argument("--length", type=positive_int, action="append", required=True,
+                        help="a part's frames (multiple of 4); once per --text")
+    parser.add_argument("--transition", type=positive_int, default=COMPOSE_TRANSITION,
+                        help=f"frames drawn between two parts (default {COMPOSE_TRANSITION})")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--formats", default=",".join(FORMATS),
+                        help=f"comma-separated subset of {','.join(FORMATS)}")
+    parser.add_argument("--bvh-fps", type=positive_float, default=None,
+                        help="frame rate of the BVH file (default the motion's)")
+    parser.add_argument("--no-foot-lock", action="store_true",
+                        help="BVH: do not hold the feet still while they touch the ground")
+    args = parser.parse_args(argv)
+    formats = _formats(parser, args.formats)
+    if len(args.length) != len(args.text):
+        parser.error(f"--length given {len(args.length)} times for {len(args.text)} --text; "
+                     "give one per --text")
+    _check_output_dir(parser, "--out", args.out)
+    model = _load(parser, args.model)
+    keep_freed_memory()
+    out = model.compose(list(zip(args.text, args.length)), args.transition,
+                        generator=torch.Generator().manual_seed(args.seed),
+                        precision=args.precision)
+    for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,
+                         progress=True):
+        print(path)
 
 
 def _true_spans(motion: Path, text: str, segments: list[str]) -> list[tuple[int, int]] | None:

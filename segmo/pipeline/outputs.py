@@ -51,6 +51,9 @@ class GenerationOutput:
     # tokens were drawn. None for motions that were not generated (edits, encodings).
     sampling: SamplingOptions | None = None
     generator_state: torch.Tensor | None = None
+    # Per sample, the (start, end) frames of each of its segments where known (a
+    # composition's parts, `SegMo.compose`); `save` names them in the GIF.
+    spans: list[list[tuple[int, int]]] | None = None
 
     def __len__(self) -> int:
         return len(self.texts)
@@ -87,6 +90,7 @@ class GenerationOutput:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         written: list[Path] = []
+        spans = self.spans if spans is None else spans
         for i, text in enumerate(self.texts):
             stem = directory / f"{prefix}_{i:02d}"
             features, joints = self.motion(i), self.motion_joints(i)

@@ -71,6 +71,11 @@ from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segmen
 from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
 from segmo.text.llm import get_text_segmenter
 
+# `SegMo.compose`: the frames drawn between two parts by default, and the cross-fade at the
+# edges of each transition between the part's own decoding and the transition window's.
+COMPOSE_TRANSITION = 20
+COMPOSE_BLEND = 8
+
 
 class SegMo:
     """Inference-only bundle of the exported stages (plain class holding `nn.Module`s).
@@ -580,6 +585,101 @@ class SegMo:
                                  f"{len(segments)} segments")
             labels[label] = float(factor)
         return labels
+
+    def compose(self, parts: list[tuple[str, int]], transition: int = COMPOSE_TRANSITION, *,
+                generator: torch.Generator | None = None, precision: Precision = "auto"
+                ) -> GenerationOutput:
+        """One motion longer than the model's clips from a list of (text, frames) parts:
+
+            long = model.compose([("a man walks forward", 120), ("he jumps twice", 60),
+                                  ("he sits down", 80)], transition=20)
+
+        Each part is generated from its text (one batch, so changing one part's text changes
+        no other part's tokens); between two parts, `transition` new frames (a multiple of
+        4) are drawn by masked inpainting with the end of the one and the start of the next
+        visible, conditioned on both texts as two ordered segments. Parts and transitions
+        are decoded window by window and joined with an 8-frame cross-fade at the edges of
+        each transition; the root trajectory runs on across parts (the features hold root
+        velocities). → one sample of sum(frames) + (parts − 1)·transition frames, its
+        segments the parts' texts and `spans` their frames; its tokens are the
+        concatenated tokens of parts and transitions. One part is exactly `generate`.
+        """
+        if not isinstance(parts, (list, tuple)) or not parts or not all(
+                isinstance(p, (list, tuple)) and len(p) == 2 for p in parts):
+            raise SegmoError(f"SegMo.compose: parts must be a list of (text, frames), got "
+                             f"{parts!r:.80}")
+        texts = check_texts([p[0] for p in parts], "part")
+        frames = [p[1] for p in parts]
+        if isinstance(transition, bool) or not isinstance(transition, numbers.Integral) \
+                or transition < FRAMES_PER_TOKEN or transition % FRAMES_PER_TOKEN:
+            raise SegmoError(f"SegMo.compose: transition must be a multiple of "
+                             f"{FRAMES_PER_TOKEN} frames >= {FRAMES_PER_TOKEN}, got {transition!r}")
+        blend = COMPOSE_BLEND
+        shortest = 2 * blend + FRAMES_PER_TOKEN
+        if len(parts) > 1 and any(isinstance(f, numbers.Integral) and f < shortest
+                                  for f in frames):
+            raise SegmoError(f"SegMo.compose: each part of a composition needs at least "
+                             f"{shortest} frames, got {frames}")
+        t = int(transition) // FRAMES_PER_TOKEN
+        max_tokens = self.mask.config.max_tokens
+        if t > max_tokens - 2:
+            raise SegmoError(f"SegMo.compose: transition {transition} frames leaves no room "
+                             f"for context in the model's {self.max_frames} frames")
+        out = self.generate(texts, frames, generator=generator, precision=precision)
+        if len(parts) == 1:
+            out.spans = [[(0, int(out.lengths[0]))]]
+            return out
+        tokens, lengths = out.tokens, out.lengths
+        counts = (lengths // FRAMES_PER_TOKEN).tolist()
+        contexts = [min(counts[i], counts[i + 1], (max_tokens - t) // 2)
+                    for i in range(len(parts) - 1)]
+        width = max(2 * c + t for c in contexts)
+        q = tokens.shape[2]
+        windows = tokens.new_full((len(contexts), width, q), -1)
+        spans = torch.zeros(len(contexts), 2, dtype=torch.long)
+        for i, c in enumerate(contexts):
+            windows[i, :c] = tokens[i, counts[i] - c:counts[i]]
+            windows[i, c:c + t] = 0  # placeholders, redrawn
+            windows[i, c + t:2 * c + t] = tokens[i + 1, :c]
+            spans[i] = torch.tensor([c, c + t])
+        pairs = [f"{texts[i].rstrip('. ')}, then {texts[i + 1]}" for i in range(len(contexts))]
+        segments = [[out.segments[i][-1], out.segments[i + 1][0]] for i in range(len(contexts))]
+        window_lengths = torch.tensor([(2 * c + t) * FRAMES_PER_TOKEN for c in contexts],
+                                      device=self.device)
+        sentence, vectors, segment_mask, _ = self.text_condition(pairs, segments)
+        words, word_mask = self.word_condition(pairs)
+        filled = edit_tokens(self.mask, self.residual, windows.to(self.device),
+                             spans.to(self.device), sentence, vectors, segment_mask,
+                             options=out.sampling, generator=generator, precision=precision,
+                             words=words, word_mask=word_mask)
+        decoded = self.decode(filled, window_lengths, pairs, segments, precision).features
+        pieces, all_tokens, part_spans, at = [], [], [], 0
+        ramp = torch.linspace(0, 1, blend + 2, device=out.features.device)[1:-1, None]
+        for i in range(len(parts)):
+            part = out.features[i, :int(lengths[i])].clone()
+            if i > 0:  # fade in from the transition window's decoding of the same frames
+                c = contexts[i - 1] * FRAMES_PER_TOKEN + transition
+                part[:blend] = (1 - ramp) * decoded[i - 1, c:c + blend] + ramp * part[:blend]
+            if i < len(parts) - 1:
+                c = contexts[i] * FRAMES_PER_TOKEN
+                part[-blend:] = (1 - ramp) * part[-blend:] + ramp * decoded[i, c - blend:c]
+            part_spans.append((at, at + part.shape[0]))
+            pieces.append(part)
+            all_tokens.append(tokens[i, :counts[i]])
+            at += part.shape[0]
+            if i < len(parts) - 1:
+                c = contexts[i] * FRAMES_PER_TOKEN
+                pieces.append(decoded[i, c:c + transition])
+                all_tokens.append(filled[i, contexts[i]:contexts[i] + t].to(tokens.device))
+                at += transition
+        features = torch.cat(pieces)[None]
+        total = torch.tensor([features.shape[1]], device=features.device)
+        joints = features_to_joints(features, self.skeleton).float()
+        text = " Then ".join(x.rstrip(". ") for x in texts) + "."
+        return GenerationOutput(features=features.float(), joints=joints,
+                                tokens=torch.cat(all_tokens)[None], lengths=total.long(),
+                                texts=[text], segments=[list(texts)], skeleton=self.skeleton,
+                                fps=self.fps, spans=[part_spans])
 
     @contextmanager
     def record_attention(self) -> Iterator[AttentionRecording]:
