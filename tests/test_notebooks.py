@@ -1,4 +1,4 @@
-"""Run notebooks/grounding.ipynb and notebooks/retrieval.ipynb top to bottom.
+"""Run notebooks/grounding.ipynb, retrieval.ipynb and editing.ipynb top to bottom.
 
 They run on a tiny random bundle (real `minilm` text encoder, loaded offline) and a tiny
 built-in corpus, found through SEGMO_MODEL / SEGMO_DATA as a user would set them.
@@ -46,7 +46,7 @@ def demo(tmp_path_factory, tokenizer_dir):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["grounding", "retrieval"])
+@pytest.mark.parametrize("name", ["grounding", "retrieval", "editing"])
 def test_notebook_runs(name, demo, monkeypatch):
     if not _kernel_available():
         pytest.skip("no 'python3' Jupyter kernel (pip install ipykernel)")
@@ -69,6 +69,13 @@ def test_notebook_runs(name, demo, monkeypatch):
                 for v in re.findall(r"\d+\.\d+|\d+", line.split(":", 1)[1])]
         assert len(ious) >= 4 and all(0.0 <= v <= 1.0 for v in ious), text
         assert "attention IoU with the truth" in text and images >= 3, "a map per method"
+    elif name == "editing":
+        assert "the same text reproduces the source: True" in text, text
+        changed = [float(v) for v in re.findall(r"tokens changed (\d\.\d+)", text)]
+        assert len(changed) == 6 and all(0.0 <= v <= 1.0 for v in changed), text
+        assert "c = +1.0: tokens changed 0.00" in text, "reweight by 1 must change nothing"
+        step = float(re.search(r"largest root step between frames: (\d+\.\d+) cm", text).group(1))
+        assert 0.0 <= step < 100.0 and images >= 5, text
     else:
         found = re.search(r"R@1 among (\d+) captions: (\d\.\d+)", text)
         n, recall = int(found.group(1)), float(found.group(2))
@@ -79,7 +86,7 @@ def test_notebook_runs(name, demo, monkeypatch):
 
 
 def test_notebooks_say_how_to_get_a_model():
-    for name in ("grounding", "retrieval"):
+    for name in ("grounding", "retrieval", "editing"):
         notebook = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
         assert "make demo" in notebook.cells[0].source and "hub id" in notebook.cells[0].source
         assert "run `make demo` first" in notebook.cells[1].source
