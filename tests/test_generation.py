@@ -350,3 +350,43 @@ def test_residual_guided_layers_refuses_what_it_cannot_use():
     for bad in (-1, 1.5, True, "2"):
         with pytest.raises(Exception, match="residual_guided_layers"):
             SamplingOptions(residual_guided_layers=bad)
+
+
+def test_sink_ctrl_with_k_base_zero_is_plain_cfg_and_otherwise_changes_tokens(models):
+    mask, residual = models
+    lengths = torch.tensor([48, 32, 20])
+
+    def run(**options):
+        return generate_tokens(mask, residual, *text(3), lengths,
+                               options=SamplingOptions(steps=6, **options),
+                               generator=torch.Generator().manual_seed(8))
+
+    cfg = run()
+    assert torch.equal(cfg, run(guidance="sink_ctrl", ctrl_k_base=0.0))
+    assert not torch.equal(cfg[..., 0], run(guidance="sink_ctrl", ctrl_k_base=2.0)[..., 0])
+
+
+def test_sink_ctrl_carries_the_corrected_difference_of_each_position():
+    from segmo.generation.generate import SinkControl
+
+    options = SamplingOptions(guidance="sink_ctrl", guidance_scale=2.0, ctrl_lambda=3.0,
+                              ctrl_k_base=1.0, ctrl_alpha=0.5, sink_ratio=2.0)  # k_eff = 2
+    control = SinkControl(options, torch.Size([1, 3]), 2, torch.device("cpu"))
+    conditional = torch.tensor([[[3.0, 0.0], [1.0, 1.0]]])
+    unconditional = torch.zeros(1, 2, 2)
+    logits = torch.cat([conditional, unconditional])
+    picked = torch.tensor([[True, False]])
+    first = control.guided(logits, torch.tensor([[0, 2]]), picked)
+    # E = (3, 0) at position 0: S = E (no history), E − 2·sign(S) = (1, 0); u + 2·E = (2, 0).
+    assert torch.equal(first, torch.tensor([[2.0, 0.0]]))
+    assert torch.equal(control.previous[0, 0], torch.tensor([1.0, 0.0]))
+    assert torch.equal(control.previous[0, 2], torch.zeros(2))  # not picked: not carried
+    # Next step, position 0 again with E = (−1, 0): S = E + 2·E_prev = (1, 0) → E − 2·(1, 0).
+    second = control.guided(torch.cat([torch.tensor([[[-1.0, 0.0]]]), torch.zeros(1, 1, 2)]),
+                            torch.tensor([[0]]), torch.tensor([[True]]))
+    assert torch.equal(second, torch.tensor([[-6.0, 0.0]]))
+
+
+def test_guidance_must_be_known():
+    with pytest.raises(Exception, match="guidance"):
+        SamplingOptions(guidance="ctrl")

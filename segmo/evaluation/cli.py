@@ -44,7 +44,13 @@ import torch
 from tqdm import tqdm
 
 from segmo.data.layout import has_ground_truth, split_file
-from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
+from segmo.errors import (
+    ArgumentParser,
+    SegmoError,
+    finite_float,
+    non_negative_int,
+    positive_int,
+)
 from segmo.evaluation import report
 from segmo.evaluation.metrics import (
     evaluate_generation,
@@ -106,6 +112,8 @@ class Generator:
         out = self.model.generate(list(captions), [int(x) for x in lengths], segments=segments,
                                   steps=self.cfg.steps, precision=self.cfg.precision,
                                   residual_guided_layers=self.cfg.residual_guided_layers,
+                                  guidance=self.cfg.guidance_mode,
+                                  guidance_scale=self.cfg.guidance_scale,
                                   generator=torch.Generator(device=device).manual_seed(int(seed)))
         self.motions += len(captions)
         if self.bar is None:
@@ -378,6 +386,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=None,
                    help="mask decoding steps (default: the bundle's, "
                         f"{SamplingOptions.steps} unless it says otherwise)")
+    p.add_argument("--guidance-mode", choices=("cfg", "sink_ctrl"), default=None,
+                   help="base-token guidance: cfg or sink_ctrl (default: the bundle's)")
+    p.add_argument("--guidance-scale", type=finite_float, default=None,
+                   help="CFG scale of the base tokens (default: the bundle's)")
     p.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
                    help="how many residual layers, from the first, are guided (default: the "
                         "bundle's, all unless it says otherwise)")

@@ -76,6 +76,8 @@ class EvaluateConfig:
     text_segments: str | None = None
     steps: int | None = None  # None: the bundle's (`SegMo.sampling`)
     residual_guided_layers: int | None = None  # None: the bundle's
+    guidance_mode: str | None = None  # "cfg" | "sink_ctrl"; None: the bundle's
+    guidance_scale: float | None = None  # None: the bundle's
     grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True

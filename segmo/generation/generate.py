@@ -147,6 +147,34 @@ def _draw(logits: torch.Tensor, select: torch.Tensor, scale: float, options: Sam
                          generator)
 
 
+class SinkControl:
+    """MLA-Gen's sink-ctrl guidance over the steps of one masked decoding
+    (`SamplingOptions.guidance`): keeps each position's last corrected guidance difference
+    E_prev (b, n, v), carried to the step that predicts it again."""
+
+    def __init__(self, options: SamplingOptions, shape: torch.Size, vocabulary: int,
+                 device: torch.device) -> None:
+        self.options = options
+        self.k = options.ctrl_k_base * (1.0 + options.ctrl_alpha * options.sink_ratio)
+        self.previous = torch.zeros(*shape, vocabulary, device=device)
+
+    def guided(self, logits: torch.Tensor, positions: torch.Tensor | None,
+               picked: torch.Tensor) -> torch.Tensor:
+        """Guidance batch logits (2b, m, v) at `positions` (b, m) (None = all n), picked
+        (b, m) → the guided logits (k, v) of the picked positions, row-major."""
+        conditional, unconditional = logits.float().chunk(2)
+        difference = conditional - unconditional
+        b, m, v = difference.shape
+        where = (torch.arange(m, device=logits.device).expand(b, m) if positions is None
+                 else positions)
+        index = where[..., None].expand(b, m, v)
+        previous = self.previous.gather(1, index)
+        signal = difference + (self.options.ctrl_lambda - 1.0) * previous
+        difference = difference - self.k * torch.sign(signal)
+        self.previous.scatter_(1, index, torch.where(picked[..., None], difference, previous))
+        return (unconditional + self.options.guidance_scale * difference)[picked]
+
+
 def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
     """How many of `counts` (b,) editable tokens the decoding step at t ∈ [0, 1] masks and
     predicts: ⌈γ(t)·m⌉, at least 1 where m > 0, and 0 where m = 0 → (b,) long."""
@@ -196,6 +224,8 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
         return ids
     scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
+    control = SinkControl(options, ids.shape, model.config.codebook_size, ids.device) \
+        if options.guidance == "sink_ctrl" else None
     reuse = not is_recorded(model)
     previous: tuple[torch.Tensor, torch.Tensor] | None = None  # (input ids, logits)
     for t in torch.linspace(0, 1, options.steps).tolist():
@@ -210,7 +240,12 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
             twice = None if positions is None else torch.cat([positions, positions])
             logits = _guidance_pass(model, torch.cat([ids, ids]), mask2, condition, twice)
             previous = (ids.clone(), logits) if reuse else None
-        tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator)
+        if control is None:
+            tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator)
+        else:
+            guided = control.guided(logits, positions, picked)
+            tokens, confidence = sample_tokens(guided, options.top_k_ratio, options.temperature,
+                                               options.sampler, generator)
         ids[is_masked] = tokens  # is_masked and picked list the same positions in one order
         scores = torch.full_like(scores, math.inf)
         scores[is_masked] = confidence

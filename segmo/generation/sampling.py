@@ -16,9 +16,11 @@ import torch
 from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
-__all__ = ["Sampler", "SamplingOptions", "cosine_schedule", "sample_tokens", "top_k_count"]
+__all__ = ["Guidance", "Sampler", "SamplingOptions", "cosine_schedule", "sample_tokens",
+           "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
+Guidance = Literal["cfg", "sink_ctrl"]
 
 
 @dataclass(frozen=True)
@@ -33,7 +35,15 @@ class SamplingOptions:
         (`segmo.generation.generate.residual_decode`);
     steps: masked-decoding steps of the base tokens;
     temperature: of the draws, 0 = greedy; top_k_ratio: share of the codebook a draw
-        keeps (MoMask: 0.1, 52 of 512 codes); sampler: "categorical" or "gumbel".
+        keeps (MoMask: 0.1, 52 of 512 codes); sampler: "categorical" or "gumbel";
+    guidance: "cfg" (u + s·(c − u)) or "sink_ctrl", MLA-Gen's sink-aware controlled
+        guidance on the base tokens' logits (eq. 9–10): with E = c − u and E_prev the
+        corrected difference of the position's previous prediction,
+        S = E + (ctrl_lambda − 1)·E_prev, E ← E − k_eff·sign(S) with
+        k_eff = ctrl_k_base·(1 + ctrl_alpha·sink_ratio), then u + s·E. ctrl_k_base = 0 is
+        plain CFG. Starting values are the paper's (λ 6, k 2, α 0.18, for flow
+        velocities); sink_ratio: the model's measured SinkRatio
+        (`tools/attention_report.py`), 0 by default.
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
@@ -48,9 +58,15 @@ class SamplingOptions:
     temperature: float = 1.0
     top_k_ratio: float = 0.1
     sampler: Sampler = "categorical"
+    guidance: Guidance = "cfg"
+    ctrl_lambda: float = 6.0
+    ctrl_k_base: float = 2.0
+    ctrl_alpha: float = 0.18
+    sink_ratio: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio"):
+        for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio",
+                     "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) \
                     or not math.isfinite(value):
@@ -68,6 +84,9 @@ class SamplingOptions:
                                    or layers < 0):
             raise SegmoError(f"SegMo: residual_guided_layers must be a whole number >= 0 or "
                              f"None (all), got {layers!r}")
+        if self.guidance not in get_args(Guidance):
+            raise SegmoError(f"SegMo: guidance must be 'cfg' or 'sink_ctrl', got "
+                             f"{self.guidance!r}")
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

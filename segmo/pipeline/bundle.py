@@ -51,9 +51,25 @@ class SegMoConfig:
     residual_guidance_scale: float = SamplingOptions.residual_guidance_scale
     steps: int = SamplingOptions.steps
     residual_guided_layers: int | None = SamplingOptions.residual_guided_layers
+    # Guidance of the base tokens and sink-ctrl's parameters (`SamplingOptions`).
+    guidance: str = SamplingOptions.guidance
+    ctrl_lambda: float = SamplingOptions.ctrl_lambda
+    ctrl_k_base: float = SamplingOptions.ctrl_k_base
+    ctrl_alpha: float = SamplingOptions.ctrl_alpha
+    sink_ratio: float = SamplingOptions.sink_ratio
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
+
+
+SAMPLING_FIELDS: tuple[str, ...] = (
+    "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
+    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio")
+
+
+def sampling_fields(config: SegMoConfig) -> dict:
+    """The sampling defaults a bundle records (`SegMo.sampling`)."""
+    return {name: getattr(config, name) for name in SAMPLING_FIELDS}
 
 
 def load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
@@ -88,9 +104,7 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
                 or not math.isfinite(value):
             raise SegmoError(f"{path}: {name!r} must be a finite number, got {value!r}")
     try:  # the sampling defaults are checked as a generation would use them
-        SamplingOptions(guidance_scale=config.guidance_scale,
-                        residual_guidance_scale=config.residual_guidance_scale,
-                        steps=config.steps, residual_guided_layers=config.residual_guided_layers)
+        SamplingOptions(**sampling_fields(config))
     except SegmoError as error:
         raise SegmoError(f"{path}: {str(error).removeprefix('SegMo: ')}") from None
     stages = {name: load_stage(directory / name, kind) if (directory / name).is_dir()

@@ -87,6 +87,8 @@ def generate_main(argv: list[str] | None = None) -> None:
                         help="classifier-free guidance scale of the base tokens (bundle default)")
     parser.add_argument("--residual-guidance", type=finite_float, default=None,
                         help="the same for the residual tokens (bundle default)")
+    parser.add_argument("--guidance-mode", choices=("cfg", "sink_ctrl"), default=None,
+                        help="base-token guidance: cfg, or MLA-Gen's sink_ctrl (bundle default)")
     # Unset options take the defaults of SamplingOptions (SegMo.generate).
     parser.add_argument("--steps", type=positive_int, default=None,
                         help=f"masked-decoding steps (default {SamplingOptions.steps})")
@@ -127,6 +129,7 @@ def generate_main(argv: list[str] | None = None) -> None:
     out = model.generate(args.text, lengths, guidance_scale=args.guidance,
                          residual_guidance_scale=args.residual_guidance, steps=args.steps,
                          residual_guided_layers=args.residual_guided_layers,
+                         guidance=args.guidance_mode,
                          temperature=args.temperature, generator=generator,
                          precision=args.precision)
     spans = None
@@ -334,6 +337,11 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
                         help="default number of guided residual layers, from the first "
                              "(default: all)")
+    parser.add_argument("--guidance-mode", choices=("cfg", "sink_ctrl"), default=None,
+                        help="default base-token guidance (default cfg)")
+    parser.add_argument("--sink-ratio", type=finite_float, default=None,
+                        help="the mask transformer's measured SinkRatio, for sink_ctrl "
+                             "(tools/attention_report.py; default 0)")
     parser.add_argument("--metrics", default=None,
                         help="metrics.json of `segmo evaluate` (or its folder) for the model card")
     parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
@@ -364,5 +372,9 @@ def bundle_main(argv: list[str] | None = None) -> None:
         model.config.steps = args.steps
     if args.residual_guided_layers is not None:
         model.config.residual_guided_layers = args.residual_guided_layers
+    if args.guidance_mode is not None:
+        model.config.guidance = args.guidance_mode
+    if args.sink_ratio is not None:
+        model.config.sink_ratio = args.sink_ratio
     print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
                                 repo_id=args.push_to_hub))

@@ -57,6 +57,7 @@ from segmo.pipeline.bundle import (
     SegMoConfig,
     load_stage,
     read_bundle,
+    sampling_fields,
     write_bundle,
 )
 from segmo.pipeline.inputs import (
@@ -374,10 +375,7 @@ class SegMo:
         """`sampling` (None: the bundle's) with each option given by keyword (not None) in
         its place, built, and so checked, once."""
         if sampling is None:
-            fields = {"guidance_scale": self.config.guidance_scale,
-                      "residual_guidance_scale": self.config.residual_guidance_scale,
-                      "steps": self.config.steps,
-                      "residual_guided_layers": self.config.residual_guided_layers}
+            fields = sampling_fields(self.config)
         elif isinstance(sampling, SamplingOptions):
             fields = dataclasses.asdict(sampling)
         else:
@@ -388,7 +386,7 @@ class SegMo:
                  segments: list[list[str]] | None = None, sampling: SamplingOptions | None = None,
                  guidance_scale: float | None = None, residual_guidance_scale: float | None = None,
                  steps: int | None = None, residual_guided_layers: int | None = None,
-                 temperature: float | None = None,
+                 guidance: str | None = None, temperature: float | None = None,
                  top_k_ratio: float | None = None, sampler: Sampler | None = None,
                  generator: torch.Generator | None = None, precision: Precision = "auto"
                  ) -> GenerationOutput:
@@ -404,7 +402,7 @@ class SegMo:
         options = self._sampling(
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
-            residual_guided_layers=residual_guided_layers,
+            residual_guided_layers=residual_guided_layers, guidance=guidance,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
         sentence, vectors, segment_mask, segments = self.text_condition(texts, segments)
         if lengths is None:
@@ -426,7 +424,7 @@ class SegMo:
              segments: list[str] | None = None, sampling: SamplingOptions | None = None,
              guidance_scale: float | None = None, residual_guidance_scale: float | None = None,
              steps: int | None = None, residual_guided_layers: int | None = None,
-                 temperature: float | None = None,
+             guidance: str | None = None, temperature: float | None = None,
              top_k_ratio: float | None = None, sampler: Sampler | None = None,
              generator: torch.Generator | None = None, precision: Precision = "auto"
              ) -> GenerationOutput:
@@ -457,7 +455,7 @@ class SegMo:
         options = self._sampling(
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
-            residual_guided_layers=residual_guided_layers,
+            residual_guided_layers=residual_guided_layers, guidance=guidance,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
         b = tokens.shape[0]
         texts = [text] * b
