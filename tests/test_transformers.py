@@ -455,3 +455,68 @@ def test_linear_fast_paths_match_f_linear():
     for clone in (copy.deepcopy(layer), pickle.loads(pickle.dumps(layer))):
         with torch.inference_mode():
             torch.testing.assert_close(clone(x), doubled, rtol=1e-5, atol=1e-5)
+
+
+def test_memory_slots_are_attended_in_every_row_and_zero_slots_is_todays_model():
+    from segmo.models.attention_recorder import record_attention
+    from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+
+    tiny = dict(codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2,
+                heads=2, ff_dim=64, dropout=0.0)
+    torch.manual_seed(0)
+    plain = MaskTransformer(MaskTransformerConfig(**tiny)).eval()
+    torch.manual_seed(0)
+    zero = MaskTransformer(MaskTransformerConfig(**tiny, memory_slots=0)).eval()
+    assert plain.state_dict().keys() == zero.state_dict().keys()
+    torch.manual_seed(0)
+    slots = MaskTransformer(MaskTransformerConfig(**tiny, memory_slots=4)).eval()
+    assert slots.trunk.memory.shape == (4, 32)
+    g = torch.Generator().manual_seed(1)
+    sentence, segments = torch.randn(2, 8, generator=g), torch.randn(2, 3, 8, generator=g)
+    segment_mask = torch.ones(2, 3, dtype=torch.bool)
+    ids = torch.randint(0, 16, (2, 6), generator=g)
+    token_mask = torch.ones(2, 6, dtype=torch.bool)
+    drop = torch.tensor([False, True])
+    with torch.no_grad():
+        a = plain(ids, token_mask, sentence, segments, segment_mask, drop).logits
+        b = zero(ids, token_mask, sentence, segments, segment_mask, drop).logits
+        assert torch.equal(a, b)
+        with record_attention({"mask": slots}) as recording:
+            out = slots(ids, token_mask, sentence, segments, segment_mask, drop).logits
+    assert torch.isfinite(out).all()
+    m = recording.of("mask")[0]
+    # The dropped row is not recorded; the memory keys follow the text keys.
+    assert m.rows.tolist() == [0]
+    assert m.key_labels[4:8] == ["memory 0", "memory 1", "memory 2", "memory 3"]
+    assert m.text_length == 4 and m.prefix_length == 8
+    assert float(m.weights[..., 4:8].sum(-1).min()) > 0  # the slots are attended
+    # The memory's keys do not depend on the text: the same for both rows.
+    encoded = slots.condition(sentence, segments, segment_mask, drop).encoded
+    keys = encoded.blocks[1].keys[:, :, 4:]
+    assert torch.equal(keys[0], keys[1]) and encoded.conditional_rows().tolist() == [True, False]
+    # The unconditional row attends to the memory (its only prefix keys).
+    assert bool(encoded.blocks[0].mask[1, 4:].all()) and not bool(encoded.blocks[0].mask[1, :4].any())
+
+
+def test_memory_slots_generate_and_survive_save_and_load(tmp_path):
+    from segmo.generation import SamplingOptions, generate_tokens
+    from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+    from segmo.models.pretrained import load_pretrained
+
+    torch.manual_seed(0)
+    model = MaskTransformer(MaskTransformerConfig(
+        codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2, heads=2,
+        ff_dim=64, memory_slots=3))
+    loaded = load_pretrained(model.save_pretrained(tmp_path / "mask"))
+    assert loaded.config.memory_slots == 3 and torch.equal(loaded.trunk.memory, model.trunk.memory)
+    g = torch.Generator().manual_seed(2)
+    text = (torch.randn(2, 8, generator=g), torch.randn(2, 3, 8, generator=g),
+            torch.ones(2, 3, dtype=torch.bool))
+
+    def run(m):
+        return generate_tokens(m, None, *text, torch.tensor([48, 20]),
+                               options=SamplingOptions(steps=4),
+                               generator=torch.Generator().manual_seed(0))
+
+    tokens = run(model)
+    assert torch.equal(tokens, run(loaded)) and tokens.shape == (2, 12, 1)

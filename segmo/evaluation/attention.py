@@ -46,8 +46,9 @@ def _query_valid(m: AttentionMap) -> torch.Tensor:
 
 
 def _prefix(m: AttentionMap) -> torch.Tensor:
-    """(r, heads, q, p) weights on the prefix keys."""
-    return m.weights[..., :m.prefix_length]
+    """(r, heads, q, p) weights on the text keys (memory slots, where a model has them,
+    are not text)."""
+    return m.weights[..., :m.text_length]
 
 
 def sink_ratio_values(m: AttentionMap, k: int = 1) -> torch.Tensor:
@@ -55,7 +56,7 @@ def sink_ratio_values(m: AttentionMap, k: int = 1) -> torch.Tensor:
     if k < 1:
         raise ValueError(f"sink_ratio: k must be ≥ 1, got {k}")
     prefix = _prefix(m)
-    valid = m.key_valid[:, :m.prefix_length]  # (r, p)
+    valid = m.key_valid[:, :m.text_length]  # (r, p)
     n = valid.sum(1).to(prefix.dtype)[:, None, None]  # (r, 1, 1)
     mass = prefix.sum(-1, keepdim=True)
     p = torch.where(mass > 0, prefix / mass.clamp_min(1e-30), torch.zeros_like(prefix))

@@ -104,7 +104,7 @@ class AttentionControl:
                 labels = [*(prefix.labels or prefix_labels(mask.shape[1] - 1)),
                           *(f"motion {i}" for i in range(tokens.shape[1]))]
                 state.update(stage=stage, step=step, labels=labels, positions=positions,
-                             conditional=int(mask.any(dim=1).sum()), last=last)
+                             conditional=int(prefix.conditional_rows().sum()), last=last)
                 try:
                     return original(tokens, token_mask, prefix, positions)
                 finally:

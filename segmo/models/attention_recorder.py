@@ -68,7 +68,8 @@ class AttentionMap:
              positions 0..n−1.
     key_valid: (r, keys) bool, the keys that could be attended to.
     key_labels: one label per key: "sentence", "segment k" (k from 1), "word w" (w from 0,
-             the start token) where the model has word keys, then "motion i".
+             the start token) where the model has word keys, "memory s" where it has
+             memory slots, then "motion i".
     """
 
     stage: str
@@ -82,7 +83,13 @@ class AttentionMap:
 
     @property
     def prefix_length(self) -> int:
+        """The keys before the motion positions: text slots, then memory slots."""
         return sum(not label.startswith("motion ") for label in self.key_labels)
+
+    @property
+    def text_length(self) -> int:
+        """The text slots (sentence, segments, words), the first keys."""
+        return sum(not label.startswith(("motion ", "memory ")) for label in self.key_labels)
 
 
 @dataclass
@@ -137,7 +144,7 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
             state.active, state.stage = True, stage
             state.step = counters.get(stage, 0)
             counters[stage] = state.step + 1
-            state.rows = torch.nonzero(mask.any(dim=1)).flatten()
+            state.rows = torch.nonzero(prefix.conditional_rows()).flatten()
             state.positions = positions
             state.labels = [*(prefix.labels or prefix_labels(mask.shape[1] - 1)),
                             *(f"motion {i}" for i in range(tokens.shape[1]))]

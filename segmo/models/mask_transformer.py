@@ -86,7 +86,7 @@ class MaskTransformer(nn.Module, Pretrained):
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
                                  config.text_tokens, config.max_words)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
-                           config.norm_first, config.max_tokens)
+                           config.norm_first, config.max_tokens, config.memory_slots)
         self.head = TokenHead(config.dim)
         self.classifier = Linear(config.dim, config.codebook_size)
         self.apply(init_weights)

@@ -72,7 +72,7 @@ class ResidualTransformer(nn.Module, Pretrained):
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
                                  config.text_tokens, config.max_words)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
-                           config.norm_first, config.max_tokens)
+                           config.norm_first, config.max_tokens, config.memory_slots)
         self.head = TokenHead(config.dim)
         # The tied output projection; `segmo.models.cpu_inference` swaps in a faster one.
         self.project = F.linear

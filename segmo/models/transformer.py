@@ -49,6 +49,10 @@ class TransformerConfig:
     # "none" is the model without them. max_words: the most word keys (CLIP's 77 tokens).
     text_tokens: str = "none"
     max_words: int = 77
+    # MLA-Gen's memory slots (eq. 4): learned vectors every block's motion queries attend to,
+    # independent of the text and present in conditional and unconditional rows alike
+    # (`Trunk.encode_prefix`). 0 = the model without them.
+    memory_slots: int = 0
 
 
 TEXT_TOKENS: tuple[str, ...] = ("none", "words")
@@ -207,7 +211,7 @@ class Condition:
         encoded = None if self.encoded is None else EncodedPrefix(
             blocks=[PrefixKeys(k.keys[index], k.values[index], k.mask[index])
                     for k in self.encoded.blocks],
-            labels=self.encoded.labels)
+            labels=self.encoded.labels, text_slots=self.encoded.text_slots)
         return Condition(tokens=self.tokens[index], mask=self.mask[index],
                          content=self.content[index], encoded=encoded, labels=self.labels)
 
@@ -324,6 +328,13 @@ class EncodedPrefix:
 
     blocks: list[PrefixKeys]
     labels: list[str] | None = None  # the kind of each prefix slot (`prefix_labels`)
+    # The text slots come first; memory slots (labelled "memory s") may follow.
+    text_slots: int | None = None
+
+    def conditional_rows(self) -> torch.Tensor:
+        """(b,) bool: the rows whose text takes part (not a dropped condition)."""
+        mask = self.blocks[0].mask
+        return mask[:, : self.text_slots if self.text_slots is not None else mask.shape[1]].any(1)
 
 
 class Trunk(nn.Module):
@@ -334,9 +345,14 @@ class Trunk(nn.Module):
     """
 
     def __init__(self, dim: int, depth: int, heads: int, ff_dim: int, dropout: float,
-                 norm_first: bool, max_tokens: int) -> None:
+                 norm_first: bool, max_tokens: int, memory_slots: int = 0) -> None:
         super().__init__()
+        if memory_slots < 0:
+            raise ValueError(f"Trunk: memory_slots must be >= 0, got {memory_slots}")
         self.register_buffer("positions", sinusoidal_positions(max_tokens, dim), persistent=False)
+        # Absent without slots, so that such a model is exactly the one without them.
+        if memory_slots:
+            self.memory = nn.Parameter(torch.randn(memory_slots, dim) * 0.02)
         self.drop = nn.Dropout(dropout)
         self.blocks = nn.ModuleList(
             Block(dim, heads, ff_dim, dropout, norm_first) for _ in range(depth)
@@ -359,7 +375,23 @@ class Trunk(nn.Module):
         for block in self.blocks:
             x, (keys, values) = block(x, among)
             blocks.append(PrefixKeys(keys, values, prefix_mask))
-        return EncodedPrefix(blocks=blocks, labels=labels)
+        if not hasattr(self, "memory"):
+            return EncodedPrefix(blocks=blocks, labels=labels)
+        # Memory slots: encoded on their own (so they do not depend on the text), then
+        # appended to every block's prefix keys, valid in every row.
+        b, p = prefix_mask.shape
+        slots = self.memory.shape[0]
+        m = self.drop(self.memory.to(prefix.dtype)[None])
+        valid = prefix_mask.new_ones(1, slots)
+        for i, block in enumerate(self.blocks):
+            m, (keys, values) = block(m, valid)
+            text = blocks[i]
+            blocks[i] = PrefixKeys(
+                torch.cat([text.keys, keys.expand(b, -1, -1, -1).to(text.keys.dtype)], dim=2),
+                torch.cat([text.values, values.expand(b, -1, -1, -1).to(text.values.dtype)], dim=2),
+                torch.cat([prefix_mask, valid.expand(b, slots)], dim=1))
+        labels = [*(labels or prefix_labels(p - 1)), *(f"memory {k}" for k in range(slots))]
+        return EncodedPrefix(blocks=blocks, labels=labels, text_slots=p)
 
     def encoded(self, condition: Condition) -> EncodedPrefix:
         """The condition's encoded prefix: the cached one from `condition()`, else a fresh one."""

@@ -36,6 +36,8 @@ class TransformerTask(Task):
     ``data.init_args.max_segments`` and ``data.init_args.text_tokens`` under ``segmo fit``
     (`segmo.training.cli`).
 
+    ``memory_slots``: MLA-Gen's learned memory slots, attended by every block (0 = none).
+
     ``motion_tokens``: "cached" (default) encodes every crop the data can draw once, at
     `setup`, into ``DATA/motion_tokens/<key>/`` (`segmo.data.motion_tokens`; built or
     extended by rank 0 under DDP while the others wait) and trains on those tokens;
@@ -59,6 +61,7 @@ class TransformerTask(Task):
         max_tokens: int = _DEFAULT.max_tokens,
         text_tokens: Literal["none", "words"] = "none",
         max_words: int = _DEFAULT.max_words,
+        memory_slots: int = _DEFAULT.memory_slots,
         lr: float = 2e-4,
         weight_decay: float = 1e-5,
         warmup_steps: int = 2000,
