@@ -154,10 +154,10 @@ def test_one_batched_guidance_pass_per_step(models, monkeypatch):
 
     computed: list[int] = []
 
-    def counting(self, indices, token_mask, condition, positions=None):
+    def counting(self, indices, token_mask, condition, positions=None, sink_rows=None):
         batches.append(indices.shape[0])
         computed.append(indices.shape[1] if positions is None else positions.shape[1])
-        return original(self, indices, token_mask, condition, positions)
+        return original(self, indices, token_mask, condition, positions, sink_rows)
 
     monkeypatch.setattr(MaskTransformer, "forward_condition", counting)
     generate_tokens(mask, residual, *text(3), torch.tensor([16, 16, 8]),
@@ -176,8 +176,9 @@ def plain_passes(monkeypatch):
     """Masked decoding without its exact savings: every step's pass over all 2b rows."""
     monkeypatch.setattr(generate_module, "is_recorded", lambda model: True)
     monkeypatch.setattr(generate_module, "_guidance_pass",
-                        lambda model, ids, token_mask, condition, positions:
-                        model.forward_condition(ids, token_mask, condition, positions).logits)
+                        lambda model, ids, token_mask, condition, positions, sink_rows=None:
+                        model.forward_condition(ids, token_mask, condition, positions,
+                                                sink_rows).logits)
 
 
 @pytest.mark.parametrize("lengths,steps", [([48, 48, 48, 20], 10), ([16, 40, 8], 4), ([48], 10)])
@@ -390,3 +391,49 @@ def test_sink_ctrl_carries_the_corrected_difference_of_each_position():
 def test_guidance_must_be_known():
     with pytest.raises(Exception, match="guidance"):
         SamplingOptions(guidance="ctrl")
+
+
+def _sink_model(t):
+    torch.manual_seed(0)
+    model = MaskTransformer(MaskTransformerConfig(**TINY, sink_mask_t=t))
+    with torch.no_grad():  # sharp logits, a strong text prefix, peaked attention
+        model.classifier.weight.mul_(10)
+        model.prefix.project.weight.mul_(50)
+        for block in model.trunk.blocks:
+            block.attention.qkv.weight.mul_(4)
+    return model
+
+
+def test_sink_mask_at_t_one_or_more_is_no_mask_and_below_masks_the_sentence(models):
+    from segmo.models.attention_recorder import record_attention
+
+    mask, _ = models
+    lengths = torch.tensor([48, 32])
+
+    def run(model):
+        return generate_tokens(model, None, *text(2), lengths, options=SamplingOptions(steps=5),
+                               generator=torch.Generator().manual_seed(1))
+
+    none, at_one, above = _sink_model(None), _sink_model(1.0), _sink_model(1.5)
+    assert torch.equal(run(none), run(at_one)) and torch.equal(run(none), run(above))
+    model = _sink_model(0.5)  # t = 0, ¼, ½: not masked; ¾, 1: masked
+    with record_attention({"mask": model}) as recording:
+        masked = run(model)
+    assert not torch.equal(masked, run(none))
+    for m in recording.of("mask"):
+        sentence = m.weights[..., m.key_labels.index("sentence")]
+        if m.step >= 3:
+            assert float(sentence.abs().max()) == 0.0 and not bool(m.key_valid[:, 0].any())
+        else:
+            assert float(sentence.min()) > 0.0
+
+
+def test_sink_mask_in_training_masks_the_rows_past_the_threshold():
+    from segmo.models.mask_transformer import mask_ratio_time
+
+    target = torch.tensor([[True, True, True, True], [True, False, False, False]])
+    valid = torch.ones(2, 4, dtype=torch.bool)
+    t = mask_ratio_time(target, valid)  # all masked: t = 0; a quarter masked: t = 0.84
+    assert float(t[0]) == 0.0 and abs(float(t[1]) - 0.8391) < 1e-3
+    assert _sink_model(0.2).sink_mask_rows(t).tolist() == [False, True]
+    assert _sink_model(None).sink_mask_rows(t) is None

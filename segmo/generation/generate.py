@@ -183,7 +183,8 @@ def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
 
 
 def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.Tensor,
-                   condition: Condition, positions: torch.Tensor | None) -> torch.Tensor:
+                   condition: Condition, positions: torch.Tensor | None,
+                   sink_rows: torch.Tensor | None = None) -> torch.Tensor:
     """The logits (2b, m, v) of one mask pass over a guidance batch (rows b..2b−1
     unconditional), computing unconditional rows with identical inputs once: they attend
     to no text, so rows of the same ids, token mask and sampled positions have the same
@@ -193,13 +194,14 @@ def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.
     key = [ids[b:], token_mask[b:].long()] + ([] if positions is None else [positions[b:]])
     unique, inverse = torch.unique(torch.cat(key, dim=1), dim=0, return_inverse=True)
     if unique.shape[0] == b:
-        return model.forward_condition(ids, token_mask, condition, positions).logits
+        return model.forward_condition(ids, token_mask, condition, positions, sink_rows).logits
     rows = torch.arange(b, device=ids.device)
     first = torch.full((unique.shape[0],), b, device=ids.device).scatter_reduce(
         0, inverse, rows, "amin")  # the first unconditional row of each distinct input
     keep = torch.cat([rows, b + first])
     logits = model.forward_condition(ids[keep], token_mask[keep], condition.rows(keep),
-                                     None if positions is None else positions[keep]).logits
+                                     None if positions is None else positions[keep],
+                                     None if sink_rows is None else sink_rows[keep]).logits
     return logits[torch.cat([rows, b + inverse])]
 
 
@@ -227,19 +229,22 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     control = SinkControl(options, ids.shape, model.config.codebook_size, ids.device) \
         if options.guidance == "sink_ctrl" else None
     reuse = not is_recorded(model)
-    previous: tuple[torch.Tensor, torch.Tensor] | None = None  # (input ids, logits)
+    previous: tuple[torch.Tensor, bool, torch.Tensor] | None = None  # (ids, sink, logits)
     for t in torch.linspace(0, 1, options.steps).tolist():
         num = masked_count(t, counts)
         ranks = scores.argsort(dim=1).argsort(dim=1)
         is_masked = ranks < num[:, None]
         ids = ids.masked_fill(is_masked, model.mask_id)
         positions, picked = _sampled_positions(is_masked)
-        if previous is not None and torch.equal(previous[0], ids):
-            logits = previous[1]  # the same input: the same pass
+        sink = model.config.sink_mask_t is not None and t > model.config.sink_mask_t
+        if previous is not None and previous[1] == sink and torch.equal(previous[0], ids):
+            logits = previous[2]  # the same input: the same pass
         else:
             twice = None if positions is None else torch.cat([positions, positions])
-            logits = _guidance_pass(model, torch.cat([ids, ids]), mask2, condition, twice)
-            previous = (ids.clone(), logits) if reuse else None
+            sink_rows = mask2.new_ones(mask2.shape[0]) if sink else None
+            logits = _guidance_pass(model, torch.cat([ids, ids]), mask2, condition, twice,
+                                    sink_rows)
+            previous = (ids.clone(), sink, logits) if reuse else None
         if control is None:
             tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator)
         else:

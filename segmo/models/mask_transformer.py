@@ -25,7 +25,9 @@ from segmo.models.alignment import AlignmentConfig, AlignmentHead
 from segmo.models.pretrained import Pretrained
 from segmo.models.transformer import (
     Condition,
+    EncodedPrefix,
     Linear,
+    PrefixKeys,
     TextPrefix,
     TokenHead,
     TransformerConfig,
@@ -45,6 +47,11 @@ def cosine_schedule(t: torch.Tensor | float) -> torch.Tensor | float:
 class MaskTransformerConfig(TransformerConfig):
     # SegMo's segment-alignment head (spec §5); None = plain MoMask (no alignment).
     alignment: AlignmentConfig | None = None
+    # MLA-Gen's sink mask (eq. 8): at decoding times t > sink_mask_t (t from 0, all masked,
+    # to 1, done; in training the t of the mask ratio), motion queries may not attend to
+    # the sentence key, the sink of the diagnostics. None = off; the paper's strong 0.2
+    # and weak 0.6 are the values to measure.
+    sink_mask_t: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.alignment, dict):  # read back from config.json
@@ -111,11 +118,13 @@ class MaskTransformer(nn.Module, Pretrained):
         return condition
 
     def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
-                          condition: Condition, positions: torch.Tensor | None = None
-                          ) -> MaskTransformerOutput:
+                          condition: Condition, positions: torch.Tensor | None = None,
+                          sink_rows: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long, token_mask (b, n) bool, condition from `condition()`;
         positions (b, m) long: where logits and motion features are wanted (None = all n
-        positions; decoding asks for the positions it samples, `Trunk.forward_motion`)."""
+        positions; decoding asks for the positions it samples, `Trunk.forward_motion`);
+        sink_rows (b,) bool: rows whose motion queries may not attend to the sentence key
+        (the sink mask, `sink_mask_rows`)."""
         if indices.shape != token_mask.shape or indices.shape[0] != condition.tokens.shape[0]:
             raise ValueError(f"MaskTransformer: indices {tuple(indices.shape)}, token_mask "
                              f"{tuple(token_mask.shape)} and condition batch "
@@ -123,6 +132,8 @@ class MaskTransformer(nn.Module, Pretrained):
         token_mask = token_mask.bool()
         indices = torch.where(token_mask, indices, self.pad_id)
         encoded = self.trunk.encoded(condition)
+        if sink_rows is not None and bool(sink_rows.any()):
+            encoded = without_sentence(encoded, sink_rows)
         motion = self.trunk.forward_motion(self.token_embedding(indices), token_mask, encoded,
                                            positions)
         return MaskTransformerOutput(
@@ -136,14 +147,41 @@ class MaskTransformer(nn.Module, Pretrained):
                 segments: torch.Tensor, segment_mask: torch.Tensor,
                 drop_condition: torch.Tensor | None = None,
                 unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
-                word_mask: torch.Tensor | None = None) -> MaskTransformerOutput:
+                word_mask: torch.Tensor | None = None,
+                sink_rows: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long with masked positions already replaced by `mask_id`;
         token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim) in
         execution order; segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free
-        guidance); unordered (b,) bool (segments as a set, as grounding uses them)."""
+        guidance); unordered (b,) bool (segments as a set, as grounding uses them);
+        sink_rows (b,) bool: the sink mask's rows (`sink_mask_rows`)."""
         condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered,
                                    words, word_mask)
-        return self.forward_condition(indices, token_mask, condition)
+        return self.forward_condition(indices, token_mask, condition, sink_rows=sink_rows)
+
+    def sink_mask_rows(self, t: torch.Tensor) -> torch.Tensor | None:
+        """t (b,) decoding times → (b,) bool rows the sink mask applies to (t >
+        `config.sink_mask_t`), None when the model has no sink mask."""
+        if self.config.sink_mask_t is None:
+            return None
+        return t > self.config.sink_mask_t
+
+
+def without_sentence(encoded: EncodedPrefix, rows: torch.Tensor) -> EncodedPrefix:
+    """The encoded prefix with the sentence key (slot 0) masked out of the motion queries'
+    attention in `rows` (b,) bool (the sink mask); keys and values are shared."""
+    blocks = []
+    for block in encoded.blocks:
+        mask = block.mask.clone()
+        mask[:, 0] &= ~rows
+        blocks.append(PrefixKeys(block.keys, block.values, mask))
+    return EncodedPrefix(blocks=blocks, labels=encoded.labels, text_slots=encoded.text_slots)
+
+
+def mask_ratio_time(target_mask: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
+    """(b,) the decoding time t whose masking ratio γ(t) = cos(πt/2) is each row's share of
+    masked tokens (`mask_tokens`): what the sink mask compares with its threshold."""
+    ratio = target_mask.sum(1).float() / token_mask.sum(1).clamp(min=1).float()
+    return torch.arccos(ratio.clamp(0.0, 1.0)) * (2.0 / math.pi)
 
 
 def mask_tokens(indices: torch.Tensor, token_mask: torch.Tensor, codebook_size: int,

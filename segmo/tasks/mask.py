@@ -26,6 +26,7 @@ from segmo.models.hub import portable_path
 from segmo.models.mask_transformer import (
     MaskTransformer,
     MaskTransformerConfig,
+    mask_ratio_time,
     mask_tokens,
     masked_token_loss,
 )
@@ -119,13 +120,15 @@ class MaskTask(TransformerTask):
         segmenter: SegmenterName = "uniform",
         alignment_dim: int = 512,
         temperature: float | None = None,
+        sink_mask_t: float | None = None,
         **kwargs,
     ) -> None:
         """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
         plain MoMask, without a head); `alignment_dim` the head's width. `temperature` is the
         former name of `alignment_temperature` (configs and checkpoints written before hold
-        it): it is read as that, with a warning. The other arguments (`**kwargs`) are
-        `TransformerTask`'s."""
+        it): it is read as that, with a warning. `sink_mask_t`: MLA-Gen's sink mask
+        (`MaskTransformerConfig.sink_mask_t`), applied to the samples whose mask ratio's t
+        exceeds it. The other arguments (`**kwargs`) are `TransformerTask`'s."""
         super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
         if temperature is not None:  # checkpoints of this run hold the new name only
             alignment_temperature = former_temperature(temperature, alignment_temperature)
@@ -136,7 +139,8 @@ class MaskTask(TransformerTask):
                                                 alignment_weight, segmenter)
             align = AlignmentConfig(out_dim=alignment_dim)
         self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
-                                                           alignment=align))
+                                                           alignment=align,
+                                                           sink_mask_t=sink_mask_t))
 
     # -- one step ----------------------------------------------------------------------------
 
@@ -169,8 +173,9 @@ class MaskTask(TransformerTask):
             drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
         if unordered is None:
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
+        sink_rows = self.model.sink_mask_rows(mask_ratio_time(target, valid))
         out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered,
-                         **word_condition(batch, self.model))
+                         **word_condition(batch, self.model), sink_rows=sink_rows)
         mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
         terms = {"mask_loss": mask_loss,
