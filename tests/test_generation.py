@@ -437,3 +437,35 @@ def test_sink_mask_in_training_masks_the_rows_past_the_threshold():
     assert float(t[0]) == 0.0 and abs(float(t[1]) - 0.8391) < 1e-3
     assert _sink_model(0.2).sink_mask_rows(t).tolist() == [False, True]
     assert _sink_model(None).sink_mask_rows(t) is None
+
+
+def test_local_unconditional_rows_keep_segments_and_drop_the_sentence(models):
+    mask, residual = models
+    condition = guidance_condition(mask, *text(2), unconditional="local")
+    # rows 2, 3: unconditional, the sentence slot off, the segments as the conditional rows'
+    assert condition.mask[2:, 0].tolist() == [False, False]
+    assert torch.equal(condition.mask[2:, 1:], condition.mask[:2, 1:])
+    plain = guidance_condition(mask, *text(2))
+    assert not bool(plain.mask[2:].any())
+    lengths = torch.tensor([48, 32])
+
+    def run(**options):
+        return generate_tokens(mask, residual, *text(2), lengths,
+                               options=SamplingOptions(steps=4, **options),
+                               generator=torch.Generator().manual_seed(3))
+
+    assert run().shape == run(unconditional="local").shape
+    with pytest.raises(Exception, match="unconditional"):
+        SamplingOptions(unconditional="segments")
+
+
+def test_local_uncond_prob_keeps_the_segments_of_dropped_samples():
+    from segmo.tasks.common import TransformerTask
+
+    class Stub:
+        hparams = type("H", (), {"local_uncond_prob": 1.0})()
+
+    drop = torch.tensor([True, False, True])
+    assert TransformerTask.keep_local(Stub(), drop).tolist() == [True, False, True]
+    Stub.hparams.local_uncond_prob = 0.0
+    assert TransformerTask.keep_local(Stub(), drop) is None

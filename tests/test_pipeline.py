@@ -591,13 +591,15 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     out = tmp_path / "b"
     bundle_main(["--tokenizer", str(stages["tokenizer"]), "--mask", str(stages["mask"]),
                  "--guidance", "2.5", "--steps", "6", "--residual-guided-layers", "2",
-                 "--guidance-mode", "sink_ctrl", "--sink-ratio", "0.6", "--out", str(out)])
+                 "--guidance-mode", "sink_ctrl", "--sink-ratio", "0.6", "--unconditional", "local",
+                 "--out", str(out)])
     payload = json.loads((out / "segmo.json").read_text())
     assert payload["guidance_scale"] == 2.5 and not (out / "residual").exists()
     assert payload["steps"] == 6 and payload["residual_guided_layers"] == 2
     loaded = SegMo.from_pretrained(out)
     assert (loaded.sampling.steps, loaded.sampling.residual_guided_layers) == (6, 2)
     assert (loaded.sampling.guidance, loaded.sampling.sink_ratio) == ("sink_ctrl", 0.6)
+    assert loaded.sampling.unconditional == "local"
     assert "6 decoding steps" in (out / "README.md").read_text()
     line = cli_failure(["bundle", "--tokenizer", str(stages["tokenizer"]), "--mask",
                         str(stages["tokenizer"]), "--out", str(tmp_path / "c")], capsys)

@@ -53,16 +53,19 @@ def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Ten
 
 def guidance_condition(model: MaskTransformer | ResidualTransformer, sentence: torch.Tensor,
                        segments: torch.Tensor, segment_mask: torch.Tensor,
-                       words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
-                       ) -> Condition:
+                       words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None,
+                       unconditional: str = "none") -> Condition:
     """The prefix of a 2b-row guidance batch: rows 0..b−1 conditional, b..2b−1 not (their
-    words dropped with the rest). words (b, l, text_dim), word_mask (b, l): the captions'
-    word features, for a model with word keys."""
+    words dropped with the rest; with unconditional "local" they drop the sentence only and
+    keep segments and words, MLA-Gen's unconditional branch). words (b, l, text_dim),
+    word_mask (b, l): the captions' word features, for a model with word keys."""
     b = sentence.shape[0]
     drop = torch.arange(2 * b, device=sentence.device) >= b
     two = (lambda x: None if x is None else torch.cat([x, x]))  # noqa: E731
     extra = {} if model.config.text_tokens == "none" else {
         "words": two(words), "word_mask": two(word_mask)}
+    if unconditional == "local":
+        extra["keep_local"] = drop
     return model.condition(torch.cat([sentence, sentence]), torch.cat([segments, segments]),
                            torch.cat([segment_mask, segment_mask]), drop, **extra)
 
@@ -191,6 +194,8 @@ def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.
     output. (At the first step of a generation every token is masked, and every
     unconditional row of one length is the same.)"""
     b = ids.shape[0] // 2
+    if bool(condition.mask[b:].any()):  # unconditional rows with text in them: not alike
+        return model.forward_condition(ids, token_mask, condition, positions, sink_rows).logits
     key = [ids[b:], token_mask[b:].long()] + ([] if positions is None else [positions[b:]])
     unique, inverse = torch.unique(torch.cat(key, dim=1), dim=0, return_inverse=True)
     if unique.shape[0] == b:
@@ -323,7 +328,8 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
     """
     models = [mask_model] + ([residual_model] if residual_model is not None else [])
     with _inference(models, precision, sentence.device):
-        condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask)
+        condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask,
+                                       options.unconditional)
         ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
         base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
         out = indices.clone()
@@ -331,7 +337,7 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
         if residual_model is None:
             return out
         condition = guidance_condition(residual_model, sentence, segments, segment_mask, words,
-                                       word_mask)
+                                       word_mask, options.unconditional)
         return residual_decode(residual_model, out, editable, token_mask, condition, options,
                                generator)
 

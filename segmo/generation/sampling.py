@@ -16,11 +16,12 @@ import torch
 from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
-__all__ = ["Guidance", "Sampler", "SamplingOptions", "cosine_schedule", "sample_tokens",
+__all__ = ["Guidance", "Sampler", "SamplingOptions", "Unconditional", "cosine_schedule", "sample_tokens",
            "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
 Guidance = Literal["cfg", "sink_ctrl"]
+Unconditional = Literal["none", "local"]
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,10 @@ class SamplingOptions:
         k_eff = ctrl_k_base·(1 + ctrl_alpha·sink_ratio), then u + s·E. ctrl_k_base = 0 is
         plain CFG. Starting values are the paper's (λ 6, k 2, α 0.18, for flow
         velocities); sink_ratio: the model's measured SinkRatio
-        (`tools/attention_report.py`), 0 by default.
+        (`tools/attention_report.py`), 0 by default;
+    unconditional: what the unconditional rows of guidance keep: "none" (no text) or
+        "local" (the segments and words, without the sentence: MLA-Gen's unconditional
+        branch, for models trained with `local_uncond_prob`).
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
@@ -63,6 +67,7 @@ class SamplingOptions:
     ctrl_k_base: float = 2.0
     ctrl_alpha: float = 0.18
     sink_ratio: float = 0.0
+    unconditional: Unconditional = "none"
 
     def __post_init__(self) -> None:
         for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio",
@@ -87,6 +92,9 @@ class SamplingOptions:
         if self.guidance not in get_args(Guidance):
             raise SegmoError(f"SegMo: guidance must be 'cfg' or 'sink_ctrl', got "
                              f"{self.guidance!r}")
+        if self.unconditional not in get_args(Unconditional):
+            raise SegmoError(f"SegMo: unconditional must be 'none' or 'local', got "
+                             f"{self.unconditional!r}")
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

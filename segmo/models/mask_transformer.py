@@ -105,14 +105,15 @@ class MaskTransformer(nn.Module, Pretrained):
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
                   segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
                   unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
-                  word_mask: torch.Tensor | None = None) -> Condition:
+                  word_mask: torch.Tensor | None = None,
+                  keep_local: torch.Tensor | None = None) -> Condition:
         """Prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which does not
         depend on the motion tokens: computed once per generation, reused at every step.
         `unordered` (b,) bool: rows whose segments enter without order; `words`
         (b, l, text_dim), `word_mask` (b, l): the caption's word features, used where
         `config.text_tokens` is "words" (`TextPrefix`)."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered,
-                                words, word_mask)
+                                words, word_mask, keep_local)
         condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask,
                                                       condition.labels)
         return condition
@@ -148,14 +149,16 @@ class MaskTransformer(nn.Module, Pretrained):
                 drop_condition: torch.Tensor | None = None,
                 unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
                 word_mask: torch.Tensor | None = None,
-                sink_rows: torch.Tensor | None = None) -> MaskTransformerOutput:
+                sink_rows: torch.Tensor | None = None,
+                keep_local: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long with masked positions already replaced by `mask_id`;
         token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim) in
         execution order; segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free
         guidance); unordered (b,) bool (segments as a set, as grounding uses them);
-        sink_rows (b,) bool: the sink mask's rows (`sink_mask_rows`)."""
+        sink_rows (b,) bool: the sink mask's rows (`sink_mask_rows`); keep_local (b,) bool:
+        dropped rows that keep their segments and words (`TextPrefix`)."""
         condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered,
-                                   words, word_mask)
+                                   words, word_mask, keep_local)
         return self.forward_condition(indices, token_mask, condition, sink_rows=sink_rows)
 
     def sink_mask_rows(self, t: torch.Tensor) -> torch.Tensor | None:

@@ -84,13 +84,13 @@ class ResidualTransformer(nn.Module, Pretrained):
 
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
                   segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
-                  words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
-                  ) -> Condition:
+                  words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None,
+                  keep_local: torch.Tensor | None = None) -> Condition:
         """Text prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which depends
         on neither the motion nor the layer: computed once for all residual passes. `words`
         and `word_mask`: as in `MaskTransformer.condition`."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, None,
-                                words, word_mask)
+                                words, word_mask, keep_local)
         condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask,
                                                       condition.labels)
         return condition
@@ -146,13 +146,13 @@ class ResidualTransformer(nn.Module, Pretrained):
     def forward(self, indices: torch.Tensor, layer: torch.Tensor | int,
                 token_mask: torch.Tensor, sentence: torch.Tensor, segments: torch.Tensor,
                 segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
-                words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None
-                ) -> ResidualTransformerOutput:
+                words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None,
+                keep_local: torch.Tensor | None = None) -> ResidualTransformerOutput:
         """indices (b, n, q) codes (layers ≥ layer are ignored), layer (b,) long or int in
         1..q−1, token_mask (b, n), sentence (b, text_dim), segments (b, a, text_dim),
         segment_mask (b, a), drop_condition (b,) bool → logits of layer `layer`."""
         condition = self.condition(sentence, segments, segment_mask, drop_condition, words,
-                                   word_mask)
+                                   word_mask, keep_local)
         return self.forward_embedded(self.embed(indices, layer), layer, token_mask, condition)
 
     def _layer_tensor(self, layer: torch.Tensor | int, b: int, device) -> torch.Tensor:

@@ -269,13 +269,16 @@ class TextPrefix(nn.Module):
         unordered: torch.Tensor | None = None,
         words: torch.Tensor | None = None,
         word_mask: torch.Tensor | None = None,
+        keep_local: torch.Tensor | None = None,
     ) -> Condition:
         """sentence (b, text_dim), segments (b, a, text_dim) in execution order,
         segment_mask (b, a) bool, drop_condition (b,) bool or None, unordered (b,) bool or
         None: rows whose segments enter as a set, without order embeddings; words
         (b, l, text_dim) and word_mask (b, l) bool: the caption's word features (a model
-        with word keys needs them, one without ignores them) → Condition with p = 1 + a
-        (+ l)."""
+        with word keys needs them, one without ignores them); keep_local (b,) bool: rows of
+        `drop_condition` that keep their local condition (segments, words) and drop the
+        sentence only (MLA-Gen's unconditional branch with local features) → Condition with
+        p = 1 + a (+ l)."""
         b, a = segment_mask.shape
         if sentence.dim() != 2 or segments.shape[:2] != (b, a) or sentence.shape[0] != b:
             raise ValueError(
@@ -295,8 +298,13 @@ class TextPrefix(nn.Module):
         if unordered is not None:
             order = order * ~unordered.bool()[:, None, None]
         slots = torch.cat([self.types[:1].expand(b, 1, -1), self.types[1:] + order], dim=1)
+        dropped = None
         if drop_condition is not None:
-            valid = valid & ~drop_condition.bool()[:, None]
+            dropped = drop_condition.bool()[:, None].expand(b, 1 + a)
+            if keep_local is not None:  # those rows drop the sentence slot only
+                dropped = dropped & (~keep_local.bool()[:, None]
+                                     | (torch.arange(1 + a, device=dropped.device) == 0))
+            valid = valid & ~dropped
         tokens = (content + slots).masked_fill(~valid[..., None], 0.0)
         if self.text_tokens == "none":
             return Condition(tokens=tokens, mask=valid, content=content, labels=prefix_labels(a))
@@ -312,7 +320,10 @@ class TextPrefix(nn.Module):
         word_valid = word_mask.bool()
         word_content = self.project(words.masked_fill(~word_valid[..., None], 0.0).to(sentence.dtype))
         if drop_condition is not None:
-            word_valid = word_valid & ~drop_condition.bool()[:, None]
+            drop_words = drop_condition.bool()
+            if keep_local is not None:
+                drop_words = drop_words & ~keep_local.bool()
+            word_valid = word_valid & ~drop_words[:, None]
         word_tokens = (word_content + self.word_type + self.word_position[:l]).masked_fill(
             ~word_valid[..., None], 0.0)
         return Condition(tokens=torch.cat([tokens, word_tokens], dim=1),

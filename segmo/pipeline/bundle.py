@@ -57,6 +57,7 @@ class SegMoConfig:
     ctrl_k_base: float = SamplingOptions.ctrl_k_base
     ctrl_alpha: float = SamplingOptions.ctrl_alpha
     sink_ratio: float = SamplingOptions.sink_ratio
+    unconditional: str = SamplingOptions.unconditional
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -64,7 +65,7 @@ class SegMoConfig:
 
 SAMPLING_FIELDS: tuple[str, ...] = (
     "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
-    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio")
+    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional")
 
 
 def sampling_fields(config: SegMoConfig) -> dict:

@@ -339,6 +339,9 @@ def bundle_main(argv: list[str] | None = None) -> None:
                              "(default: all)")
     parser.add_argument("--guidance-mode", choices=("cfg", "sink_ctrl"), default=None,
                         help="default base-token guidance (default cfg)")
+    parser.add_argument("--unconditional", choices=("none", "local"), default=None,
+                        help="what guidance's unconditional rows keep: none, or local (segments "
+                             "and words; models trained with local_uncond_prob)")
     parser.add_argument("--sink-ratio", type=finite_float, default=None,
                         help="the mask transformer's measured SinkRatio, for sink_ctrl "
                              "(tools/attention_report.py; default 0)")
@@ -376,5 +379,7 @@ def bundle_main(argv: list[str] | None = None) -> None:
         model.config.guidance = args.guidance_mode
     if args.sink_ratio is not None:
         model.config.sink_ratio = args.sink_ratio
+    if args.unconditional is not None:
+        model.config.unconditional = args.unconditional
     print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
                                 repo_id=args.push_to_hub))

@@ -37,6 +37,9 @@ class TransformerTask(Task):
     (`segmo.training.cli`).
 
     ``memory_slots``: MLA-Gen's learned memory slots, attended by every block (0 = none).
+    ``local_uncond_prob``: the share of condition-dropped samples that keep their segments
+    (and words) and drop the sentence only, so that guidance can keep the local condition
+    in its unconditional branch (`SamplingOptions.unconditional`, MLA-Gen).
 
     ``motion_tokens``: "cached" (default) encodes every crop the data can draw once, at
     `setup`, into ``DATA/motion_tokens/<key>/`` (`segmo.data.motion_tokens`; built or
@@ -62,6 +65,7 @@ class TransformerTask(Task):
         text_tokens: Literal["none", "words"] = "none",
         max_words: int = _DEFAULT.max_words,
         memory_slots: int = _DEFAULT.memory_slots,
+        local_uncond_prob: float = 0.0,
         lr: float = 2e-4,
         weight_decay: float = 1e-5,
         warmup_steps: int = 2000,
@@ -71,6 +75,13 @@ class TransformerTask(Task):
         super().__init__()
         self.save_hyperparameters()
         self.tokenizer = load_tokenizer(tokenizer)
+
+    def keep_local(self, drop: Tensor) -> Tensor | None:
+        """(b,) bool: the dropped samples that keep their local condition
+        (`local_uncond_prob`), None when the share is 0."""
+        if not self.hparams.local_uncond_prob:
+            return None
+        return drop & (torch.rand(drop.shape, device=drop.device) < self.hparams.local_uncond_prob)
 
     def transformer_config(self) -> dict:
         """The `TransformerConfig` fields: the task's arguments, the tokenizer's codebook size."""

@@ -175,7 +175,8 @@ class MaskTask(TransformerTask):
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
         sink_rows = self.model.sink_mask_rows(mask_ratio_time(target, valid))
         out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered,
-                         **word_condition(batch, self.model), sink_rows=sink_rows)
+                         **word_condition(batch, self.model), sink_rows=sink_rows,
+                         keep_local=self.keep_local(drop))
         mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
         terms = {"mask_loss": mask_loss,

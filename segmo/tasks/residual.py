@@ -52,7 +52,7 @@ class ResidualTask(TransformerTask):
         if drop is None:
             drop = torch.rand(b, device=indices.device) < self.hparams.cond_drop_prob
         out = self.model(indices, layer, valid, sentence, segments, segment_mask, drop,
-                         **word_condition(batch, self.model))
+                         **word_condition(batch, self.model), keep_local=self.keep_local(drop))
         target = indices.gather(2, layer[:, None, None].expand(b, n, 1))[..., 0]
         loss = masked_token_loss(out.logits, target, valid)
         correct = (out.logits.argmax(-1) == target) & valid
