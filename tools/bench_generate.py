@@ -21,10 +21,12 @@ AVX-512), in torch's reference kernels: several times slower than fp32.
 
 Measured after one warm-up, over `--repeats` runs, median:
 - ms_per_motion: generation (+ decoding when a tokenizer is present) / batch size;
-- floor: the bare transformer passes generation needs (steps mask passes, each computed at
+- floor: the bare transformer passes of plain decoding (steps mask passes, each computed at
   the positions generation samples in it, + q−1 residual passes, each on the 2b guidance
   batch, same precision, no sampling), timed in the same run, interleaved with the
-  generation runs so that machine load affects both alike;
+  generation runs so that machine load affects both alike; generation skips some of
+  them exactly (a repeated step, identical unconditional rows; `masked_decode`), so its
+  floor_ratio can fall below 1;
 - floor_ratio = token-generation time / floor time; peak RSS of the process;
 - matmul_gmacs_before_after: the machine's matmul speed just before and after the timed
   runs (`gemm_gmacs`); on a shared host it drifts, and every figure above drifts with it;
