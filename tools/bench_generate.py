@@ -87,8 +87,8 @@ RANDOM_CONFIGS = {
 }
 
 
-def random_models(name: str, seed: int):
-    spec = dict(RANDOM_CONFIGS[name])
+def random_models(name: str, seed: int, memory_slots: int = 0):
+    spec = dict(RANDOM_CONFIGS[name], memory_slots=memory_slots)
     feature_dim, tokenizer_spec = spec.pop("feature_dim"), spec.pop("tokenizer")
     num_quantizers = spec.pop("num_quantizers")
     torch.manual_seed(seed)
@@ -229,6 +229,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=SamplingOptions.steps)
     parser.add_argument("--residual-guided-layers", type=int, default=None,
                         help="guided residual layers, from the first (default: all)")
+    parser.add_argument("--guidance", choices=("cfg", "sink_ctrl"), default="cfg",
+                        help="base-token guidance (SamplingOptions.guidance)")
+    parser.add_argument("--memory-slots", type=int, default=0,
+                        help="--random-config models with this many memory slots")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
@@ -250,7 +254,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.model is not None:
         mask, residual, tokenizer = directory_models(args.model)
     else:
-        mask, residual, tokenizer = random_models(args.random_config, args.seed)
+        mask, residual, tokenizer = random_models(args.random_config, args.seed, args.memory_slots)
     for model in (mask, residual, tokenizer):
         if model is not None:
             model.eval()
@@ -263,7 +267,8 @@ def main(argv: list[str] | None = None) -> None:
         return generate_tokens(mask, residual, *text, lengths,
                                options=SamplingOptions(
                                    steps=args.steps,
-                                   residual_guided_layers=args.residual_guided_layers),
+                                   residual_guided_layers=args.residual_guided_layers,
+                                   guidance=args.guidance),
                                generator=torch.Generator().manual_seed(seed), precision=precision)
 
     if args.compare_precision:
@@ -342,6 +347,7 @@ def main(argv: list[str] | None = None) -> None:
         "peak_rss_mb": round(peak_rss_mb, 1),
         "batch": b, **host, "threads": args.threads,
         "steps": args.steps, "residual_guided_layers": args.residual_guided_layers,
+        "guidance": args.guidance, "memory_slots": args.memory_slots,
         "repeats": args.repeats, "load_average": round(load, 2),
         "allocator_tuned": allocator_tuned,
         "matmul_gmacs_before_after": [round(x) for x in gmacs],
