@@ -73,6 +73,20 @@ def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
     return formats
 
 
+def _output_arguments(parser: argparse.ArgumentParser) -> None:
+    """--precision, --out, --formats, --bvh-fps and --no-foot-lock of the commands that
+    write motions (generate, edit, compose)."""
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                        help="auto: bf16 on CPUs with native bf16 (AVX512-BF16, AMX), else fp32")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--formats", default=",".join(FORMATS),
+                        help=f"comma-separated subset of {','.join(FORMATS)}")
+    parser.add_argument("--bvh-fps", type=positive_float, default=None,
+                        help="frame rate of the BVH files (default the motion's, 20 for t2m)")
+    parser.add_argument("--no-foot-lock", action="store_true",
+                        help="BVH: do not hold the feet still while they touch the ground")
+
+
 def generate_main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="segmo generate",
                                      description="generate motions from text with a SegMo bundle")
@@ -98,16 +112,8 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--temperature", type=finite_float, default=None,
                         help=f"sampling temperature, 0 = greedy (default "
                              f"{SamplingOptions.temperature:g})")
-    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                        help="auto: bf16 on CPUs with native bf16 (AVX512-BF16, AMX), else fp32")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--formats", default=",".join(FORMATS),
-                        help=f"comma-separated subset of {','.join(FORMATS)}")
-    parser.add_argument("--bvh-fps", type=positive_float, default=None,
-                        help="frame rate of the BVH files (default the motion's, 20 for t2m)")
-    parser.add_argument("--no-foot-lock", action="store_true",
-                        help="BVH: do not hold the feet still while they touch the ground")
+    _output_arguments(parser)
     args = parser.parse_args(argv)
     formats = _formats(parser, args.formats)
     lengths = args.length
@@ -175,10 +181,7 @@ def edit_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--length", type=positive_int, default=None,
                         help="frames (multiple of 4); default: sampled by the length estimator")
     parser.add_argument("--seed", type=non_negative_int, default=0)
-    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--formats", default=",".join(FORMATS),
-                        help=f"comma-separated subset of {','.join(FORMATS)}")
+    _output_arguments(parser)
     args = parser.parse_args(argv)
     formats = _formats(parser, args.formats)
     if args.mode == "reweight" and not args.weight:
@@ -199,7 +202,8 @@ def edit_main(argv: list[str] | None = None) -> None:
                           inject_until=args.inject_until, keep_outside=args.keep_outside,
                           precision=args.precision)
     for prefix, motion in (("source", source), ("edit", out)):
-        for path in motion.save(args.out, formats, prefix=prefix, progress=True):
+        for path in motion.save(args.out, formats, prefix=prefix, bvh_fps=args.bvh_fps,
+                                foot_lock=not args.no_foot_lock, progress=True):
             print(path)
 
 
@@ -216,14 +220,7 @@ def compose_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--transition", type=positive_int, default=COMPOSE_TRANSITION,
                         help=f"frames drawn between two parts (default {COMPOSE_TRANSITION})")
     parser.add_argument("--seed", type=non_negative_int, default=0)
-    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--formats", default=",".join(FORMATS),
-                        help=f"comma-separated subset of {','.join(FORMATS)}")
-    parser.add_argument("--bvh-fps", type=positive_float, default=None,
-                        help="frame rate of the BVH file (default the motion's)")
-    parser.add_argument("--no-foot-lock", action="store_true",
-                        help="BVH: do not hold the feet still while they touch the ground")
+    _output_arguments(parser)
     args = parser.parse_args(argv)
     formats = _formats(parser, args.formats)
     if len(args.length) != len(args.text):
@@ -367,19 +364,13 @@ def bundle_main(argv: list[str] | None = None) -> None:
         parser.error(f"--segmenter {args.segmenter!r}: choose rule, openai or transformers")
     model = SegMo.from_stages(args.tokenizer, args.mask, args.residual, args.length,
                               segmenter=args.segmenter)
-    if args.guidance is not None:
-        model.config.guidance_scale = args.guidance
-    if args.residual_guidance is not None:
-        model.config.residual_guidance_scale = args.residual_guidance
-    if args.steps is not None:
-        model.config.steps = args.steps
-    if args.residual_guided_layers is not None:
-        model.config.residual_guided_layers = args.residual_guided_layers
-    if args.guidance_mode is not None:
-        model.config.guidance = args.guidance_mode
-    if args.sink_ratio is not None:
-        model.config.sink_ratio = args.sink_ratio
-    if args.unconditional is not None:
-        model.config.unconditional = args.unconditional
+    # The sampling defaults the bundle records: SegMoConfig field ← argument.
+    for field, argument in (("guidance_scale", "guidance"),
+                            ("residual_guidance_scale", "residual_guidance"), ("steps", "steps"),
+                            ("residual_guided_layers", "residual_guided_layers"),
+                            ("guidance", "guidance_mode"), ("sink_ratio", "sink_ratio"),
+                            ("unconditional", "unconditional")):
+        if getattr(args, argument) is not None:
+            setattr(model.config, field, getattr(args, argument))
     print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
                                 repo_id=args.push_to_hub))
