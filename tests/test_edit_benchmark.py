@@ -29,7 +29,8 @@ def test_edit_benchmark_writes_its_tables(tmp_path, tokenizer_dir):
                          "--action-classifier", str(tmp_path / "classifier"), "--edits", "3",
                          "--reweights", "2", "--compositions", "1", "--out", str(tmp_path / "out")])
     result = json.loads((tmp_path / "out" / "edits.json").read_text())
-    assert set(result["swap"]) == {"attention swap", "regenerate", "span edit"}
+    assert set(result["swap"]) == {"attention swap", "attention swap, keep outside",
+                                   "regenerate", "span edit"}
     for scores in result["swap"].values():
         assert all(0.0 <= v <= 1.0 for v in scores.values())
     assert set(result["reweight"]) == {"-1", "0", "0.5", "1", "2", "4"}

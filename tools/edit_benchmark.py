@@ -14,7 +14,10 @@ motion's span of that segment. Scored with the corpus' frame-wise action classif
   motion's spans, a proxy for the generated one's) is the target action, and over each
   other segment's span its own action;
 - still: the share of frames outside the changed segment's span whose joints move by
-  less than 2 cm (mean over joints) from the source.
+  less than 2 cm (mean over joints) from the source; still_pose the same for the pose
+  alone (joints relative to the root), which a changed trajectory earlier on cannot move.
+A fourth row is the attention swap with `keep_outside` (tokens outside the attended span
+kept).
 reweight: for `--reweights` captions, segment k's attention times c ∈ {−1, 0, 0.5, 1, 2, 4};
 the frames classified as its action, per c (mean), and the share of captions where that
 count does not decrease with c.
@@ -84,6 +87,9 @@ def swap_scores(classifier, out, source_joints, item, k, target_actions) -> dict
     part = parts == target_actions
     joints = out.joints[0, : item["frames"]].numpy()
     moved = np.linalg.norm(joints - source_joints, axis=-1).mean(axis=1) * 100
+    # The pose alone: each frame's joints relative to its root joint.
+    local = np.linalg.norm((joints - joints[:, :1]) - (source_joints - source_joints[:, :1]),
+                           axis=-1).mean(axis=1) * 100
     a, b = item["spans"][k]
     outside = np.ones(item["frames"], bool)
     outside[a:b] = False
@@ -91,7 +97,8 @@ def swap_scores(classifier, out, source_joints, item, k, target_actions) -> dict
             "target_part": float(parts[k] == target_actions[k]),
             "others_kept": float(all(p == t for i, (p, t) in enumerate(zip(parts, target_actions))
                                      if i != k)),
-            "still": float((moved[outside] < STILL_CM).mean())}
+            "still": float((moved[outside] < STILL_CM).mean()),
+            "still_pose": float((local[outside] < STILL_CM).mean())}
 
 
 def mean_interval(values: list[float]) -> tuple[float, float]:
@@ -136,7 +143,8 @@ def main(argv: list[str] | None = None) -> None:
     started = time.perf_counter()
 
     if "swap" not in skip:
-        scores: dict[str, list[dict]] = {"attention swap": [], "regenerate": [], "span edit": []}
+        scores: dict[str, list[dict]] = {"attention swap": [], "attention swap, keep outside": [],
+                                         "regenerate": [], "span edit": []}
         for e in range(args.edits):
             item = items[e % len(items)]
             k = rng.randrange(len(item["texts"]))
@@ -152,6 +160,9 @@ def main(argv: list[str] | None = None) -> None:
             made = {
                 "attention swap": model.edit_text(source, joined(targets), "swap",
                                                   target_segments=[targets], **inject),
+                "attention swap, keep outside": model.edit_text(
+                    source, joined(targets), "swap", target_segments=[targets],
+                    keep_outside=True, **inject),
                 "regenerate": model.edit_text(source, joined(targets), "swap",
                                               target_segments=[targets], inject_until=0.0),
                 "span edit": model.edit(source, item["spans"][k], joined(targets), segments=targets,
@@ -165,11 +176,13 @@ def main(argv: list[str] | None = None) -> None:
         table = {}
         lines += [f"## Swap one segment's action ({args.edits} edits)", "",
                   "| method | sequence | target in its part | others kept | parts all right | "
-                  f"frames outside moving < {STILL_CM:g} cm |", "| --- | --- | --- | --- | --- | --- |"]
+                  f"frames outside moving < {STILL_CM:g} cm | poses outside moving < {STILL_CM:g} cm |",
+                  "| --- | --- | --- | --- | --- | --- | --- |"]
         for name, rows in scores.items():
             table[name] = {key: mean_interval([r[key] for r in rows]) for key in rows[0]}
             cells = " | ".join(f"{table[name][key][0]:.3f} ± {table[name][key][1]:.3f}"
-                               for key in ("sequence", "target_part", "others_kept", "part", "still"))
+                               for key in ("sequence", "target_part", "others_kept", "part", "still",
+                                           "still_pose"))
             lines.append(f"| {name} | {cells} |")
         result["swap"] = {name: {key: round(v[0], 4) for key, v in t.items()}
                           for name, t in table.items()}
