@@ -4,6 +4,7 @@ wall-clock budget whose step caps end each stage first, then resumed with the sm
 from __future__ import annotations
 
 import argparse
+import json
 
 import pytest
 
@@ -26,6 +27,8 @@ def test_demo_runs_every_step_on_a_time_budget_and_resumes(tmp_path, capsys):
     assert limits == sorted(limits) and limits[-1] < 900
     assert printed.count("trained 2 steps") == 3
     assert (out / "model" / "segmo.json").is_file()
+    bundle = json.loads((out / "model" / "segmo.json").read_text())
+    assert (bundle["steps"], bundle["residual_guided_layers"]) == (4, 2)  # the measured defaults
     assert len(list((out / "samples").glob("*.gif"))) == 4
     assert (out / "grounding.png").stat().st_size > 0
     # A second run resumes: nothing is trained again.
