@@ -47,9 +47,9 @@ def test_generation_macs_counts_what_the_floor_passes_compute(monkeypatch):
     sampled = []  # the positions generation itself asks for, pass by pass
     original = MaskTransformer.forward_condition
 
-    def recording(self, indices, token_mask, condition, positions=None):
+    def recording(self, indices, token_mask, condition, positions=None, sink_rows=None):
         sampled.append(n if positions is None else positions.shape[1])
-        return original(self, indices, token_mask, condition, positions)
+        return original(self, indices, token_mask, condition, positions, sink_rows)
 
     monkeypatch.setattr(MaskTransformer, "forward_condition", recording)
     tool.generate_tokens(mask, residual, *text, torch.full((b,), 4 * n),

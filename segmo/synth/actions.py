@@ -395,7 +395,7 @@ ACTIONS: dict[str, ActionSpec] = {a.name: a for a in [
 # short actions are quicker ("tempo": performed that many times faster than version 1's
 # timing, see `_retime`; jumps spend less time on the ground). The actions not listed
 # sample as in version 1 (`ActionSpec.sample`), whose parameters stay as they were so
-# that version 1 corpora are reproduced byte for byte.
+# that version 1 corpora are reproduced (byte for byte on one kind of CPU).
 SAMPLE_V2: dict[str, Callable[[np.random.Generator], dict]] = {
     # long: a few seconds to many
     "walk_forward": lambda r: {"speed": _r(r.uniform(1.0, 1.8)), "steps": int(r.integers(6, 21))},
