@@ -359,3 +359,24 @@ def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_enc
     assert tool.main(["--model", str(setup["segmo"]), "--data", str(plain), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(plain) in err[0] and "ground truth" in err[0]
+
+
+def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_text_encoder) -> None:
+    """--ctrl-k-base and --unconditional replace the bundle's values and keep its others;
+    without them the bundle's sampling is used as it is."""
+    import numpy as np
+
+    from segmo.evaluation.cli import Generator
+    from segmo.evaluation.sections import EvaluateConfig
+
+    model = SegMo.from_pretrained(setup["segmo"])
+    seen = []
+    real = model.generate
+    model.generate = lambda *a, **k: seen.append(k.get("sampling")) or real(*a, **k)
+    mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
+    for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local"}):
+        cfg = EvaluateConfig(data="", evaluator="", out="", progress=False, **given)
+        Generator(model, cfg, mean, std)(["a person walks forward"], torch.tensor([8]), seed=0)
+    assert seen[0] is None
+    assert (seen[1].ctrl_k_base, seen[1].unconditional) == (0.25, "local")
+    assert seen[1].guidance_scale == model.sampling.guidance_scale

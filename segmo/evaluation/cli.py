@@ -35,6 +35,7 @@ import argparse
 import json
 import sys
 import time
+import dataclasses
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -109,8 +110,13 @@ class Generator:
         start = time.perf_counter()
         segments = ([self.segments_of.get(c, [c]) for c in captions] if self.segments_of else None)
         device = getattr(self.model, "device", torch.device(self.cfg.device))
+        sampling = None  # the bundle's, but for the options only a SamplingOptions carries
+        given = {name: getattr(self.cfg, name) for name in ("ctrl_k_base", "unconditional")
+                 if getattr(self.cfg, name) is not None}
+        if given:
+            sampling = dataclasses.replace(self.model.sampling, **given)
         out = self.model.generate(list(captions), [int(x) for x in lengths], segments=segments,
-                                  steps=self.cfg.steps, precision=self.cfg.precision,
+                                  sampling=sampling, steps=self.cfg.steps, precision=self.cfg.precision,
                                   residual_guided_layers=self.cfg.residual_guided_layers,
                                   guidance=self.cfg.guidance_mode,
                                   guidance_scale=self.cfg.guidance_scale,
@@ -393,6 +399,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
                    help="how many residual layers, from the first, are guided (default: the "
                         "bundle's, all unless it says otherwise)")
+    p.add_argument("--ctrl-k-base", type=finite_float, default=None,
+                   help="sink_ctrl's correction strength k_base, in logits (default: the "
+                        "bundle's; 0 = plain CFG)")
+    p.add_argument("--unconditional", choices=("none", "local"), default=None,
+                   help="what guidance's unconditional rows keep (default: the bundle's)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

@@ -78,6 +78,8 @@ class EvaluateConfig:
     residual_guided_layers: int | None = None  # None: the bundle's
     guidance_mode: str | None = None  # "cfg" | "sink_ctrl"; None: the bundle's
     guidance_scale: float | None = None  # None: the bundle's
+    ctrl_k_base: float | None = None  # sink_ctrl's correction strength; None: the bundle's
+    unconditional: str | None = None  # "none" | "local"; None: the bundle's
     grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True

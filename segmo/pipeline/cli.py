@@ -342,6 +342,10 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sink-ratio", type=finite_float, default=None,
                         help="the mask transformer's measured SinkRatio, for sink_ctrl "
                              "(tools/attention_report.py; default 0)")
+    for name in ("ctrl_lambda", "ctrl_k_base", "ctrl_alpha"):
+        parser.add_argument("--" + name.replace("_", "-"), type=finite_float, default=None,
+                            help=f"sink_ctrl's {name[5:]} (default "
+                                 f"{getattr(SamplingOptions, name):g}, MLA-Gen's)")
     parser.add_argument("--metrics", default=None,
                         help="metrics.json of `segmo evaluate` (or its folder) for the model card")
     parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
@@ -369,7 +373,8 @@ def bundle_main(argv: list[str] | None = None) -> None:
                             ("residual_guidance_scale", "residual_guidance"), ("steps", "steps"),
                             ("residual_guided_layers", "residual_guided_layers"),
                             ("guidance", "guidance_mode"), ("sink_ratio", "sink_ratio"),
-                            ("unconditional", "unconditional")):
+                            ("unconditional", "unconditional"), ("ctrl_lambda", "ctrl_lambda"),
+                            ("ctrl_k_base", "ctrl_k_base"), ("ctrl_alpha", "ctrl_alpha")):
         if getattr(args, argument) is not None:
             setattr(model.config, field, getattr(args, argument))
     print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
