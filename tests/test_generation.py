@@ -455,6 +455,23 @@ def test_local_unconditional_rows_keep_segments_and_drop_the_sentence(models):
                                generator=torch.Generator().manual_seed(3))
 
     assert run().shape == run(unconditional="local").shape
+
+
+def test_local_unconditional_is_the_base_tokens_option_only(models, monkeypatch):
+    """The residual transformer, trained without local-unconditional rows, gets
+    unconditional rows without text whatever `unconditional` says."""
+    import segmo.generation.generate as generate
+
+    mask, residual = models
+    seen = []
+    real = generate.residual_decode
+    monkeypatch.setattr(generate, "residual_decode",
+                        lambda model, out, editable, token_mask, condition, *a: seen.append(condition)
+                        or real(model, out, editable, token_mask, condition, *a))
+    generate_tokens(mask, residual, *text(2), torch.tensor([48, 32]),
+                    options=SamplingOptions(steps=2, unconditional="local"),
+                    generator=torch.Generator().manual_seed(3))
+    assert len(seen) == 1 and not bool(seen[0].mask[2:].any()) and bool(seen[0].mask[:2].any())
     with pytest.raises(Exception, match="unconditional"):
         SamplingOptions(unconditional="segments")
 

@@ -336,8 +336,10 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
         out[..., 0] = torch.where(token_mask, base, -1)
         if residual_model is None:
             return out
+        # The residual transformer's unconditional rows drop all text: `unconditional` is an
+        # option of the base tokens' guidance, whose model is the one trained for it.
         condition = guidance_condition(residual_model, sentence, segments, segment_mask, words,
-                                       word_mask, options.unconditional)
+                                       word_mask)
         return residual_decode(residual_model, out, editable, token_mask, condition, options,
                                generator)
 

@@ -45,9 +45,10 @@ class SamplingOptions:
         plain CFG. Starting values are the paper's (λ 6, k 2, α 0.18, for flow
         velocities); sink_ratio: the model's measured SinkRatio
         (`tools/attention_report.py`), 0 by default;
-    unconditional: what the unconditional rows of guidance keep: "none" (no text) or
-        "local" (the segments and words, without the sentence: MLA-Gen's unconditional
-        branch, for models trained with `local_uncond_prob`).
+    unconditional: what the unconditional rows of the base tokens' guidance keep: "none"
+        (no text) or "local" (the segments and words, without the sentence: MLA-Gen's
+        unconditional branch, for mask transformers trained with `local_uncond_prob`); the
+        residual layers' unconditional rows keep no text either way.
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
