@@ -35,8 +35,7 @@ import argparse
 import json
 import sys
 import time
-import dataclasses
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +93,10 @@ class Generator:
                  segments_of: dict[str, list[str]] | None = None) -> None:
         self.model, self.cfg, self.segments_of = model, cfg, segments_of
         self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
+        # The bundle's sampling (None), but for the options only a SamplingOptions carries.
+        given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional")
+                 if getattr(cfg, name) is not None}
+        self.sampling = replace(model.sampling, **given) if given else None
         self.motions = 0
         self.seconds = 0.0
         self.bar: Any = None
@@ -110,13 +113,8 @@ class Generator:
         start = time.perf_counter()
         segments = ([self.segments_of.get(c, [c]) for c in captions] if self.segments_of else None)
         device = getattr(self.model, "device", torch.device(self.cfg.device))
-        sampling = None  # the bundle's, but for the options only a SamplingOptions carries
-        given = {name: getattr(self.cfg, name) for name in ("ctrl_k_base", "unconditional")
-                 if getattr(self.cfg, name) is not None}
-        if given:
-            sampling = dataclasses.replace(self.model.sampling, **given)
         out = self.model.generate(list(captions), [int(x) for x in lengths], segments=segments,
-                                  sampling=sampling, steps=self.cfg.steps, precision=self.cfg.precision,
+                                  sampling=self.sampling, steps=self.cfg.steps, precision=self.cfg.precision,
                                   residual_guided_layers=self.cfg.residual_guided_layers,
                                   guidance=self.cfg.guidance_mode,
                                   guidance_scale=self.cfg.guidance_scale,
