@@ -94,3 +94,35 @@ def test_bench_says_which_precision_it_chose_and_why(monkeypatch, capsys, simula
     assert result["precision_reason"] == why and result["cpu"] == cpu.describe()
     if simulated:
         assert expected == "fp32" and "no bf16 path in oneDNN" in why
+
+
+def test_paired_ratios_cancel_drift_that_hits_both_alike():
+    """A variant 10 % slower than the baseline in every round reads 1.10 with an interval
+    around it, however much the host drifts between rounds."""
+    tool = _load_tool()
+    drift = [1.0, 3.0, 0.5, 2.0, 1.5]
+    times = {"cfg": [d for d in drift], "slow": [1.1 * d for d in drift],
+             "noisy": [d * f for d, f in zip(drift, [0.9, 1.1, 1.0, 0.95, 1.05])]}
+    ratios = tool.paired_ratios(times)
+    assert ratios["slow"]["median_ratio"] == pytest.approx(1.1)
+    low, high = ratios["slow"]["ratio_interval_95"]
+    assert low == pytest.approx(1.1, abs=1e-3) and high == pytest.approx(1.1, abs=1e-3)
+    low, high = ratios["noisy"]["ratio_interval_95"]
+    assert low < 1.0 < high and ratios["noisy"]["rounds"] == 5
+
+
+def test_versus_times_each_mechanism_against_plain_cfg(capsys):
+    """`--versus` runs plain CFG and each named mechanism in turns and reports one paired
+    ratio per mechanism; an unknown name is refused naming the choices."""
+    import json
+
+    tool = _load_tool()
+    tool.main(["--random-config", "tiny", "--versus", "sink_ctrl,memory16", "--repeats", "2",
+               "--threads", "1"])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(result["versus_cfg"]) == {"sink_ctrl", "memory16"}
+    assert set(result["cpu_ms_per_motion"]) == {"cfg", "sink_ctrl", "memory16"}
+    assert all(r["rounds"] == 2 and r["median_ratio"] > 0 for r in result["versus_cfg"].values())
+    with pytest.raises(SystemExit):
+        tool.main(["--random-config", "tiny", "--versus", "sink_ctl"])
+    assert "sink_ctrl" in capsys.readouterr().err

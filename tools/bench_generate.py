@@ -43,6 +43,13 @@ Measured after one warm-up, over `--repeats` runs, median:
 - *_cpu_*: process CPU time. On a shared machine, multi-threaded wall times swing wildly
   (OpenMP threads wait for descheduled peers); `--threads 1` CPU times stay stable.
 The last printed line is JSON.
+
+`--versus sink_ctrl,memory16,...` (with --random-config) measures what a mechanism costs
+instead: plain CFG and each named variant (`VERSUS`) generate in turns in one process,
+--repeats rounds, the order rotated every round; each variant's cost is the ratio of its
+process CPU time to the baseline's in the same round (paired, so that the host's drift
+cancels), reported as the median ratio with a 95 % interval (t over the rounds' log
+ratios). A variant "costs at most 5 %" when the interval's upper end is at most 1.05.
 """
 
 from __future__ import annotations
@@ -50,6 +57,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
 import os
 import resource
 import statistics
@@ -87,12 +95,21 @@ RANDOM_CONFIGS = {
 }
 
 
-def random_models(name: str, seed: int, memory_slots: int = 0):
+# --versus: mechanism -> (mask model overrides, SamplingOptions overrides), against plain CFG.
+VERSUS: dict[str, tuple[dict, dict]] = {
+    "sink_ctrl": ({}, {"guidance": "sink_ctrl", "ctrl_k_base": 0.5, "sink_ratio": 0.5}),
+    "memory16": ({"memory_slots": 16}, {}),
+    "sink_mask": ({"sink_mask_t": 0.2}, {}),
+    "local_uncond": ({}, {"unconditional": "local"}),
+}
+
+
+def random_models(name: str, seed: int, memory_slots: int = 0, **mask_overrides):
     spec = dict(RANDOM_CONFIGS[name], memory_slots=memory_slots)
     feature_dim, tokenizer_spec = spec.pop("feature_dim"), spec.pop("tokenizer")
     num_quantizers = spec.pop("num_quantizers")
     torch.manual_seed(seed)
-    mask = use_cpu_kernels(MaskTransformer(MaskTransformerConfig(**spec)))
+    mask = use_cpu_kernels(MaskTransformer(MaskTransformerConfig(**spec, **mask_overrides)))
     residual = use_cpu_kernels(
         ResidualTransformer(ResidualTransformerConfig(**spec, num_quantizers=num_quantizers)))
     try:
@@ -212,6 +229,56 @@ def gemm_gmacs(precision: str, dim: int = 384, tokens: int = 49, repeats: int = 
     return 64 * tokens * dim * 3 * dim / seconds / 1e9
 
 
+def paired_ratios(times: dict[str, list[float]], baseline: str = "cfg") -> dict[str, dict]:
+    """Each variant's per-round time over the baseline's in the same round: the median, and
+    a 95 % interval (Student t over the log ratios, back-transformed)."""
+    from scipy import stats
+
+    base = times[baseline]
+    out = {}
+    for name, values in times.items():
+        if name == baseline:
+            continue
+        logs = [math.log(v / b) for v, b in zip(values, base)]
+        mean = statistics.fmean(logs)
+        half = (stats.t.ppf(0.975, len(logs) - 1) * statistics.stdev(logs) / math.sqrt(len(logs))
+                if len(logs) > 1 else math.inf)
+        out[name] = {"median_ratio": round(statistics.median(v / b for v, b in zip(values, base)), 4),
+                     "ratio_interval_95": [round(math.exp(mean - half), 4), round(math.exp(mean + half), 4)],
+                     "rounds": len(logs)}
+    return out
+
+
+def versus(args: argparse.Namespace, names: list[str]) -> dict:
+    """Plain CFG against each mechanism of `names` (see VERSUS), in turns, paired by round."""
+    b = args.batch_size
+    variants = {"cfg": ({}, {})} | {name: VERSUS[name] for name in names}
+    runs = {}
+    for name, (overrides, sampling) in variants.items():
+        mask, residual, _ = random_models(args.random_config, args.seed, **overrides)
+        mask.eval(), residual.eval()
+        options = SamplingOptions(steps=args.steps, residual_guided_layers=args.residual_guided_layers,
+                                  **sampling)
+        text = text_inputs(mask, b, args.seed)
+        lengths = torch.full((b,), 4 * mask.config.max_tokens)
+
+        def run(mask=mask, residual=residual, options=options, text=text, lengths=lengths) -> float:
+            start = time.process_time()
+            generate_tokens(mask, residual, *text, lengths, options=options,
+                            generator=torch.Generator().manual_seed(args.seed), precision=args.precision)
+            return time.process_time() - start
+
+        run()  # warm-up
+        runs[name] = run
+    order = list(runs)
+    times: dict[str, list[float]] = {name: [] for name in order}
+    for round_ in range(args.repeats):
+        for name in order[round_ % len(order):] + order[:round_ % len(order)]:
+            times[name].append(runs[name]())
+    return {"cpu_ms_per_motion": {name: round(statistics.median(v) * 1000 / b, 2) for name, v in times.items()},
+            "versus_cfg": paired_ratios(times)}
+
+
 def timed(fn, clock=time.perf_counter) -> float:
     start = clock()
     fn()
@@ -240,6 +307,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="leave glibc malloc at its defaults (segmo.generation.allocator)")
     parser.add_argument("--compare-precision", action="store_true",
                         help="report bf16 vs fp32 token agreement on the same seeds")
+    parser.add_argument("--versus", default=None,
+                        help=f"comma-separated mechanisms to time against plain CFG, paired by "
+                             f"round ({', '.join(VERSUS)}; needs --random-config)")
     parser.add_argument("--momask-floor", action="store_true",
                         help="also time the MoMask reference's bare passes (fp32) on this machine")
     args = parser.parse_args(argv)
@@ -250,6 +320,22 @@ def main(argv: list[str] | None = None) -> None:
     print(f"precision {args.precision} ({asked}: {why}); CPU: {cpu.describe()}")
     host = {"precision": args.precision, "precision_asked": asked, "precision_reason": why,
             "cpu": cpu.describe()}
+
+    if args.versus is not None:
+        names = [n for n in args.versus.split(",") if n]
+        unknown = [n for n in names if n not in VERSUS]
+        if unknown or not names or args.random_config is None:
+            parser.error(f"--versus takes names from {', '.join(VERSUS)} and needs --random-config"
+                         + (f"; unknown: {', '.join(unknown)}" if unknown else ""))
+        result = versus(args, names)
+        for name, r in result["versus_cfg"].items():
+            low, high = r["ratio_interval_95"]
+            print(f"{name}: {r['median_ratio']:.3f}x plain CFG's CPU time (95 % interval "
+                  f"{low:.3f}-{high:.3f}, {r['rounds']} paired rounds)")
+        print(json.dumps({**result, "batch": args.batch_size, **host, "threads": args.threads,
+                          "steps": args.steps, "repeats": args.repeats,
+                          "load_average": round(os.getloadavg()[0], 2)}))
+        return
 
     if args.model is not None:
         mask, residual, tokenizer = directory_models(args.model)
