@@ -203,3 +203,31 @@ def test_a_bone_swinging_past_opposite_its_rest_direction_does_not_flip_its_twis
                        directions / np.linalg.norm(directions, axis=-1, keepdims=True), atol=1e-9)
     steps = np.degrees(Rotation.from_matrix(rotations[1:] @ np.swapaxes(rotations[:-1], 1, 2)).magnitude())
     assert steps.max() < 5.0, f"the bone turns {steps.max():.0f} degrees in one frame"
+
+
+def test_bvh_check_tool_at_the_exporters_frame_rates(tmp_path, capsys):
+    """tools/bvh_check.py reads its files back at 20 fps and at --bvh-fps 60: positions match
+    at the input's frames either way, and at 60 fps each channel moves by about a third as
+    much between frames; a rate that is not a multiple of 20 is refused."""
+    import json
+
+    from conftest import load_tool
+
+    tool = load_tool("bvh_check")
+    data = tmp_path / "data"
+    (data / "new_joints").mkdir(parents=True)
+    for k, joints in enumerate([_rigid_fk_joints(30), _corpus_joints(5)[:40]]):
+        np.save(data / "new_joints" / f"m{k}.npy", joints.astype(np.float32))
+    (data / "test.txt").write_text("m0\nm1\n")
+    reports = {}
+    for fps in (None, 60):
+        argv = ["--data", str(data), "--bvhio-files", "1", "--out", str(tmp_path / f"out{fps}")]
+        tool.main(argv + ([] if fps is None else ["--bvh-fps", str(fps)]))
+        reports[fps] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["corpus"]
+    for report in reports.values():
+        assert report["files"] == 2 and report["error_bvhio"]["max_mm"] < 5
+        assert report["error_pybvh"]["mean_mm"] < 1
+    assert 0 < reports[60]["max_channel_jump_deg"] < 0.5 * reports[None]["max_channel_jump_deg"]
+    with pytest.raises(SystemExit):
+        tool.main(["--data", str(data), "--bvh-fps", "25"])
+    assert "multiple of 20" in capsys.readouterr().err

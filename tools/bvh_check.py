@@ -1,7 +1,7 @@
 """BVH export checked as an animation tool would see it, on corpus and generated motions.
 
     python tools/bvh_check.py --data data/synth --split test [--model models/segmo] \\
-        [--limit N] [--out runs/bvh_check]
+        [--limit N] [--bvh-fps 60] [--out runs/bvh_check]
 
 For every motion of the split (the corpus' joints) and, with --model, one generated motion
 per motion (its first caption and length, seed 0): write the BVH with and without foot
@@ -12,6 +12,10 @@ change of any rotation channel between frames, and of a joint that turned by les
 30 degrees (a flip of the angles, not a fast motion; degrees), and foot skating (mean horizontal
 speed of the foot joints in contact, cm/s) of the input joints and of both BVH files, with
 the contacts of the input joints. The last printed line is a JSON object of these figures.
+
+--bvh-fps writes the files at that rate (`write_bvh`'s target_fps; a whole multiple of the
+motions' 20 fps): channel changes are then between the file's frames, and positions are
+compared at the input's frames (every k-th frame of the file).
 """
 
 from __future__ import annotations
@@ -70,24 +74,26 @@ def channel_jumps(path: Path) -> tuple[float, float]:
     return float(jump.max()), float(flips.max()) if flips.size else 0.0
 
 
-def check(motions: list[np.ndarray], out: Path, bvhio_files: int) -> dict:
+def check(motions: list[np.ndarray], out: Path, bvhio_files: int, bvh_fps: float | None = None) -> dict:
     errors: dict[str, list[np.ndarray]] = {"pybvh": [], "pybvh_foot_lock": [], "bvhio": [],
                                            "saved_joints": []}
     jumps, skating = [], {"input": [], "bvh": [], "bvh_foot_lock": []}
+    every = 1 if bvh_fps is None else round(bvh_fps / T2M.fps)  # file frames per input frame
     for k, joints in enumerate(motions):
         contacts = foot_contacts(joints)
         skating["input"].append(foot_skating(joints, contacts))
         for lock in (False, True):
             fit = fit_motion(joints, foot_lock=lock)
-            path = write_bvh(fit, out / f"{k:04d}{'_lock' if lock else ''}.bvh")
-            read = read_pybvh(path)
+            path = write_bvh(fit, out / f"{k:04d}{'_lock' if lock else ''}.bvh", target_fps=bvh_fps)
+            read = read_pybvh(path)[::every]
             errors["pybvh_foot_lock" if lock else "pybvh"].append(np.linalg.norm(read - joints, axis=-1).ravel())
             if lock:  # what `GenerationOutput.save` writes as the joints file, against its BVH
                 errors["saved_joints"].append(np.linalg.norm(read - fit.joints, axis=-1).ravel())
             skating["bvh_foot_lock" if lock else "bvh"].append(foot_skating(read, contacts))
             jumps.append(channel_jumps(path))
             if not lock and k < bvhio_files:
-                errors["bvhio"].append(np.linalg.norm(read_bvhio(path, len(joints)) - joints, axis=-1).ravel())
+                frames = read_bvhio(path, every * (len(joints) - 1) + 1)[::every]
+                errors["bvhio"].append(np.linalg.norm(frames - joints, axis=-1).ravel())
 
     def summary(e: list[np.ndarray]) -> dict | None:
         if not e:
@@ -109,8 +115,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--model", help="SegMo bundle: also check generated motions")
     p.add_argument("--limit", type=int, default=None, help="first N motions of the split")
     p.add_argument("--bvhio-files", type=int, default=20, help="files also read with bvhio")
+    p.add_argument("--bvh-fps", type=float, default=None,
+                   help="write the files at this rate, a whole multiple of 20 (default: 20)")
     p.add_argument("--out", default="runs/bvh_check")
     args = p.parse_args(argv)
+    if args.bvh_fps is not None and (args.bvh_fps <= 0 or args.bvh_fps % T2M.fps):
+        p.error(f"--bvh-fps must be a whole multiple of {T2M.fps:g}, got {args.bvh_fps:g}")
     root = Path(args.data)
     ids = (root / f"{args.split}.txt").read_text().split()[: args.limit]
     corpus = [np.load(root / "new_joints" / f"{i}.npy").astype(np.float64) for i in ids]
@@ -118,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
     start = time.perf_counter()
     out = Path(args.out)
     (out / "corpus").mkdir(parents=True, exist_ok=True)
-    report["corpus"] = check(corpus, out / "corpus", args.bvhio_files)
+    report["corpus"] = check(corpus, out / "corpus", args.bvhio_files, args.bvh_fps)
     print(f"corpus: {json.dumps(report['corpus'])}", flush=True)
     if args.model:
         from segmo import SegMo
@@ -132,7 +142,7 @@ def main(argv: list[str] | None = None) -> None:
                                     generator=torch.Generator().manual_seed(b))
             generated += [result.motion_joints(i).astype(np.float64) for i in range(len(result))]
         (out / "generated").mkdir(parents=True, exist_ok=True)
-        report["generated"] = check(generated, out / "generated", args.bvhio_files)
+        report["generated"] = check(generated, out / "generated", args.bvhio_files, args.bvh_fps)
         print(f"generated: {json.dumps(report['generated'])}", flush=True)
     report["seconds"] = round(time.perf_counter() - start, 1)
     print(json.dumps(report))
