@@ -226,7 +226,7 @@ def test_bvh_check_tool_at_the_exporters_frame_rates(tmp_path, capsys):
         reports[fps] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["corpus"]
     for report in reports.values():
         assert report["files"] == 2 and report["error_bvhio"]["max_mm"] < 5
-        assert report["error_pybvh"]["mean_mm"] < 1
+        assert report["error_pybvh"]["mean_mm"] < 1 and set(report["largest_pybvh_error_mm_by_file"]) == {"m0", "m1"}
     assert 0 < reports[60]["max_channel_jump_deg"] < 0.5 * reports[None]["max_channel_jump_deg"]
     with pytest.raises(SystemExit):
         tool.main(["--data", str(data), "--bvh-fps", "25"])

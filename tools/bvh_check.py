@@ -9,7 +9,9 @@ locking, read it back with two third-party readers (`pybvh` for every file, `bvh
 first --bvhio-files), and compare the joints of their forward kinematics with the input
 joints. Reports per source: position error (mean, 99th percentile, max; mm), the largest
 change of any rotation channel between frames, and of a joint that turned by less than
-30 degrees (a flip of the angles, not a fast motion; degrees), and foot skating (mean horizontal
+30 degrees (a flip of the angles, not a fast motion; degrees), the five files with the
+largest position error (pybvh, no foot lock; by motion id) and how many files stay within
+1 mm, and foot skating (mean horizontal
 speed of the foot joints in contact, cm/s) of the input joints and of both BVH files, with
 the contacts of the input joints. The last printed line is a JSON object of these figures.
 
@@ -74,7 +76,8 @@ def channel_jumps(path: Path) -> tuple[float, float]:
     return float(jump.max()), float(flips.max()) if flips.size else 0.0
 
 
-def check(motions: list[np.ndarray], out: Path, bvhio_files: int, bvh_fps: float | None = None) -> dict:
+def check(motions: list[np.ndarray], out: Path, bvhio_files: int, bvh_fps: float | None = None,
+          names: list[str] | None = None) -> dict:
     errors: dict[str, list[np.ndarray]] = {"pybvh": [], "pybvh_foot_lock": [], "bvhio": [],
                                            "saved_joints": []}
     jumps, skating = [], {"input": [], "bvh": [], "bvh_foot_lock": []}
@@ -102,7 +105,11 @@ def check(motions: list[np.ndarray], out: Path, bvhio_files: int, bvh_fps: float
         return {"mean_mm": round(float(e.mean()), 3), "p99_mm": round(float(np.percentile(e, 99)), 2),
                 "max_mm": round(float(e.max()), 2)}
 
+    names = names or [f"{k:04d}" for k in range(len(motions))]
+    worst = sorted(zip((float(e.max()) * 1000 for e in errors["pybvh"]), names), reverse=True)[:5]
     return {"files": len(motions), **{f"error_{name}": summary(e) for name, e in errors.items()},
+            "largest_pybvh_error_mm_by_file": {name: round(e, 2) for e, name in worst},
+            "files_within_1mm": sum(float(e.max()) <= 1e-3 for e in errors["pybvh"]),
             "max_channel_jump_deg": round(max(j for j, _ in jumps), 2),
             "max_channel_jump_of_a_joint_turning_under_30_deg": round(max(f for _, f in jumps), 2),
             "skating_cm_s": {k: round(100 * float(np.mean(v)), 3) for k, v in skating.items()}}
@@ -128,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
     start = time.perf_counter()
     out = Path(args.out)
     (out / "corpus").mkdir(parents=True, exist_ok=True)
-    report["corpus"] = check(corpus, out / "corpus", args.bvhio_files, args.bvh_fps)
+    report["corpus"] = check(corpus, out / "corpus", args.bvhio_files, args.bvh_fps, ids)
     print(f"corpus: {json.dumps(report['corpus'])}", flush=True)
     if args.model:
         from segmo import SegMo
@@ -142,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
                                     generator=torch.Generator().manual_seed(b))
             generated += [result.motion_joints(i).astype(np.float64) for i in range(len(result))]
         (out / "generated").mkdir(parents=True, exist_ok=True)
-        report["generated"] = check(generated, out / "generated", args.bvhio_files, args.bvh_fps)
+        report["generated"] = check(generated, out / "generated", args.bvhio_files, args.bvh_fps, ids)
         print(f"generated: {json.dumps(report['generated'])}", flush=True)
     report["seconds"] = round(time.perf_counter() - start, 1)
     print(json.dumps(report))
