@@ -25,6 +25,7 @@ pass.
 
 from __future__ import annotations
 
+import textwrap
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -159,14 +160,15 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for k, text in enumerate(segments):
         colour = colours[k % len(colours)]
-        ax.plot(seconds[valid], profile[k][valid], color=colour, label=f"{k + 1}: {text}"[:48])
+        ax.plot(seconds[valid], profile[k][valid], color=colour, label=textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…"))
         if spans is not None and k < len(spans):
             start, end = spans[k]
             ax.axvspan(start * frames_per_token / fps, end * frames_per_token / fps,
                        color=colour, alpha=0.12)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("attention weight")
-    ax.set_title(title or f"{m.stage} step {m.step}, block {m.block}", fontsize=9)
+    # A long caption wraps instead of running off the figure.
+    ax.set_title(textwrap.fill(title or f"{m.stage} step {m.step}, block {m.block}", 100), fontsize=9)
     ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
     path = Path(path)
