@@ -97,7 +97,7 @@ def plots(grounding_maps: list, out: Path, count: int, fps: float) -> list[str]:
             if len(sample["segments"]) < 2:
                 continue
             path = plot_segment_attention(m, row, sample["segments"], out / "plots" / f"{sample['id']}.png",
-                                          spans=spans[row], fps=fps, title=sample["text"][:90])
+                                          spans=spans[row], fps=fps, title=sample["text"])
             written.append(str(path))
     return written
 

@@ -168,8 +168,9 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
     ax.set_xlabel("time (s)")
     ax.set_ylabel("attention weight")
     # A long caption wraps instead of running off the figure.
-    ax.set_title(textwrap.fill(title or f"{m.stage} step {m.step}, block {m.block}", 100), fontsize=9)
-    ax.legend(fontsize=7, loc="upper right")
+    title = title or f"{m.stage} step {m.step}, block {m.block}"
+    ax.set_title("\n".join(textwrap.fill(line, 100) for line in title.splitlines()), fontsize=9)
+    ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
