@@ -47,9 +47,12 @@ from segmo.text.rules import RuleSegmenter
 CONFIGS = files("segmo._configs")
 
 # Decoding steps and guided residual layers of the demo's bundle, from the steps × quality
-# curve on corpus v3 (README, "Generation speed on a CPU").
+# curve on corpus v3 (README, "Generation speed on a CPU"), and its base-token guidance
+# scale, from the scale curve of two training seeds (README, "MLA-Gen's guidance and
+# priors"): on the built-in corpus 2 beats MoMask's 4 on every metric.
 CORPUS_STEPS = 4
 CORPUS_GUIDED_LAYERS = 2
+CORPUS_GUIDANCE_SCALE = 2.0
 
 PROMPTS = [
     "a person walks forward, then waves with the right hand.",
@@ -222,8 +225,10 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
     model = SegMo.from_stages(tokenizer=str(tokenizer), mask=str(mask), residual=str(residual),
                               length=str(length))
     # The sampling defaults measured on the built-in corpus (README, "Generation speed"):
-    # the fewest passes whose metrics stay within the 95 % interval of 10 guided steps.
+    # the fewest passes whose metrics stay within the 95 % interval of 10 guided steps,
+    # and the guidance scale of the scale curve.
     model.config.steps, model.config.residual_guided_layers = CORPUS_STEPS, CORPUS_GUIDED_LAYERS
+    model.config.guidance_scale = CORPUS_GUIDANCE_SCALE
     model.save_pretrained(out / "model")
     result = model.generate(PROMPTS, generator=torch.Generator().manual_seed(seed))
     samples = out / "samples"

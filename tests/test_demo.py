@@ -28,7 +28,8 @@ def test_demo_runs_every_step_on_a_time_budget_and_resumes(tmp_path, capsys):
     assert printed.count("trained 2 steps") == 3
     assert (out / "model" / "segmo.json").is_file()
     bundle = json.loads((out / "model" / "segmo.json").read_text())
-    assert (bundle["steps"], bundle["residual_guided_layers"]) == (4, 2)  # the measured defaults
+    # the measured defaults of the built-in corpus
+    assert (bundle["steps"], bundle["residual_guided_layers"], bundle["guidance_scale"]) == (4, 2, 2.0)
     assert len(list((out / "samples").glob("*.gif"))) == 4
     assert (out / "grounding.png").stat().st_size > 0
     # A second run resumes: nothing is trained again.
