@@ -231,8 +231,8 @@ def gemm_gmacs(precision: str, dim: int = 384, tokens: int = 49, repeats: int = 
 
 def paired_ratios(times: dict[str, list[float]], baseline: str = "cfg") -> dict[str, dict]:
     """Each variant's per-round time over the baseline's in the same round: the median, and
-    a 95 % interval (Student t over the log ratios, back-transformed)."""
-    from scipy import stats
+    a 95 % interval (Student t over the log ratios, back-transformed; one round: 0 to inf)."""
+    from segmo.evaluation.seeds import interval
 
     base = times[baseline]
     out = {}
@@ -240,9 +240,8 @@ def paired_ratios(times: dict[str, list[float]], baseline: str = "cfg") -> dict[
         if name == baseline:
             continue
         logs = [math.log(v / b) for v, b in zip(values, base)]
-        mean = statistics.fmean(logs)
-        half = (stats.t.ppf(0.975, len(logs) - 1) * statistics.stdev(logs) / math.sqrt(len(logs))
-                if len(logs) > 1 else math.inf)
+        mean, half = interval(logs)
+        half = math.inf if math.isnan(half) else half
         out[name] = {"median_ratio": round(statistics.median(v / b for v, b in zip(values, base)), 4),
                      "ratio_interval_95": [round(math.exp(mean - half), 4), round(math.exp(mean + half), 4)],
                      "rounds": len(logs)}
@@ -256,7 +255,8 @@ def versus(args: argparse.Namespace, names: list[str]) -> dict:
     runs = {}
     for name, (overrides, sampling) in variants.items():
         mask, residual, _ = random_models(args.random_config, args.seed, **overrides)
-        mask.eval(), residual.eval()
+        mask.eval()
+        residual.eval()
         options = SamplingOptions(steps=args.steps, residual_guided_layers=args.residual_guided_layers,
                                   **sampling)
         text = text_inputs(mask, b, args.seed)

@@ -106,10 +106,11 @@ def check(motions: list[np.ndarray], out: Path, bvhio_files: int, bvh_fps: float
                 "max_mm": round(float(e.max()), 2)}
 
     names = names or [f"{k:04d}" for k in range(len(motions))]
-    worst = sorted(zip((float(e.max()) * 1000 for e in errors["pybvh"]), names), reverse=True)[:5]
+    largest_mm = [float(e.max()) * 1000 for e in errors["pybvh"]]  # per file
+    worst = sorted(zip(largest_mm, names), reverse=True)[:5]
     return {"files": len(motions), **{f"error_{name}": summary(e) for name, e in errors.items()},
             "largest_pybvh_error_mm_by_file": {name: round(e, 2) for e, name in worst},
-            "files_within_1mm": sum(float(e.max()) <= 1e-3 for e in errors["pybvh"]),
+            "files_within_1mm": sum(e <= 1.0 for e in largest_mm),
             "max_channel_jump_deg": round(max(j for j, _ in jumps), 2),
             "max_channel_jump_of_a_joint_turning_under_30_deg": round(max(f for _, f in jumps), 2),
             "skating_cm_s": {k: round(100 * float(np.mean(v)), 3) for k, v in skating.items()}}

@@ -160,7 +160,8 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for k, text in enumerate(segments):
         colour = colours[k % len(colours)]
-        ax.plot(seconds[valid], profile[k][valid], color=colour, label=textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…"))
+        label = textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…")
+        ax.plot(seconds[valid], profile[k][valid], color=colour, label=label)
         if spans is not None and k < len(spans):
             start, end = spans[k]
             ax.axvspan(start * frames_per_token / fps, end * frames_per_token / fps,
