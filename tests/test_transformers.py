@@ -520,3 +520,39 @@ def test_memory_slots_generate_and_survive_save_and_load(tmp_path):
 
     tokens = run(model)
     assert torch.equal(tokens, run(loaded)) and tokens.shape == (2, 12, 1)
+
+
+def test_memory_keys_are_encoded_once_in_inference_and_again_when_anything_changes():
+    from segmo.models.cpu_inference import use_cpu_kernels
+    from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+
+    torch.manual_seed(0)
+    model = MaskTransformer(MaskTransformerConfig(
+        codebook_size=16, text_dim=8, max_segments=3, max_tokens=12, dim=32, depth=2, heads=2,
+        ff_dim=64, memory_slots=3)).eval()
+    trunk = model.trunk
+
+    def fresh():  # what the slots encode to, never cached
+        m, valid, out = trunk.memory[None], torch.ones(1, 3, dtype=torch.bool), []
+        for block in trunk.blocks:
+            m, kv = block(m, valid)
+            out.append(kv)
+        return out
+
+    with torch.no_grad():
+        first = trunk.memory_keys(torch.float32)
+        assert trunk.memory_keys(torch.float32) is first  # kept
+        for (k, v), (k0, v0) in zip(first, fresh(), strict=True):
+            assert torch.equal(k, k0) and torch.equal(v, v0)
+        trunk.blocks[1].attention.qkv.bias.add_(1.0)  # an in-place update: encoded again
+        second = trunk.memory_keys(torch.float32)
+        assert second is not first and not torch.equal(second[1][0], first[1][0])
+        assert torch.equal(second[1][0], fresh()[1][0])
+        use_cpu_kernels(model)  # other kernels: encoded again
+        assert trunk.memory_keys(torch.float32) is not second
+    model.train()  # training never keeps them (dropout, gradients)
+    with torch.no_grad():
+        assert trunk.memory_keys(torch.float32) is not trunk.memory_keys(torch.float32)
+    model.eval()
+    assert trunk.memory_keys(torch.float32)[0][0].requires_grad  # with gradients: not kept
+    assert trunk.__dict__["_memory_cache"] is None

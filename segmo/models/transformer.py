@@ -392,10 +392,8 @@ class Trunk(nn.Module):
         # appended to every block's prefix keys, valid in every row.
         b, p = prefix_mask.shape
         slots = self.memory.shape[0]
-        m = self.drop(self.memory.to(prefix.dtype)[None])
         valid = prefix_mask.new_ones(1, slots)
-        for i, block in enumerate(self.blocks):
-            m, (keys, values) = block(m, valid)
+        for i, (keys, values) in enumerate(self.memory_keys(prefix.dtype)):
             text = blocks[i]
             blocks[i] = PrefixKeys(
                 torch.cat([text.keys, keys.expand(b, -1, -1, -1).to(text.keys.dtype)], dim=2),
@@ -403,6 +401,38 @@ class Trunk(nn.Module):
                 torch.cat([prefix_mask, valid.expand(b, slots)], dim=1))
         labels = [*(labels or prefix_labels(p - 1)), *(f"memory {k}" for k in range(slots))]
         return EncodedPrefix(blocks=blocks, labels=labels, text_slots=p)
+
+    def memory_keys(self, dtype: torch.dtype) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Each block's keys and values of the memory slots, (1, heads, slots, head_dim)
+        each, the slots run through the blocks on their own.
+
+        They depend on the parameters alone, so inference (eval mode, no gradients) encodes
+        them once and keeps them until a parameter, the precision or an attention or linear
+        kernel changes: one generation encodes its prefix twice (mask and residual
+        transformer), and for one motion this pass of 16 slots through every block cost
+        ~4 % of the generation (`tools/bench_generate.py --versus memory16`)."""
+        inference = not self.training and not torch.is_grad_enabled()
+        key = None
+        if inference:
+            device = self.memory.device.type
+            autocast = (torch.is_autocast_enabled(device)
+                        and torch.get_autocast_dtype(device))
+            key = (dtype, autocast,
+                   tuple((q.data_ptr(), q._version) for q in self.parameters()),
+                   tuple(block.attention.attend for block in self.blocks),
+                   tuple(type(module) for module in self.modules()))
+            cached = self.__dict__.get("_memory_cache")
+            if cached is not None and cached[0] == key:
+                return cached[1]
+        m = self.drop(self.memory.to(dtype)[None])
+        valid = torch.ones(1, m.shape[1], dtype=torch.bool, device=m.device)
+        encoded = []
+        for block in self.blocks:
+            m, kv = block(m, valid)
+            encoded.append(kv)
+        # A plain attribute, not a buffer: never saved, moved or copied with the model.
+        self.__dict__["_memory_cache"] = (key, encoded) if inference else None
+        return encoded
 
     def encoded(self, condition: Condition) -> EncodedPrefix:
         """The condition's encoded prefix: the cached one from `condition()`, else a fresh one."""
