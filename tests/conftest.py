@@ -81,6 +81,9 @@ def hash_encoder(name: str, dim: int):
             sentence = torch.stack([hash_vector(t, dim) for t in texts]) if texts else tokens[:, 0]
             return TextEncoding(sentence, tokens, mask)
 
+        def token_texts(self, texts):
+            return [t.split()[:8] for t in texts]
+
     return HashEncoder()
 
 

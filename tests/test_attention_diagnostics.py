@@ -91,3 +91,29 @@ def test_diagnostics_of_a_recorded_generation(tmp_path):
     png = plot_segment_attention(maps[0], 0, ["walks", "jumps"], tmp_path / "a.png", spans=[(0, 5), (5, n)])
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
     assert np.isfinite(sink_ratio(maps)["mean"])
+
+
+def test_content_words_keep_what_a_motion_does():
+    from segmo.evaluation.attention import content_words
+
+    pieces = ["[CLS]", "first", ",", "a", "man", "walks", "straight", "then", "he", "jump", "##s",
+              "twice", "with", "his", "left", "arm", ".", "[SEP]"]
+    assert content_words(pieces) == [(4, "man"), (5, "walks"), (6, "straight"), (9, "jumps"),
+                                     (11, "twice"), (14, "left"), (15, "arm")]
+    assert content_words(["[CLS]", "[SEP]"]) == []
+
+
+def test_plot_with_word_keys_adds_a_panel_of_content_words(tmp_path):
+    n = 6
+    labels = [*prefix_labels(2, 3), *(f"motion {i}" for i in range(n))]
+    weights = torch.full((1, 1, n, len(labels)), 1.0 / len(labels))
+    m = AttentionMap("mask", 0, 3, torch.tensor([0]), torch.arange(n)[None], weights,
+                     torch.ones(1, len(labels), dtype=torch.bool), labels)
+    spans = [(0, 3), (3, 6)]
+    one = plot_segment_attention(m, 0, ["walks", "jumps"], tmp_path / "one.png", spans=spans)
+    two = plot_segment_attention(m, 0, ["walks", "jumps"], tmp_path / "two.png", spans=spans,
+                                 words=[(1, "walks"), (2, "jumps")])
+
+    def height(png):  # the PNG header's IHDR height
+        return int.from_bytes(png.read_bytes()[20:24], "big")
+    assert height(two) == 2 * height(one)

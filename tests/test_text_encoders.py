@@ -184,3 +184,15 @@ def test_minilm_shapes_and_normalisation(minilm):
 def test_minilm_paraphrases_are_closer(minilm, anchor, paraphrase, unrelated):
     s = minilm.encode([anchor, paraphrase, unrelated]).sentence
     assert float(s[0] @ s[1]) > float(s[0] @ s[2]) + 0.1
+
+
+def test_token_texts_name_each_token_feature(minilm, tiny_clip):
+    texts = ["a person walks forward, then jumps twice", "someone waves"]
+    pieces = minilm.token_texts(texts)
+    assert pieces[1] == ["[CLS]", "someone", "waves", "[SEP]"]
+    assert pieces[0][:4] == ["[CLS]", "a", "person", "walks"] and "," in pieces[0]
+    for encoder in (minilm, tiny_clip):
+        counts = encoder.encode(texts).token_mask.sum(1).tolist()
+        assert [len(p) for p in encoder.token_texts(texts)] == counts  # one text per feature
+    clip = tiny_clip.token_texts(["walks"])[0]
+    assert len(clip) >= 3 and not any(p.endswith("</w>") for p in clip[1:-1])

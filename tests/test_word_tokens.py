@@ -175,3 +175,9 @@ def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir
         loaded.generate(["a person walks forward, then waves."], 48, generator=torch.Generator().manual_seed(0)).tokens,
         out.tokens)
     assert Path(saved, "mask", "config.json").is_file()
+    # The text of each word key, in the recording's "word w" order; a long text is cut at
+    # the model's max_words.
+    texts = ["a person walks forward, then waves.", "one two three four five six seven eight"]
+    assert model.word_texts(texts)[0] == ["a", "person", "walks", "forward,", "then", "waves."]
+    model.mask.config.max_words = 5
+    assert model.word_texts(texts)[1] == ["one", "two", "three", "four", "five"]

@@ -13,7 +13,8 @@ ground truth, `DIR/segments/<id>.json`), with its ground-truth text segments:
 - the real motion (`segmo.evaluation.attention.motion_attention`: one pass with all its
   tokens visible): `attention_grounding` against the true spans, by block;
 - OUT/plots/<id>.png: each segment's attention over the real motion (last block), true
-  spans shaded.
+  spans shaded; for a model with word keys (`text_tokens: words`) a second panel with each
+  content word's attention (`segmo.evaluation.attention.content_words`).
 
 Writes OUT/attention.json and OUT/attention.md; the last stdout line is the JSON object.
 """
@@ -31,6 +32,7 @@ from segmo.data.layout import has_ground_truth, read_ground_truth, read_motion, 
 from segmo.errors import SegmoError
 from segmo.evaluation.attention import (
     attention_grounding,
+    content_words,
     motion_attention,
     plot_segment_attention,
     prefix_share,
@@ -70,6 +72,8 @@ def report(model: SegMo, data: Path, split: str, count: int, k: int, seed: int) 
     for start in range(0, len(chosen), BATCH):
         batch = chosen[start:start + BATCH]
         texts, segments = [s["text"] for s in batch], [s["segments"] for s in batch]
+        for sample, pieces in zip(batch, model.word_texts(texts), strict=True):
+            sample["words"] = content_words(pieces)
         with model.record_attention() as recording:
             model.generate(texts, [s["frames"] for s in batch], segments=segments,
                            generator=torch.Generator().manual_seed(seed + start))
@@ -97,7 +101,8 @@ def plots(grounding_maps: list, out: Path, count: int, fps: float) -> list[str]:
             if len(sample["segments"]) < 2:
                 continue
             path = plot_segment_attention(m, row, sample["segments"], out / "plots" / f"{sample['id']}.png",
-                                          spans=spans[row], fps=fps, title=sample["text"])
+                                          spans=spans[row], fps=fps, title=sample["text"],
+                                          words=sample["words"])
             written.append(str(path))
     return written
 

@@ -34,10 +34,17 @@ import numpy as np
 import torch
 
 from segmo.models.attention_recorder import AttentionMap
-from segmo.pipeline.attention import motion_attention, segment_profile
+from segmo.pipeline.attention import key_profile, motion_attention, segment_profile
+from segmo.text.vocabulary import tag_caption
 
-__all__ = ["attention_grounding", "motion_attention", "plot_segment_attention", "prefix_share",
-           "segment_profile", "sentence_share", "sink_ratio", "sink_ratio_values"]
+__all__ = ["attention_grounding", "content_words", "key_profile", "motion_attention",
+           "plot_segment_attention", "prefix_share", "segment_profile", "sentence_share",
+           "sink_ratio", "sink_ratio_values"]
+
+# Parts of speech that carry what a motion does (`segmo.text.vocabulary.tag_caption`);
+# connectives ("then", "first") are tagged ADV but order the actions, so they are left out.
+CONTENT_POS = {"VERB", "NOUN", "ADJ", "ADV", "NUM"}
+CONNECTIVES = {"then", "first", "finally", "next", "later", "again", "also", "still"}
 
 
 def _query_valid(m: AttentionMap) -> torch.Tensor:
@@ -143,11 +150,33 @@ def attention_grounding(maps: Sequence[AttentionMap],
             "tokens": total // max(len(counts), 1)}
 
 
+def content_words(pieces: Sequence[str]) -> list[tuple[int, str]]:
+    """The content words among a text's word keys (`SegMo.word_texts`: word pieces with the
+    start and end tokens): (index of the word's first piece, the whole word) for verbs,
+    nouns, adjectives, adverbs and numbers; special tokens, punctuation, function words
+    and connectives are left out; "##" pieces join the word they continue."""
+    words: list[tuple[int, str]] = []
+    for i, piece in enumerate(pieces):
+        if piece.startswith("##") and words and words[-1][0] >= 0:
+            words[-1] = (words[-1][0], words[-1][1] + piece[2:])
+        else:
+            words.append((i, piece) if piece.isalnum() else (-1, piece))
+    out = []
+    for i, word in words:
+        tags = tag_caption(word) if i >= 0 else []
+        if len(tags) == 1 and tags[0][1] in CONTENT_POS and word.lower() not in CONNECTIVES:
+            out.append((i, word))
+    return out
+
+
 def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], path: str | Path,
                            spans: Sequence[tuple[int, int]] | None = None, fps: float = 20.0,
-                           frames_per_token: int = 4, title: str = "") -> Path:
+                           frames_per_token: int = 4, title: str = "",
+                           words: Sequence[tuple[int, str]] | None = None) -> Path:
     """A PNG of each segment's attention (head mean) over the motion's tokens, the x axis in
-    seconds, the ground-truth spans (token units) shaded in the segment's colour."""
+    seconds, the ground-truth spans (token units) shaded in the segment's colour; with
+    `words` ((word key index, text), e.g. `content_words`, for a model with word keys) a
+    second panel shows each of those words' attention over the same tokens."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -156,22 +185,37 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
     profile = segment_profile(m, row)[:len(segments)]
     seconds = (np.arange(profile.shape[1]) + 0.5) * frames_per_token / fps
     valid = m.key_valid[row, m.prefix_length:].numpy()
-    fig, ax = plt.subplots(figsize=(8, 3))
+    panels = 2 if words else 1
+    fig, axes = plt.subplots(panels, 1, figsize=(8, 3 * panels), sharex=True, squeeze=False)
+    ax = axes[0, 0]
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for k, text in enumerate(segments):
-        colour = colours[k % len(colours)]
-        label = textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…")
-        ax.plot(seconds[valid], profile[k][valid], color=colour, label=label)
-        if spans is not None and k < len(spans):
+
+    def shade(ax) -> None:
+        for k in range(min(len(segments), len(spans or []))):
             start, end = spans[k]
             ax.axvspan(start * frames_per_token / fps, end * frames_per_token / fps,
-                       color=colour, alpha=0.12)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("attention weight")
+                       color=colours[k % len(colours)], alpha=0.12)
+
+    for k, text in enumerate(segments):
+        label = textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…")
+        ax.plot(seconds[valid], profile[k][valid], color=colours[k % len(colours)], label=label)
+    shade(ax)
+    ax.set_ylabel("segment attention")
     # A long caption wraps instead of running off the figure.
     title = title or f"{m.stage} step {m.step}, block {m.block}"
     ax.set_title("\n".join(textwrap.fill(line, 100) for line in title.splitlines()), fontsize=9)
     ax.legend(fontsize=7, loc="best")
+    if words:
+        word_profile = key_profile(m, row, "word ")
+        ax = axes[1, 0]
+        styles = ["-", "--", ":", "-."]
+        for j, (index, text) in enumerate(words):
+            ax.plot(seconds[valid], word_profile[index][valid], label=text,
+                    color=colours[j % len(colours)], linestyle=styles[(j // len(colours)) % 4])
+        shade(ax)
+        ax.set_ylabel("word attention")
+        ax.legend(fontsize=7, loc="best", ncol=2)
+    axes[-1, 0].set_xlabel("time (s)")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -40,9 +40,16 @@ def motion_attention(model: Any, texts: Sequence[str], segments: Sequence[Sequen
 def segment_profile(m: AttentionMap, row: int) -> np.ndarray:
     """(A, n) the head-mean weight of each segment key at each motion position of the map's
     row `row` (an index into `m.rows`); NaN at positions it did not query."""
-    keys = [i for i, label in enumerate(m.key_labels) if label.startswith("segment ")]
+    return key_profile(m, row, "segment ")
+
+
+def key_profile(m: AttentionMap, row: int, kind: str) -> np.ndarray:
+    """(K, n) the head-mean weight of each key whose label starts with `kind` ("segment ",
+    "word ") at each motion position of row `row`, keys in prefix order; NaN at positions
+    it did not query."""
+    keys = [i for i, label in enumerate(m.key_labels) if label.startswith(kind)]
     n = m.key_valid.shape[1] - m.prefix_length
-    weights = m.weights[row].mean(0)[:, keys]  # (q, A)
+    weights = m.weights[row].mean(0)[:, keys]  # (q, K)
     out = np.full((len(keys), n), np.nan, dtype=np.float32)
     out[:, m.queries[row].numpy()] = weights.T.numpy()
     return out

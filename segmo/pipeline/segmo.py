@@ -315,6 +315,16 @@ class SegMo:
             words[i, : len(row)], mask[i, : len(row)] = row.to(self.device), True
         return words, mask
 
+    def word_texts(self, texts: list[str]) -> list[list[str]]:
+        """texts (b) → the text of each word key the transformers see for each text
+        (`TextEncoder.token_texts`: start and end tokens included, cut at the model's
+        max_words), the labels "word 0", "word 1", … of a recording in that order; empty
+        lists for transformers without word keys."""
+        texts = check_texts(texts)
+        if not self.uses_words:
+            return [[] for _ in texts]
+        return [pieces[: self.mask.config.max_words] for pieces in self.text_encoder.token_texts(texts)]
+
     # -- motion side -------------------------------------------------------------------------
 
     def check_lengths(self, lengths: Any, b: int) -> torch.Tensor:

@@ -121,6 +121,21 @@ class TextEncoder:
                 mask[idx, :width] = valid.cpu()
         return TextEncoding(sentence=sentence, tokens=tokens, token_mask=mask)
 
+    def token_texts(self, texts: list[str]) -> list[list[str]]:
+        """The tokens behind `encode`'s per-token features, as text, special tokens included
+        (e.g. ["[CLS]", "a", "person", "walks", "[SEP]"]): a word piece that continues the
+        previous one starts with "##", the tokenizers' own end-of-word and space markers
+        are removed."""
+        out = []
+        for ids in self._tokenize(list(texts), pad=False)["input_ids"]:
+            pieces = []
+            for piece in self.tokenizer.convert_ids_to_tokens(ids):
+                if piece.endswith("</w>") and piece != "</w>":  # CLIP's end of word
+                    piece = piece[:-4]
+                pieces.append(piece.replace("\u0120", ""))  # byte-level BPE's leading space
+            out.append(pieces)
+        return out
+
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(name={self.name!r}, dim={self.dim}, "
                 f"model_path={self.model_path!r}, device={str(self.device)!r})")
