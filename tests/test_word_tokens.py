@@ -83,12 +83,18 @@ def test_a_config_written_before_word_keys_loads_as_a_model_without_them(tmp_pat
                                    mask(indices, token_mask, sentence, segments, segment_mask).logits)
 
 
-def word_models():
-    return tiny_models(text_tokens="words", max_words=8)
+def word_models(word_attention: str = "prefix"):
+    mask, residual = tiny_models(text_tokens="words", max_words=8, word_attention=word_attention)
+    if word_attention == "cross":  # open the gates (0 at initialisation: words unread)
+        for model in (mask, residual):
+            for block in model.trunk.blocks:
+                block.cross.gate.data.fill_(0.5)
+    return mask, residual
 
 
-def test_words_are_conditioning_and_padded_words_change_nothing():
-    mask, _ = word_models()
+@pytest.mark.parametrize("word_attention", ["prefix", "cross"])
+def test_words_are_conditioning_and_padded_words_change_nothing(word_attention):
+    mask, _ = word_models(word_attention)
     indices, token_mask, sentence, segments, segment_mask, _ = inputs()
     w, wm = words()
     with torch.no_grad():
@@ -135,17 +141,49 @@ def test_generation_with_words_is_seeded_recorded_and_survives_export(tmp_path):
         generate_tokens(mask, residual, *text(2), torch.tensor([40, 24]), options=options)
 
 
-@pytest.mark.parametrize("stage", ["mask", "residual"])
-def test_both_transformers_train_on_words(stage, text_dataset, tokenizer_dir, tmp_path):
+@pytest.mark.parametrize("stage, word_attention", [("mask", "prefix"), ("residual", "prefix"),
+                                                   ("mask", "cross")])
+def test_both_transformers_train_on_words(stage, word_attention, text_dataset, tokenizer_dir, tmp_path):
     config = REPO / f"configs/{stage}/synthetic.yaml"
     cli = cli_main(["fit", "--config", str(config), *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
-                    "--data.init_args.text_tokens=words", "--trainer.fast_dev_run=true"])
+                    "--data.init_args.text_tokens=words", f"--model.init_args.word_attention={word_attention}",
+                    "--trainer.fast_dev_run=true"])
     assert cli.trainer.state.finished and torch.isfinite(cli.trainer.callback_metrics["train/loss"])
-    assert cli.model.model.config.text_tokens == "words"
+    model = cli.model.model
+    assert model.config.text_tokens == "words" and model.config.word_attention == word_attention
     batch = next(iter(cli.datamodule.train_dataloader()))
     assert batch["word_features"].shape[:2] == batch["word_mask"].shape and batch["word_mask"][:, 0].all()
-    grads = [p.grad for name, p in cli.model.model.named_parameters() if "word" in name]
+    grads = [p.grad for name, p in model.named_parameters() if "word" in name]
     assert len(grads) == 2
+    gates = [p for name, p in model.named_parameters() if name.endswith("cross.gate")]
+    assert len(gates) == (len(model.trunk.blocks) if word_attention == "cross" else 0)
+    # The gates leave 0 after the first step: the words start being read.
+    assert all(float(g.detach().abs()) > 0 for g in gates)
+
+
+def test_cross_attention_over_words_generates_seeded_and_survives_export(tmp_path):
+    mask, residual = word_models("cross")
+    w, wm = words()
+    options = SamplingOptions(steps=3)
+
+    def run(m, r, ws):
+        return generate_tokens(m, r, *text(2), torch.tensor([40, 24]), options=options, words=ws, word_mask=wm,
+                               generator=torch.Generator().manual_seed(0))
+
+    first = run(mask, residual, w)
+    assert not torch.equal(run(mask, residual, -w), first)  # the words are read
+    with record_attention({"mask": mask}) as recording:
+        assert torch.equal(run(mask, residual, w), first)
+    # The words are not keys of the self-attention: the recording has the text prefix alone.
+    labels = recording.of("mask")[0].key_labels
+    assert labels[:5] == ["sentence", "segment 1", "segment 2", "segment 3", "motion 0"]
+    loaded = [load_pretrained(m.save_pretrained(tmp_path / name)).eval()
+              for name, m in (("mask", mask), ("residual", residual))]
+    assert loaded[0].config.word_attention == "cross" and torch.equal(run(*loaded, w), first)
+    with pytest.raises(ValueError, match="cross-attention"):
+        mask.trunk.encode_prefix(torch.zeros(2, 4, 32), torch.ones(2, 4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="word_attention must be one of prefix, cross"):
+        tiny_models(text_tokens="words", word_attention="gated")
 
 
 def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir):

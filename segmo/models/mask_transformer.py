@@ -91,9 +91,10 @@ class MaskTransformer(nn.Module, Pretrained):
         self.pad_id = config.codebook_size + 1
         self.token_embedding = nn.Embedding(config.codebook_size + 2, config.dim)
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
-                                 config.text_tokens, config.max_words)
+                                 config.text_tokens, config.max_words, config.word_attention)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
-                           config.norm_first, config.max_tokens, config.memory_slots)
+                           config.norm_first, config.max_tokens, config.memory_slots,
+                           config.text_tokens == "words" and config.word_attention == "cross")
         self.head = TokenHead(config.dim)
         self.classifier = Linear(config.dim, config.codebook_size)
         self.apply(init_weights)
@@ -114,8 +115,7 @@ class MaskTransformer(nn.Module, Pretrained):
         `config.text_tokens` is "words" (`TextPrefix`)."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered,
                                 words, word_mask, keep_local)
-        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask,
-                                                      condition.labels)
+        condition.encoded = self.trunk.encoded(condition)
         return condition
 
     def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
@@ -176,7 +176,7 @@ def without_sentence(encoded: EncodedPrefix, rows: torch.Tensor) -> EncodedPrefi
     for block in encoded.blocks:
         mask = block.mask.clone()
         mask[:, 0] &= ~rows
-        blocks.append(PrefixKeys(block.keys, block.values, mask))
+        blocks.append(PrefixKeys(block.keys, block.values, mask, block.words))
     return EncodedPrefix(blocks=blocks, labels=encoded.labels, text_slots=encoded.text_slots)
 
 

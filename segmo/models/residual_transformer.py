@@ -70,9 +70,10 @@ class ResidualTransformer(nn.Module, Pretrained):
         self.output_bias = nn.Parameter(torch.zeros(config.num_quantizers, config.codebook_size))
         self.layer_embeddings = nn.Parameter(torch.randn(config.num_quantizers, config.dim) * 0.02)
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
-                                 config.text_tokens, config.max_words)
+                                 config.text_tokens, config.max_words, config.word_attention)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
-                           config.norm_first, config.max_tokens, config.memory_slots)
+                           config.norm_first, config.max_tokens, config.memory_slots,
+                           config.text_tokens == "words" and config.word_attention == "cross")
         self.head = TokenHead(config.dim)
         # The tied output projection; `segmo.models.cpu_inference` swaps in a faster one.
         self.project = F.linear
@@ -91,8 +92,7 @@ class ResidualTransformer(nn.Module, Pretrained):
         and `word_mask`: as in `MaskTransformer.condition`."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, None,
                                 words, word_mask, keep_local)
-        condition.encoded = self.trunk.encode_prefix(condition.tokens, condition.mask,
-                                                      condition.labels)
+        condition.encoded = self.trunk.encoded(condition)
         return condition
 
     def embed_layer(self, indices: torch.Tensor, layer: int) -> torch.Tensor:

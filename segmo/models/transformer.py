@@ -49,6 +49,11 @@ class TransformerConfig:
     # "none" is the model without them. max_words: the most word keys (CLIP's 77 tokens).
     text_tokens: str = "none"
     max_words: int = 77
+    # How motion tokens read the word keys: "prefix", as further keys of every block's
+    # self-attention (one softmax with the sentence, segments and motion); "cross", a gated
+    # cross-attention sub-layer over the words alone in every block (Flamingo's tanh gate,
+    # 0 at initialisation). Measured against each other in the README; "prefix" by default.
+    word_attention: str = "prefix"
     # MLA-Gen's memory slots (eq. 4): learned vectors every block's motion queries attend to,
     # independent of the text and present in conditional and unconditional rows alike
     # (`Trunk.encode_prefix`). 0 = the model without them.
@@ -56,6 +61,7 @@ class TransformerConfig:
 
 
 TEXT_TOKENS: tuple[str, ...] = ("none", "words")
+WORD_ATTENTION: tuple[str, ...] = ("prefix", "cross")
 
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
@@ -107,6 +113,14 @@ class PrefixKeys:
     keys: torch.Tensor
     values: torch.Tensor
     mask: torch.Tensor
+    # word_attention "cross": this block's keys and values of the word tokens, (b, heads,
+    # l, head_dim) each, and their mask (b, l) bool; None for a model without it.
+    words: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+
+    def rows(self, index: torch.Tensor) -> PrefixKeys:
+        """The keys of batch rows `index` (r,) long."""
+        words = None if self.words is None else tuple(t[index] for t in self.words)
+        return PrefixKeys(self.keys[index], self.values[index], self.mask[index], words)
 
 
 def prefix_labels(num_segments: int, num_words: int = 0) -> list[str]:
@@ -151,6 +165,42 @@ class SelfAttention(nn.Module):
         return self.out(y.transpose(1, 2).reshape(b, q.shape[2], dim)), (k, v)
 
 
+class GatedCrossAttention(nn.Module):
+    """Motion queries attending to the word tokens alone, added through a tanh gate that
+    starts at 0 (Flamingo's gated cross-attention), so that training starts from the model
+    without words. Rows without a valid word (a dropped condition) get nothing."""
+
+    def __init__(self, dim: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.dropout = dropout
+        self.query = Linear(dim, dim)
+        self.key_value = Linear(dim, 2 * dim)
+        self.out = Linear(dim, dim)
+        self.gate = nn.Parameter(torch.zeros(1))
+
+    def keys(self, words: torch.Tensor, word_mask: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """words (b, l, dim) word tokens, word_mask (b, l) bool → their keys and values
+        (b, heads, l, head_dim) and mask: computed once per generation."""
+        b, length, dim = words.shape
+        k, v = self.key_value(words).view(b, length, 2, self.heads, dim // self.heads).unbind(2)
+        return k.transpose(1, 2), v.transpose(1, 2), word_mask.bool()
+
+    def forward(self, x: torch.Tensor, words: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+                ) -> torch.Tensor:
+        """x (b, m, dim) motion states, words from `keys` → the gated output (b, m, dim)."""
+        b, m, dim = x.shape
+        k, v, mask = words
+        q = self.query(x).view(b, m, self.heads, dim // self.heads).transpose(1, 2)
+        any_word = mask.any(dim=1)
+        # A row without words attends to all its (zeroed) slots to stay finite, then is cut.
+        y = attention(q, k.to(q.dtype), v.to(q.dtype), mask | ~any_word[:, None],
+                      self.dropout if self.training else 0.0)
+        y = self.out(y.transpose(1, 2).reshape(b, m, dim))
+        return torch.tanh(self.gate).to(y.dtype) * y * any_word[:, None, None].to(y.dtype)
+
+
 def _gather_positions(x: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
     """x (b, l, ...) at positions (b, m) long → (b, m, ...)."""
     index = positions.reshape(*positions.shape, *([1] * (x.dim() - 2)))
@@ -160,10 +210,16 @@ def _gather_positions(x: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
 class Block(nn.Module):
     """Encoder block: attention + GELU feed-forward, pre-norm or post-norm."""
 
-    def __init__(self, dim: int, heads: int, ff_dim: int, dropout: float, norm_first: bool):
+    def __init__(self, dim: int, heads: int, ff_dim: int, dropout: float, norm_first: bool,
+                 cross_words: bool = False):
         super().__init__()
         self.norm_first = norm_first
         self.attention = SelfAttention(dim, heads, dropout)
+        # word_attention "cross": a gated cross-attention sub-layer over the words after the
+        # self-attention; absent otherwise, so that such a model is unchanged.
+        if cross_words:
+            self.cross = GatedCrossAttention(dim, heads, dropout)
+            self.cross_norm = nn.LayerNorm(dim)
         self.norm1 = nn.LayerNorm(dim)
         self.norm2 = nn.LayerNorm(dim)
         self.ff = nn.Sequential(Linear(dim, ff_dim, activation="gelu"), nn.Dropout(dropout),
@@ -177,12 +233,17 @@ class Block(nn.Module):
         `SelfAttention` → (output (b, m, dim) at the queried positions (m = l without
         queries), this block's (keys, values) of all of x)."""
         residual = x if queries is None else _gather_positions(x, queries)
+        words = prefix.words if prefix is not None and hasattr(self, "cross") else None
         if self.norm_first:
             y, kv = self.attention(self.norm1(x), valid, prefix, queries)
             x = residual + self.drop(y)
+            if words is not None:
+                x = x + self.drop(self.cross(self.cross_norm(x), words))
             return x + self.drop(self.ff(self.norm2(x))), kv
         y, kv = self.attention(x, valid, prefix, queries)
         x = self.norm1(residual + self.drop(y))
+        if words is not None:
+            x = self.cross_norm(x + self.drop(self.cross(x, words)))
         return self.norm2(x + self.drop(self.ff(x))), kv
 
 
@@ -205,15 +266,21 @@ class Condition:
     content: torch.Tensor
     encoded: EncodedPrefix | None = None
     labels: list[str] | None = None
+    # word_attention "cross": the word tokens (b, l, dim) and their mask (b, l), read by the
+    # blocks' cross-attention instead of entering the prefix; None otherwise.
+    words: torch.Tensor | None = None
+    word_mask: torch.Tensor | None = None
 
     def rows(self, index: torch.Tensor) -> Condition:
         """The condition of batch rows `index` (r,) long, its encoding included."""
         encoded = None if self.encoded is None else EncodedPrefix(
-            blocks=[PrefixKeys(k.keys[index], k.values[index], k.mask[index])
-                    for k in self.encoded.blocks],
+            blocks=[k.rows(index) for k in self.encoded.blocks],
             labels=self.encoded.labels, text_slots=self.encoded.text_slots)
+        words = None if self.words is None else self.words[index]
+        word_mask = None if self.word_mask is None else self.word_mask[index]
         return Condition(tokens=self.tokens[index], mask=self.mask[index],
-                         content=self.content[index], encoded=encoded, labels=self.labels)
+                         content=self.content[index], encoded=encoded, labels=self.labels,
+                         words=words, word_mask=word_mask)
 
 
 class TextPrefix(nn.Module):
@@ -245,11 +312,15 @@ class TextPrefix(nn.Module):
     """
 
     def __init__(self, text_dim: int, dim: int, max_segments: int, text_tokens: str = "none",
-                 max_words: int = 77) -> None:
+                 max_words: int = 77, word_attention: str = "prefix") -> None:
         super().__init__()
         if text_tokens not in TEXT_TOKENS:
             raise ValueError(f"TextPrefix: text_tokens must be one of {', '.join(TEXT_TOKENS)}, "
                              f"got {text_tokens!r}")
+        if word_attention not in WORD_ATTENTION:
+            raise ValueError(f"TextPrefix: word_attention must be one of "
+                             f"{', '.join(WORD_ATTENTION)}, got {word_attention!r}")
+        self.word_attention = word_attention
         self.max_segments = max_segments
         self.text_tokens = text_tokens
         self.max_words = max_words
@@ -326,6 +397,9 @@ class TextPrefix(nn.Module):
             word_valid = word_valid & ~drop_words[:, None]
         word_tokens = (word_content + self.word_type + self.word_position[:l]).masked_fill(
             ~word_valid[..., None], 0.0)
+        if self.word_attention == "cross":  # read by the blocks' cross-attention
+            return Condition(tokens=tokens, mask=valid, content=content, labels=prefix_labels(a),
+                             words=word_tokens, word_mask=word_valid)
         return Condition(tokens=torch.cat([tokens, word_tokens], dim=1),
                          mask=torch.cat([valid, word_valid], dim=1), content=content,
                          labels=prefix_labels(a, l))
@@ -356,7 +430,8 @@ class Trunk(nn.Module):
     """
 
     def __init__(self, dim: int, depth: int, heads: int, ff_dim: int, dropout: float,
-                 norm_first: bool, max_tokens: int, memory_slots: int = 0) -> None:
+                 norm_first: bool, max_tokens: int, memory_slots: int = 0,
+                 cross_words: bool = False) -> None:
         super().__init__()
         if memory_slots < 0:
             raise ValueError(f"Trunk: memory_slots must be >= 0, got {memory_slots}")
@@ -366,15 +441,18 @@ class Trunk(nn.Module):
             self.memory = nn.Parameter(torch.randn(memory_slots, dim) * 0.02)
         self.drop = nn.Dropout(dropout)
         self.blocks = nn.ModuleList(
-            Block(dim, heads, ff_dim, dropout, norm_first) for _ in range(depth)
+            Block(dim, heads, ff_dim, dropout, norm_first, cross_words) for _ in range(depth)
         )
         # Post-norm blocks already end in a LayerNorm; pre-norm needs a final one.
         self.norm = nn.LayerNorm(dim) if norm_first else nn.Identity()
 
     def encode_prefix(self, prefix: torch.Tensor, prefix_mask: torch.Tensor,
-                      labels: list[str] | None = None) -> EncodedPrefix:
+                      labels: list[str] | None = None, words: torch.Tensor | None = None,
+                      word_mask: torch.Tensor | None = None) -> EncodedPrefix:
         """prefix (b, p, dim) tokens, prefix_mask (b, p) bool valid slots, labels the kind
-        of each slot (kept for the attention recorder) → EncodedPrefix.
+        of each slot (kept for the attention recorder); words (b, l, dim) and word_mask
+        (b, l): the word tokens of a model with cross-attention over them (`Condition`)
+        → EncodedPrefix.
 
         A row without any valid slot (condition dropped) lets its slots attend to each
         other so that its keys and values stay finite; no motion token ever attends to them.
@@ -383,9 +461,14 @@ class Trunk(nn.Module):
         among = prefix_mask | ~prefix_mask.any(dim=1, keepdim=True)
         x = self.drop(prefix)
         blocks = []
+        cross = hasattr(self.blocks[0], "cross")
+        if cross and (words is None or word_mask is None):
+            raise ValueError("Trunk: this model reads words by cross-attention "
+                             "(word_attention='cross'): give words and word_mask")
         for block in self.blocks:
             x, (keys, values) = block(x, among)
-            blocks.append(PrefixKeys(keys, values, prefix_mask))
+            word_keys = block.cross.keys(self.drop(words), word_mask) if cross else None
+            blocks.append(PrefixKeys(keys, values, prefix_mask, word_keys))
         if not hasattr(self, "memory"):
             return EncodedPrefix(blocks=blocks, labels=labels)
         # Memory slots: encoded on their own (so they do not depend on the text), then
@@ -398,7 +481,7 @@ class Trunk(nn.Module):
             blocks[i] = PrefixKeys(
                 torch.cat([text.keys, keys.expand(b, -1, -1, -1).to(text.keys.dtype)], dim=2),
                 torch.cat([text.values, values.expand(b, -1, -1, -1).to(text.values.dtype)], dim=2),
-                torch.cat([prefix_mask, valid.expand(b, slots)], dim=1))
+                torch.cat([prefix_mask, valid.expand(b, slots)], dim=1), text.words)
         labels = [*(labels or prefix_labels(p - 1)), *(f"memory {k}" for k in range(slots))]
         return EncodedPrefix(blocks=blocks, labels=labels, text_slots=p)
 
@@ -438,7 +521,8 @@ class Trunk(nn.Module):
         """The condition's encoded prefix: the cached one from `condition()`, else a fresh one."""
         if condition.encoded is not None:
             return condition.encoded
-        return self.encode_prefix(condition.tokens, condition.mask, condition.labels)
+        return self.encode_prefix(condition.tokens, condition.mask, condition.labels,
+                                  condition.words, condition.word_mask)
 
     def forward_motion(self, tokens: torch.Tensor, token_mask: torch.Tensor,
                        prefix: EncodedPrefix, positions: torch.Tensor | None = None

@@ -36,6 +36,9 @@ class TransformerTask(Task):
     ``data.init_args.max_segments`` and ``data.init_args.text_tokens`` under ``segmo fit``
     (`segmo.training.cli`).
 
+    ``word_attention`` (with words): "prefix", the words as further keys of every block's
+    self-attention, or "cross", a gated cross-attention sub-layer over them
+    (`TransformerConfig`).
     ``memory_slots``: MLA-Gen's learned memory slots, attended by every block (0 = none).
     ``local_uncond_prob``: the share of condition-dropped samples that keep their segments
     (and words) and drop the sentence only, so that guidance can keep the local condition
@@ -64,6 +67,7 @@ class TransformerTask(Task):
         max_tokens: int = _DEFAULT.max_tokens,
         text_tokens: Literal["none", "words"] = "none",
         max_words: int = _DEFAULT.max_words,
+        word_attention: Literal["prefix", "cross"] = "prefix",
         memory_slots: int = _DEFAULT.memory_slots,
         local_uncond_prob: float = 0.0,
         lr: float = 2e-4,
