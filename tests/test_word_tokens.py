@@ -219,3 +219,12 @@ def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir
     assert model.word_texts(texts)[0] == ["a", "person", "walks", "forward,", "then", "waves."]
     model.mask.config.max_words = 5
     assert model.word_texts(texts)[1] == ["one", "two", "three", "four", "five"]
+
+
+def test_reweighting_a_word_needs_word_keys():
+    from segmo.errors import SegmoError
+    from segmo.pipeline import SegMo
+
+    assert SegMo._weight_labels({"word 2": 2.0}, ["walks"], True) == {"word 2": 2.0}
+    with pytest.raises(SegmoError, match="no word keys.*cross-attention"):
+        SegMo._weight_labels({"word 2": 2.0}, ["walks"], False)

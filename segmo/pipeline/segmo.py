@@ -537,7 +537,8 @@ class SegMo:
             if not weights:
                 raise SegmoError("SegMo.edit_text: mode 'reweight' needs weights, e.g. "
                                  "{1: 2.0} or {'jumps': 2.0}")
-            reweight = [self._weight_labels(weights, segs, self.uses_words) for segs in used]
+            word_keys = self.uses_words and self.mask.config.word_attention == "prefix"
+            reweight = [self._weight_labels(weights, segs, word_keys) for segs in used]
         editable = None
         if keep_outside:
             changed = [sorted({int(label.split()[1]) for label in row if label.startswith("segment ")})
@@ -587,7 +588,7 @@ class SegMo:
                                  f"{segments!r} (give its number, its text, or 'segment k')")
             if label.startswith("word ") and not words:
                 raise SegmoError(f"SegMo.edit_text: {label!r}: this model has no word keys "
-                                 "(text_tokens 'none')")
+                                 "(text_tokens 'none', or words read by cross-attention)")
             if label.startswith("segment ") and not 1 <= int(label.split()[1]) <= len(segments):
                 raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has "
                                  f"{len(segments)} segments")
