@@ -186,7 +186,10 @@ def test_cross_attention_over_words_generates_seeded_and_survives_export(tmp_pat
         tiny_models(text_tokens="words", word_attention="gated")
 
 
-def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir):
+@pytest.mark.parametrize("residual_tokens", ["words", "none"])
+def test_a_bundle_with_words_generates_grounds_and_edits(residual_tokens, tmp_path, tokenizer_dir):
+    # A words mask transformer may be paired with a residual transformer without words
+    # (the built-in corpus's measurement shares one residual among all mask models).
     from test_pipeline import build_stages
 
     from segmo.models.tokenizer import RVQVAE
@@ -197,7 +200,8 @@ def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir
     torch.manual_seed(1)
     config = dict(TINY, text_dim=8, max_segments=3, max_tokens=49, text_tokens="words")
     model = SegMo(RVQVAE.from_pretrained(stages["tokenizer"]), MaskTransformer(MaskTransformerConfig(**config)),
-                  ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3)),
+                  ResidualTransformer(ResidualTransformerConfig(
+                      **dict(config, text_tokens=residual_tokens), num_quantizers=3)),
                   config=SegMoConfig(text_encoder="hash"), text_encoder=hash_encoder("hash", 8))
     assert model.uses_words
     out = model.generate(["a person walks forward, then waves."], 48, generator=torch.Generator().manual_seed(0))
@@ -219,6 +223,21 @@ def test_a_bundle_with_words_generates_grounds_and_edits(tmp_path, tokenizer_dir
     assert model.word_texts(texts)[0] == ["a", "person", "walks", "forward,", "then", "waves."]
     model.mask.config.max_words = 5
     assert model.word_texts(texts)[1] == ["one", "two", "three", "four", "five"]
+
+
+def test_a_residual_with_words_needs_a_mask_transformer_with_words(tmp_path, tokenizer_dir):
+    from test_pipeline import build_stages
+
+    from segmo.errors import SegmoError
+    from segmo.models.tokenizer import RVQVAE
+    from segmo.pipeline import SegMo
+
+    stages = build_stages(tmp_path, tokenizer_dir["t2m"])
+    config = dict(TINY, text_dim=8, max_segments=3, max_tokens=49)
+    residual = ResidualTransformer(ResidualTransformerConfig(**config, text_tokens="words", num_quantizers=3))
+    with pytest.raises(SegmoError, match="disagree on text_tokens: none vs words"):
+        SegMo(RVQVAE.from_pretrained(stages["tokenizer"]), MaskTransformer(MaskTransformerConfig(**config)),
+              residual)
 
 
 def test_reweighting_a_word_needs_word_keys():

@@ -304,10 +304,16 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
 
 
 def check_models(mask_model: MaskTransformer, residual_model: ResidualTransformer | None) -> None:
-    """ValueError unless the two transformers share codebook, text width and segments."""
+    """ValueError unless the two transformers share codebook, text width and segments, and
+    the residual's words (if it reads any) are the mask transformer's. The words go to both
+    and a residual without word keys ignores them, so a words mask transformer may pair with
+    a residual one without; the other way round the residual would get no words."""
     if residual_model is None:
         return
-    for field in ("codebook_size", "text_dim", "max_segments", "text_tokens"):
+    fields = ["codebook_size", "text_dim", "max_segments"]
+    if residual_model.config.text_tokens == "words":
+        fields += ["text_tokens", "max_words"]
+    for field in fields:
         a, b = getattr(mask_model.config, field), getattr(residual_model.config, field)
         if a != b:
             raise ValueError(f"mask and residual transformers disagree on {field}: {a} vs {b}")

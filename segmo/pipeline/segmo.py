@@ -39,7 +39,7 @@ from segmo.generation.attention_edit import (
     source_attention,
 )
 from segmo.generation.editing import edit_tokens, token_span
-from segmo.generation.generate import Precision, decode_tokens, generate_tokens
+from segmo.generation.generate import Precision, check_models, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.attention_recorder import AttentionRecording, record_attention
 from segmo.models.cpu_inference import use_cpu_kernels
@@ -97,11 +97,10 @@ class SegMo:
             if residual.config.num_quantizers > tokenizer.num_quantizers:
                 raise SegmoError(f"SegMo: residual num_quantizers={residual.config.num_quantizers}"
                                  f" > tokenizer num_quantizers={tokenizer.num_quantizers}")
-            for field in ("codebook_size", "text_dim", "max_segments", "text_tokens"):
-                a, b = getattr(mask.config, field), getattr(residual.config, field)
-                if a != b:
-                    raise SegmoError(f"SegMo: mask and residual transformers disagree on "
-                                     f"{field}: {a} vs {b}")
+            try:
+                check_models(mask, residual)
+            except ValueError as error:
+                raise SegmoError(f"SegMo: {error}") from None
         if length is not None and length.config.text_dim != mask.config.text_dim:
             raise SegmoError(f"SegMo: length estimator text_dim={length.config.text_dim}, mask "
                              f"transformer text_dim={mask.config.text_dim}")
