@@ -11,6 +11,7 @@ from test_attention_recorder import LENGTHS, STEPS, run, tiny_models
 
 from segmo.evaluation.attention import (
     attention_grounding,
+    kind_share,
     plot_segment_attention,
     prefix_share,
     sentence_share,
@@ -60,6 +61,18 @@ def test_prefix_and_sentence_shares_by_block_and_step():
     assert shares["by_step"] == pytest.approx({0: 0.3, 1: 0.8})
     assert sentence_share(maps)["by_block"][1] == pytest.approx(0.5)
     assert sentence_share(maps)["by_step"][1] == pytest.approx(0.75)
+
+
+def test_prefix_mass_by_kind_of_key_finds_a_start_word_sink():
+    # sentence, two segments, three words (start token first): the start word holds half.
+    m = make_map([0.1, 0.1, 0.1, 0.4, 0.05, 0.05])
+    m.key_labels[3:6] = ["word 0", "word 1", "word 2"]
+    shares = kind_share([m])
+    assert {kind: figures["mean"] for kind, figures in shares.items()} == pytest.approx(
+        {"sentence": 0.125, "segments": 0.25, "start word": 0.5, "words": 0.125})
+    assert shares["sentence"]["mean"] == pytest.approx(sentence_share([m])["mean"])
+    # A model without word keys has no word kinds.
+    assert set(kind_share([make_map([0.3, 0.1])])) == {"sentence", "segments"}
 
 
 def test_attention_grounding_counts_tokens_on_their_segment():

@@ -348,6 +348,10 @@ def test_attention_report_writes_tables_plots_and_a_json_line(setup, hash_text_e
     for name in ("sink_ratio", "prefix_share", "sentence_share", "attention_grounding"):
         assert 0.0 <= last[name]["mean"] <= 1.0, name
     assert last["attention_grounding"]["tokens"] > 0
+    # A model without word keys: the prefix mass is the sentence's and the segments'.
+    shares = last["kind_share"]
+    assert set(shares) == {"sentence", "segments"} and "cross_gate" not in last
+    assert shares["sentence"]["mean"] + shares["segments"]["mean"] == pytest.approx(1.0)
     assert 1 <= len(last["plots"]) <= 2 and all(Path(p).is_file() for p in last["plots"])
     assert "| all |" in (out / "attention.md").read_text()
 

@@ -12,6 +12,9 @@ ground truth, `DIR/segments/<id>.json`), with its ground-truth text segments:
   transformer, by block and by decoding step (`segmo.evaluation.attention`);
 - the real motion (`segmo.evaluation.attention.motion_attention`: one pass with all its
   tokens visible): `attention_grounding` against the true spans, by block;
+- the prefix mass by kind of key (sentence, segments, start word, other words:
+  `kind_share`), by block, to find the sink of a model with word keys; for one that reads
+  its words by gated cross-attention, each block's gate tanh(g) (0: closed);
 - OUT/plots/<id>.png: each segment's attention over the real motion (last block), true
   spans shaded; for a model with word keys (`text_tokens: words`) a second panel with each
   content word's attention (`segmo.evaluation.attention.content_words`).
@@ -33,6 +36,7 @@ from segmo.errors import SegmoError
 from segmo.evaluation.attention import (
     attention_grounding,
     content_words,
+    kind_share,
     motion_attention,
     plot_segment_attention,
     prefix_share,
@@ -86,7 +90,11 @@ def report(model: SegMo, data: Path, split: str, count: int, k: int, seed: int) 
         hits = attention_grounding(maps, spans, counts)
     result = {"motions": len(chosen), "split": split, "k": k, "seed": seed,
               "sink_ratio": sink_ratio(generated, k), "prefix_share": prefix_share(generated),
-              "sentence_share": sentence_share(generated), "attention_grounding": hits}
+              "sentence_share": sentence_share(generated), "kind_share": kind_share(generated),
+              "attention_grounding": hits}
+    blocks = model.mask.trunk.blocks
+    if hasattr(blocks[0], "cross"):  # words read by gated cross-attention: how open each gate is
+        result["cross_gate"] = {b: float(torch.tanh(block.cross.gate).item()) for b, block in enumerate(blocks)}
     return result, grounding_maps
 
 
@@ -119,6 +127,14 @@ def markdown(result: dict) -> str:
                      f"{result['attention_grounding']['by_block'].get(block, float('nan')):.3f} |")
     lines.append(f"| all | {result['sink_ratio']['mean']:.3f} | {result['prefix_share']['mean']:.3f} | "
                  f"{result['sentence_share']['mean']:.3f} | {result['attention_grounding']['mean']:.3f} |")
+    kinds = result["kind_share"]
+    lines += ["", "Prefix mass by kind of key (the start word is the first word key, the start token):", "",
+              "| block | " + " | ".join(kinds) + " |", "| ---: |" + " ---: |" * len(kinds)]
+    for block in result["sink_ratio"]["by_block"]:
+        lines.append(f"| {block} | " + " | ".join(f"{kinds[k]['by_block'][block]:.3f}" for k in kinds) + " |")
+    if "cross_gate" in result:
+        lines += ["", "Cross-attention gates, tanh(gate) by block: "
+                  + ", ".join(f"{b}: {g:+.3f}" for b, g in result["cross_gate"].items())]
     lines += ["", "| decoding step | SinkRatio | prefix share | sentence share |", "| ---: | ---: | ---: | ---: |"]
     for step in result["sink_ratio"]["by_step"]:
         lines.append(f"| {step} | {result['sink_ratio']['by_step'][step]:.3f} | "

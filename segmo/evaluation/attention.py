@@ -18,7 +18,9 @@ pass.
   0 when the prefix weights are uniform, 1 when they sit on K' keys alone; queries of a
   prefix of fewer than 2 valid keys are left out. K = 1 by default (the sink is one key).
 - ``prefix_share``: the attention mass on the text prefix (the rest is on motion keys).
-- ``sentence_share``: the sentence key's part of the prefix mass.
+- ``sentence_share``: the sentence key's part of the prefix mass; ``kind_share`` the same
+  for each kind of key (sentence, segments, start word, other words), to find the sink in
+  a model with word keys.
 - ``attention_grounding``: over motion tokens inside the ground-truth span of segment k,
   the share whose largest segment weight (head mean) is on segment k.
 """
@@ -38,7 +40,7 @@ from segmo.pipeline.attention import key_profile, motion_attention, segment_prof
 from segmo.text.vocabulary import tag_caption
 
 __all__ = ["attention_grounding", "content_words", "key_profile", "motion_attention",
-           "plot_segment_attention", "prefix_share", "segment_profile", "sentence_share",
+           "kind_share", "plot_segment_attention", "prefix_share", "segment_profile", "sentence_share",
            "sink_ratio", "sink_ratio_values"]
 
 # Parts of speech that carry what a motion does (`segmo.text.vocabulary.tag_caption`);
@@ -118,6 +120,35 @@ def sentence_share(maps: Sequence[AttentionMap]) -> dict[str, dict[int, float]]:
         value = torch.where(mass > 0, prefix[..., 0] / mass.clamp_min(1e-30), torch.nan)
         return _masked(m, value)
     return _grouped(maps, share)
+
+
+KEY_KINDS = ("sentence", "segments", "start word", "words")
+
+
+def _kind(label: str) -> str:
+    if label == "sentence":
+        return "sentence"
+    if label.startswith("segment "):
+        return "segments"
+    return "start word" if label == "word 0" else "words"
+
+
+def kind_share(maps: Sequence[AttentionMap]) -> dict[str, dict[str, dict[int, float]]]:
+    """The prefix mass by kind of key: the sentence, the segments together, the start word
+    (the first word key: the start token, MLA-Gen's sink) and the other words together;
+    each by block, by pass and overall, like `sentence_share` (whose figures the
+    "sentence" entry repeats). Kinds a model has no key of are left out."""
+    kinds = {kind for m in maps for kind in map(_kind, m.key_labels[:m.text_length])}
+
+    def share(kind: str):
+        def value(m: AttentionMap) -> torch.Tensor:
+            prefix = _prefix(m)
+            mass = prefix.sum(-1)
+            chosen = [i for i, label in enumerate(m.key_labels[:m.text_length]) if _kind(label) == kind]
+            part = prefix[..., chosen].sum(-1)
+            return _masked(m, torch.where(mass > 0, part / mass.clamp_min(1e-30), torch.nan))
+        return value
+    return {kind: _grouped(maps, share(kind)) for kind in KEY_KINDS if kind in kinds}
 
 
 def attention_grounding(maps: Sequence[AttentionMap],
