@@ -117,11 +117,12 @@ def test_versus_times_each_mechanism_against_plain_cfg(capsys):
     import json
 
     tool = _load_tool()
-    tool.main(["--random-config", "tiny", "--versus", "sink_ctrl,memory16", "--repeats", "2",
+    # The word variants generate with word features (a words model refuses to run without).
+    tool.main(["--random-config", "tiny", "--versus", "sink_ctrl,memory16,words,words_cross", "--repeats", "2",
                "--threads", "1"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert set(result["versus_cfg"]) == {"sink_ctrl", "memory16"}
-    assert set(result["cpu_ms_per_motion"]) == {"cfg", "sink_ctrl", "memory16"}
+    assert set(result["versus_cfg"]) == {"sink_ctrl", "memory16", "words", "words_cross"}
+    assert set(result["cpu_ms_per_motion"]) == {"cfg", "sink_ctrl", "memory16", "words", "words_cross"}
     assert all(r["rounds"] == 2 and r["median_ratio"] > 0 for r in result["versus_cfg"].values())
     with pytest.raises(SystemExit):
         tool.main(["--random-config", "tiny", "--versus", "sink_ctl"])

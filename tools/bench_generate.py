@@ -101,7 +101,14 @@ VERSUS: dict[str, tuple[dict, dict]] = {
     "memory16": ({"memory_slots": 16}, {}),
     "sink_mask": ({"sink_mask_t": 0.2}, {}),
     "local_uncond": ({}, {"unconditional": "local"}),
+    # word-level conditioning (`text_tokens: words`): WORDS word keys in the prefix, or read
+    # by a gated cross-attention sub-layer in every block
+    "words": ({"text_tokens": "words"}, {}),
+    "words_cross": ({"text_tokens": "words", "word_attention": "cross"}, {}),
 }
+# Word keys of the bench's captions with words: a caption of three or four actions in
+# MiniLM's tokens, start and end tokens included.
+WORDS = 20
 
 
 def random_models(name: str, seed: int, memory_slots: int = 0, **mask_overrides):
@@ -138,6 +145,15 @@ def text_inputs(mask: MaskTransformer, b: int, seed: int):
     c = mask.config
     return (torch.randn(b, c.text_dim, generator=g), torch.randn(b, c.max_segments, c.text_dim, generator=g),
             torch.ones(b, c.max_segments, dtype=torch.bool))
+
+
+def word_inputs(mask: MaskTransformer, b: int, seed: int) -> dict:
+    """Random word features for a model with word keys (WORDS of them), none for the others."""
+    if mask.config.text_tokens != "words":
+        return {}
+    g = torch.Generator().manual_seed(seed + 1)
+    return {"words": torch.randn(b, WORDS, mask.config.text_dim, generator=g),
+            "word_mask": torch.ones(b, WORDS, dtype=torch.bool)}
 
 
 def sampled_counts(n: int, steps: int) -> list[int]:
@@ -259,13 +275,15 @@ def versus(args: argparse.Namespace, names: list[str]) -> dict:
         residual.eval()
         options = SamplingOptions(steps=args.steps, residual_guided_layers=args.residual_guided_layers,
                                   **sampling)
-        text = text_inputs(mask, b, args.seed)
+        text, words = text_inputs(mask, b, args.seed), word_inputs(mask, b, args.seed)
         lengths = torch.full((b,), 4 * mask.config.max_tokens)
 
-        def run(mask=mask, residual=residual, options=options, text=text, lengths=lengths) -> float:
+        def run(mask=mask, residual=residual, options=options, text=text, words=words,
+                lengths=lengths) -> float:
             start = time.process_time()
             generate_tokens(mask, residual, *text, lengths, options=options,
-                            generator=torch.Generator().manual_seed(args.seed), precision=args.precision)
+                            generator=torch.Generator().manual_seed(args.seed), precision=args.precision,
+                            **words)
             return time.process_time() - start
 
         run()  # warm-up
