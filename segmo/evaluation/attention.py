@@ -114,12 +114,7 @@ def prefix_share(maps: Sequence[AttentionMap]) -> dict[str, dict[int, float]]:
 
 def sentence_share(maps: Sequence[AttentionMap]) -> dict[str, dict[int, float]]:
     """The sentence key's part of the prefix mass, by block, by pass and overall."""
-    def share(m: AttentionMap) -> torch.Tensor:
-        prefix = _prefix(m)
-        mass = prefix.sum(-1)
-        value = torch.where(mass > 0, prefix[..., 0] / mass.clamp_min(1e-30), torch.nan)
-        return _masked(m, value)
-    return _grouped(maps, share)
+    return _grouped(maps, _kind_part("sentence"))
 
 
 KEY_KINDS = ("sentence", "segments", "start word", "words")
@@ -133,22 +128,24 @@ def _kind(label: str) -> str:
     return "start word" if label == "word 0" else "words"
 
 
+def _kind_part(kind: str):
+    """map → (r, heads, q): the part of each query's prefix mass on the keys of `kind`."""
+    def value(m: AttentionMap) -> torch.Tensor:
+        prefix = _prefix(m)
+        mass = prefix.sum(-1)
+        chosen = [i for i, label in enumerate(m.key_labels[:m.text_length]) if _kind(label) == kind]
+        part = prefix[..., chosen].sum(-1)
+        return _masked(m, torch.where(mass > 0, part / mass.clamp_min(1e-30), torch.nan))
+    return value
+
+
 def kind_share(maps: Sequence[AttentionMap]) -> dict[str, dict[str, dict[int, float]]]:
     """The prefix mass by kind of key: the sentence, the segments together, the start word
     (the first word key: the start token, MLA-Gen's sink) and the other words together;
     each by block, by pass and overall, like `sentence_share` (whose figures the
     "sentence" entry repeats). Kinds a model has no key of are left out."""
     kinds = {kind for m in maps for kind in map(_kind, m.key_labels[:m.text_length])}
-
-    def share(kind: str):
-        def value(m: AttentionMap) -> torch.Tensor:
-            prefix = _prefix(m)
-            mass = prefix.sum(-1)
-            chosen = [i for i, label in enumerate(m.key_labels[:m.text_length]) if _kind(label) == kind]
-            part = prefix[..., chosen].sum(-1)
-            return _masked(m, torch.where(mass > 0, part / mass.clamp_min(1e-30), torch.nan))
-        return value
-    return {kind: _grouped(maps, share(kind)) for kind in KEY_KINDS if kind in kinds}
+    return {kind: _grouped(maps, _kind_part(kind)) for kind in KEY_KINDS if kind in kinds}
 
 
 def attention_grounding(maps: Sequence[AttentionMap],
