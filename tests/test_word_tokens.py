@@ -73,10 +73,11 @@ def test_a_config_written_before_word_keys_loads_as_a_model_without_them(tmp_pat
     folder = mask.save_pretrained(tmp_path / "mask")
     payload = json.loads((folder / "config.json").read_text())
     assert payload["config"]["text_tokens"] == "none"
-    payload["config"] = {k: v for k, v in payload["config"].items() if k not in ("text_tokens", "max_words")}
+    payload["config"] = {k: v for k, v in payload["config"].items()
+                         if k not in ("text_tokens", "max_words", "word_norm")}
     (folder / "config.json").write_text(json.dumps(payload))
     loaded = load_pretrained(folder)
-    assert loaded.config.text_tokens == "none"
+    assert loaded.config.text_tokens == "none" and loaded.config.word_norm == "none"
     indices, token_mask, sentence, segments, segment_mask, _ = inputs()
     with torch.no_grad():
         torch.testing.assert_close(loaded.eval()(indices, token_mask, sentence, segments, segment_mask).logits,
@@ -116,6 +117,35 @@ def test_words_are_conditioning_and_padded_words_change_nothing(word_attention):
     with pytest.raises(ValueError, match="max_words=8"):
         mask(indices, token_mask, sentence, segments, segment_mask, words=torch.zeros(2, 9, 8),
              word_mask=torch.ones(2, 9, dtype=torch.bool))
+
+
+def test_unit_word_norm_reads_each_word_by_direction_alone(tmp_path):
+    # MiniLM's per-token states are ~6 times longer than its unit sentence vectors; with
+    # word_norm "unit" a word's length no longer weighs in, only where it points.
+    indices, token_mask, sentence, segments, segment_mask, _ = inputs()
+    w, wm = words()
+    scale = torch.rand(2, 5, 1, generator=torch.Generator().manual_seed(5)) * 6 + 0.5
+    by_norm = {}
+    for word_norm in ("none", "unit"):
+        mask, _ = tiny_models(text_tokens="words", max_words=8, word_norm=word_norm)
+        with torch.no_grad():
+            base = mask(indices, token_mask, sentence, segments, segment_mask, words=w, word_mask=wm).logits
+            scaled = mask(indices, token_mask, sentence, segments, segment_mask, words=w * scale,
+                          word_mask=wm).logits
+            padded = torch.cat([w, torch.full((2, 3, w.shape[2]), float("nan"))], dim=1)
+            pad_mask = torch.cat([wm, torch.zeros(2, 3, dtype=torch.bool)], dim=1)
+            again = mask(indices, token_mask, sentence, segments, segment_mask, words=padded,
+                         word_mask=pad_mask).logits
+        torch.testing.assert_close(again, base, atol=1e-5, rtol=1e-5)  # padding changes nothing
+        by_norm[word_norm] = float((base - scaled).abs().max())
+    assert by_norm["unit"] < 1e-4 < 1e-2 < by_norm["none"]
+    loaded = load_pretrained(mask.save_pretrained(tmp_path / "mask"))
+    assert loaded.config.word_norm == "unit"
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.eval()(indices, token_mask, sentence, segments, segment_mask,
+                                                 words=w, word_mask=wm).logits, base)
+    with pytest.raises(ValueError, match="word_norm must be one of none, unit"):
+        tiny_models(text_tokens="words", word_norm="layer")
 
 
 def test_generation_with_words_is_seeded_recorded_and_survives_export(tmp_path):

@@ -91,7 +91,8 @@ class MaskTransformer(nn.Module, Pretrained):
         self.pad_id = config.codebook_size + 1
         self.token_embedding = nn.Embedding(config.codebook_size + 2, config.dim)
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
-                                 config.text_tokens, config.max_words, config.word_attention)
+                                 config.text_tokens, config.max_words, config.word_attention,
+                                 config.word_norm)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
                            config.norm_first, config.max_tokens, config.memory_slots,
                            config.text_tokens == "words" and config.word_attention == "cross")

@@ -70,7 +70,8 @@ class ResidualTransformer(nn.Module, Pretrained):
         self.output_bias = nn.Parameter(torch.zeros(config.num_quantizers, config.codebook_size))
         self.layer_embeddings = nn.Parameter(torch.randn(config.num_quantizers, config.dim) * 0.02)
         self.prefix = TextPrefix(config.text_dim, config.dim, config.max_segments,
-                                 config.text_tokens, config.max_words, config.word_attention)
+                                 config.text_tokens, config.max_words, config.word_attention,
+                                 config.word_norm)
         self.trunk = Trunk(config.dim, config.depth, config.heads, config.ff_dim, config.dropout,
                            config.norm_first, config.max_tokens, config.memory_slots,
                            config.text_tokens == "words" and config.word_attention == "cross")

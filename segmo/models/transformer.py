@@ -54,6 +54,11 @@ class TransformerConfig:
     # cross-attention sub-layer over the words alone in every block (Flamingo's tanh gate,
     # 0 at initialisation). Measured against each other in the README; "prefix" by default.
     word_attention: str = "prefix"
+    # How the word features are scaled before the shared projection: "none", as the text
+    # encoder gives them; "unit", each word vector to unit length. MiniLM's per-token states
+    # have a norm of about 6 against its unit-length sentence vectors, so without scaling
+    # the word keys outweigh the sentence and segments (measured in the README).
+    word_norm: str = "none"
     # MLA-Gen's memory slots (eq. 4): learned vectors every block's motion queries attend to,
     # independent of the text and present in conditional and unconditional rows alike
     # (`Trunk.encode_prefix`). 0 = the model without them.
@@ -62,6 +67,7 @@ class TransformerConfig:
 
 TEXT_TOKENS: tuple[str, ...] = ("none", "words")
 WORD_ATTENTION: tuple[str, ...] = ("prefix", "cross")
+WORD_NORM: tuple[str, ...] = ("none", "unit")
 
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
@@ -308,11 +314,13 @@ class TextPrefix(nn.Module):
     included) follow as L further slots, through the same projection, with a word kind
     embedding and a learned word-position embedding; padded words are masked out of
     attention and dropped with the rest of the condition. A prefix without word keys
-    ignores `words`.
+    ignores `words`. With `word_norm="unit"` each word vector is scaled to unit length
+    before the projection (padded words stay 0).
     """
 
     def __init__(self, text_dim: int, dim: int, max_segments: int, text_tokens: str = "none",
-                 max_words: int = 77, word_attention: str = "prefix") -> None:
+                 max_words: int = 77, word_attention: str = "prefix",
+                 word_norm: str = "none") -> None:
         super().__init__()
         if text_tokens not in TEXT_TOKENS:
             raise ValueError(f"TextPrefix: text_tokens must be one of {', '.join(TEXT_TOKENS)}, "
@@ -320,7 +328,11 @@ class TextPrefix(nn.Module):
         if word_attention not in WORD_ATTENTION:
             raise ValueError(f"TextPrefix: word_attention must be one of "
                              f"{', '.join(WORD_ATTENTION)}, got {word_attention!r}")
+        if word_norm not in WORD_NORM:
+            raise ValueError(f"TextPrefix: word_norm must be one of {', '.join(WORD_NORM)}, "
+                             f"got {word_norm!r}")
         self.word_attention = word_attention
+        self.word_norm = word_norm
         self.max_segments = max_segments
         self.text_tokens = text_tokens
         self.max_words = max_words
@@ -389,7 +401,10 @@ class TextPrefix(nn.Module):
         if l > self.max_words:
             raise ValueError(f"TextPrefix: {l} word slots given, the model has max_words={self.max_words}")
         word_valid = word_mask.bool()
-        word_content = self.project(words.masked_fill(~word_valid[..., None], 0.0).to(sentence.dtype))
+        words = words.masked_fill(~word_valid[..., None], 0.0).to(sentence.dtype)
+        if self.word_norm == "unit":  # a padded word (all 0) stays 0
+            words = F.normalize(words, dim=-1)
+        word_content = self.project(words)
         if drop_condition is not None:
             drop_words = drop_condition.bool()
             if keep_local is not None:

@@ -38,7 +38,8 @@ class TransformerTask(Task):
 
     ``word_attention`` (with words): "prefix", the words as further keys of every block's
     self-attention, or "cross", a gated cross-attention sub-layer over them
-    (`TransformerConfig`).
+    (`TransformerConfig`). ``word_norm`` (with words): "unit" scales each word feature to
+    unit length before the projection, "none" keeps the encoder's scale.
     ``memory_slots``: MLA-Gen's learned memory slots, attended by every block (0 = none).
     ``local_uncond_prob``: the share of condition-dropped samples that keep their segments
     (and words) and drop the sentence only, so that guidance can keep the local condition
@@ -68,6 +69,7 @@ class TransformerTask(Task):
         text_tokens: Literal["none", "words"] = "none",
         max_words: int = _DEFAULT.max_words,
         word_attention: Literal["prefix", "cross"] = "prefix",
+        word_norm: Literal["none", "unit"] = "none",
         memory_slots: int = _DEFAULT.memory_slots,
         local_uncond_prob: float = 0.0,
         lr: float = 2e-4,
