@@ -87,10 +87,30 @@ def test_version_3_is_the_default_and_a_folder_of_another_version_is_refused(cor
     line = cli_failure(["synth", "--out", str(out), "--num-motions", "3", "--workers", "1"], capsys)
     assert "version 1" in line and "text_features" in line and "--overwrite" in line
     assert json.loads((out / "corpus.json").read_text())["version"] == 1
-    line = cli_failure(["synth", "--out", str(out), "--version", "4"], capsys)
+    line = cli_failure(["synth", "--out", str(out), "--version", "5"], capsys)
     assert "argument --version" in line
-    with pytest.raises(SegmoError, match="version must be one of 1, 2, 3, got 4"):
-        build_corpus(tmp_path / "v4", 3, version=4)
+    with pytest.raises(SegmoError, match="version must be one of 1, 2, 3, 4, got 5"):
+        build_corpus(tmp_path / "v5", 3, version=5)
+
+
+def test_version_4_is_version_3_on_a_rig_whose_joints_turn_their_children_together():
+    # The pelvis turns the hips and spine1 as one, spine3 the neck and collars (SMPL, BVH);
+    # versions 1-3 lean the spine1 bone and turn the neck bone on their own.
+    def layout_change(joints: np.ndarray, joint: int) -> float:
+        children = [c for c, p in enumerate(T2M.parents) if p == joint]
+        pairs = [(a, b) for i, a in enumerate(children) for b in children[i + 1:]]
+        d = np.stack([np.linalg.norm(joints[:, a] - joints[:, b], axis=-1) for a, b in pairs], -1)
+        return float((d.max(0) - d.min(0)).max())
+
+    changes = {3: [], 4: []}
+    for s in (955, 1281, 4):  # arms up (v3's neck far from the collars), a run (the lean)
+        v3, v4 = (sample_motion(np.random.default_rng([0, s]), v) for v in (3, 4))
+        assert [(g.action, g.params, g.start, g.end) for g in v3.segments] == \
+               [(g.action, g.params, g.start, g.end) for g in v4.segments]
+        assert v4.joints.shape == v3.joints.shape and not np.allclose(v4.joints, v3.joints)
+        for version, motion in ((3, v3), (4, v4)):
+            changes[version].append(max(layout_change(motion.joints, j) for j in (0, 9)))
+    assert max(changes[4]) < 1e-6 < 5e-4 < min(changes[3])
 
 
 def _durations(version: int, seeds: range) -> list[list[int]]:

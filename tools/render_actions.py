@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gif", action="store_true", help="also write GIFs (slower)")
     parser.add_argument("--only", nargs="*", help="action names to render")
     parser.add_argument("--version", type=int, choices=VERSIONS, default=VERSION,
-                        help="sample the parameters (durations) as this corpus version does")
+                        help="sample the parameters (durations) as this corpus version does (4: its rig too)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     for name, plan, overlay in jobs:
         if args.only and name not in args.only:
             continue
-        motion = motion_from_actions(rng, plan, overlay=overlay)
+        motion = motion_from_actions(rng, plan, overlay=overlay, rigid=args.version >= 4)
         joints = features_to_joints(joints_to_features(motion.joints.astype(np.float32)))
         title = " -> ".join(f"{a} {p}" for a, p in plan) + (f" + {overlay}" if overlay else "")
         contact_sheet(joints, title, args.out / f"{name}.png")

@@ -5,7 +5,9 @@
 `--version` picks how motions are sampled (`segmo.synth.sequence`): 3, the default, puts
 a short action beside a long one in every motion of two or more (a long walk beside one
 short jump); 2 lets durations follow the action without that; 1 reproduces the first
-corpus, whose actions last nearly equally long. Versions 1 and 2 are reproduced byte for
+corpus, whose actions last nearly equally long; 4 is version 3 with a rig whose joints turn
+their children together, as an SMPL or BVH hierarchy does, so that BVH files follow its
+joints exactly. Versions 1 and 2 are reproduced byte for
 byte. Motion i is generated from `numpy.random.default_rng([seed, i])` alone, so the files do
 not depend on how many workers build them; the normalisation statistics are merged in
 index order for the same reason. The corpus is built in `OUT.tmp-<pid>` and renamed into
@@ -251,7 +253,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="replace a folder that holds something else than this corpus")
     parser.add_argument("--version", type=int, choices=VERSIONS, default=VERSION,
                         help="corpus version: 3 a short action beside a long one (default), 2 "
-                        "durations follow the action, 1 the first corpus (nearly equal durations)")
+                        "durations follow the action, 1 the first corpus (nearly equal durations), "
+                        "4 version 3 with a rig a BVH hierarchy follows exactly")
     args = parser.parse_args(argv)
     path = build_corpus(args.out, args.num_motions, args.seed, args.workers, args.overwrite,
                         version=args.version)

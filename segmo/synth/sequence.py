@@ -1,6 +1,6 @@
 """Sequencing: sample 1-5 actions, build them, blend them into one motion.
 
-Three corpus versions sample differently. Version 1 draws each action in turn while
+Four corpus versions. The first three sample differently. Version 1 draws each action in turn while
 leaving room for the ones still to come, so the actions of one motion last nearly
 equally long. Version 2 draws every action with durations that follow the action and
 its parameters (`segmo.synth.actions.SAMPLE_V2`), then redraws the longest until the
@@ -9,7 +9,11 @@ Version 3 samples as version 2 and makes every motion of two or more actions hol
 short one (SHORT_V2, about a second) beside a long one (LONG_V3, several seconds), the
 longest between MIN_RATIO_V3 and MAX_RATIO times the shortest: in version 2 half of the
 motions had actions of similar lengths, where a split into equal parts still finds
-them (uniform R@1 at IoU 0.5 0.79 on the test split).
+them (uniform R@1 at IoU 0.5 0.79 on the test split). Version 4 samples as version 3 (motion i
+draws the same actions, durations and parameters) with a rig whose joints turn all their
+children together (`segmo.synth.rig.rigid_branches`): in versions 1-3 the neck bone turns
+apart from the collars and the spine1 bone apart from the hips, which a BVH or SMPL
+hierarchy cannot show (up to 23 mm in arms-up motions).
 
 Consecutive actions overlap by a 5-15 frame transition in which local rotations are
 slerped and the root is interpolated; each action is placed where the previous one is at
@@ -28,10 +32,10 @@ from segmo.motion.kinematics import forward_kinematics
 from segmo.motion.skeleton import T2M
 from segmo.synth.actions import ACTIONS, OVERLAYS, build_action, sample_params
 from segmo.synth.gait import gaussian, sliding
-from segmo.synth.rig import REST_OFFSETS, axis_angle, qmul, qrot, slerp, solve_pose
+from segmo.synth.rig import REST_OFFSETS, axis_angle, qmul, qrot, rigid_branches, slerp, solve_pose
 
 VERSION = 3  # what `sample_motion` and `segmo synth` build unless told otherwise
-VERSIONS = (1, 2, 3)
+VERSIONS = (1, 2, 3, 4)
 MIN_FRAMES, MAX_FRAMES = 40, 196  # feature frames (joint frames - 1)
 # Version 2: the longest / shortest action of one motion (built frames); draws of the
 # longest action before a short one (SHORT_V2, about a second each) takes its place.
@@ -107,7 +111,7 @@ def sample_motion(rng: np.random.Generator, version: int = VERSION) -> SynthMoti
     `version` (`VERSIONS`)."""
     if version == 1:
         return _sample_v1(rng)
-    if version in (2, 3):
+    if version in (2, 3, 4):
         return _sample_v2(rng, version)
     raise ValueError(f"sample_motion: version must be one of {VERSIONS}, got {version!r}")
 
@@ -120,7 +124,7 @@ def _overlay(rng, spec):
 
 
 def _sample_v2(rng: np.random.Generator, version: int) -> SynthMotion:
-    """Versions 2 and 3 (see the module docstring)."""
+    """Versions 2, 3 and 4 (see the module docstring)."""
     contrast = version >= 3
     count = int(rng.choice(SEGMENT_COUNTS, p=SEGMENT_WEIGHTS))
     sitting, previous, names, seated = False, None, [], []
@@ -142,7 +146,8 @@ def _sample_v2(rng: np.random.Generator, version: int) -> SynthMotion:
             spread = (not contrast or len(plan) < 2 or not any(n in LONG_V3 for n in names[:len(plan)])
                       or max(frames) >= MIN_RATIO_V3[len(plan)] * min(frames))
             if total <= MAX_FRAMES + 1 and max(frames) <= MAX_RATIO * min(frames) and spread:
-                return _assemble(rng, names[:len(plan)], plan, overlaps[:len(plan)])
+                return _assemble(rng, names[:len(plan)], plan, overlaps[:len(plan)],
+                                 rigid=version >= 4)
             i = int(np.argmax(frames))
             if not spread and attempt % 2:  # too alike: draw the shortest again instead
                 i = int(np.argmin(frames))
@@ -205,7 +210,7 @@ def _draw(rng, name, sitting, version):
     return params, overlay, build_action(name, params, rng, sitting, overlay)
 
 
-def _assemble(rng, names, plan, overlaps) -> SynthMotion:
+def _assemble(rng, names, plan, overlaps, rigid: bool = False) -> SynthMotion:
     clips, segments = [], []
     for name, (params, overlay, track), overlap in zip(names, plan, overlaps):
         clip = (solve_pose(track), track.root.copy(), track.yaw.copy())
@@ -214,7 +219,7 @@ def _assemble(rng, names, plan, overlaps) -> SynthMotion:
             clips[-1] = _hold(clips[-1], 0, (overlap + 1) // 2)
         clips.append(clip)
         segments.append(Segment(name, params, overlay))
-    return _finish(rng, clips, overlaps, segments)
+    return _finish(rng, clips, overlaps, segments, rigid)
 
 
 def _sample_v1(rng: np.random.Generator) -> SynthMotion:
@@ -259,9 +264,11 @@ def _sample_v1(rng: np.random.Generator) -> SynthMotion:
 
 
 def motion_from_actions(rng: np.random.Generator, actions: list[tuple[str, dict]],
-                        overlap: int = 10, overlay: tuple[str, dict] | None = None) -> SynthMotion:
+                        overlap: int = 10, overlay: tuple[str, dict] | None = None,
+                        rigid: bool = False) -> SynthMotion:
     """Build a given sequence of (action, params) (for previews and tests); `overlay` runs
-    an upper-body action during the first one. Raises on an impossible body-state order."""
+    an upper-body action during the first one; `rigid`: version 4's rig. Raises on an
+    impossible body-state order."""
     sitting, clips, overlaps, segments = False, [], [], []
     for i, (name, params) in enumerate(actions):
         spec = ACTIONS[name]
@@ -276,10 +283,10 @@ def motion_from_actions(rng: np.random.Generator, actions: list[tuple[str, dict]
         overlaps.append(overlap if i else 0)
         segments.append(Segment(name, params, over))
         sitting = {"sitting": True, "standing": False}.get(spec.ends, sitting)
-    return _finish(rng, clips, overlaps, segments)
+    return _finish(rng, clips, overlaps, segments, rigid)
 
 
-def _finish(rng, clips, overlaps, segments) -> SynthMotion:
+def _finish(rng, clips, overlaps, segments, rigid: bool = False) -> SynthMotion:
     # Too short: stand a little longer before the first and after the last action.
     short = MIN_FRAMES + 1 - sum(len(c[0]) for c in clips) + sum(overlaps)
     if short > 0:
@@ -287,6 +294,8 @@ def _finish(rng, clips, overlaps, segments) -> SynthMotion:
         clips[0] = _hold(clips[0], before, 0)
         clips[-1] = _hold(clips[-1], 0, short - before)
     q, root, bounds = _blend(clips, overlaps)
+    if rigid:
+        q = rigid_branches(q)
     joints = forward_kinematics(torch.from_numpy(q), torch.from_numpy(root),
                                 torch.from_numpy(REST_OFFSETS), T2M.parents).numpy()
     # A transition slerps leg rotations but interpolates the root linearly, which can push
