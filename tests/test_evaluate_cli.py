@@ -356,6 +356,31 @@ def test_attention_report_writes_tables_plots_and_a_json_line(setup, hash_text_e
     assert "| all |" in (out / "attention.md").read_text()
 
 
+def test_attention_report_on_words_read_by_cross_attention(setup, hash_text_encoder, tmp_path, capsys):
+    # Words read by cross-attention are not keys of the recorded self-attention: no word
+    # panel (it once asked the recording for word keys it does not have), the gates instead.
+    from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
+    from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
+    from segmo.pipeline.segmo import SegMoConfig
+
+    tool = load_tool("attention_report")
+    tokenizer = SegMo.from_pretrained(setup["segmo"]).tokenizer
+    torch.manual_seed(0)
+    tiny = dict(codebook_size=16, text_dim=16, max_segments=5, max_tokens=49, dim=32, depth=1,
+                heads=2, ff_dim=64, text_tokens="words", word_attention="cross")
+    bundle = SegMo(tokenizer, MaskTransformer(MaskTransformerConfig(**tiny)),
+                   ResidualTransformer(ResidualTransformerConfig(**tiny, num_quantizers=3)),
+                   config=SegMoConfig(text_encoder=ENCODER), text_encoder=hash_encoder(ENCODER, 16))
+    assert bundle.uses_words and not bundle.has_word_keys
+    folder = bundle.save_pretrained(tmp_path / "cross")
+    out = tmp_path / "attention"
+    assert tool.main(["--model", str(folder), "--data", str(setup["data"]), "--split", "train",
+                      "--out", str(out), "--motions", "6", "--plots", "2"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(last["kind_share"]) == {"sentence", "segments"} and set(last["cross_gate"]) == {"0"}
+    assert 1 <= len(last["plots"]) <= 2 and all(Path(p).is_file() for p in last["plots"])
+
+
 def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_encoder, tmp_path, capsys):
     tool = load_tool("attention_report")
     plain = tmp_path / "plain"

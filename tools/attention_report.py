@@ -76,8 +76,10 @@ def report(model: SegMo, data: Path, split: str, count: int, k: int, seed: int) 
     for start in range(0, len(chosen), BATCH):
         batch = chosen[start:start + BATCH]
         texts, segments = [s["text"] for s in batch], [s["segments"] for s in batch]
-        for sample, pieces in zip(batch, model.word_texts(texts), strict=True):
-            sample["words"] = content_words(pieces)
+        # Word panels for words that are keys of the recorded attention (not cross-attention).
+        pieces = model.word_texts(texts) if model.has_word_keys else [[] for _ in texts]
+        for sample, sample_pieces in zip(batch, pieces, strict=True):
+            sample["words"] = content_words(sample_pieces)
         with model.record_attention() as recording:
             model.generate(texts, [s["frames"] for s in batch], segments=segments,
                            generator=torch.Generator().manual_seed(seed + start))

@@ -235,6 +235,9 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
     ax.legend(fontsize=7, loc="best")
     if words:
         word_profile = key_profile(m, row, "word ")
+        if len(word_profile) == 0:
+            raise ValueError("plot_segment_attention: words given, but the recording has no word "
+                             "keys (a model without words, or words read by cross-attention)")
         ax = axes[1, 0]
         styles = ["-", "--", ":", "-."]
         for j, (index, text) in enumerate(words):

@@ -293,6 +293,13 @@ class SegMo:
         """Whether the transformers condition on the captions' words (text_tokens "words")."""
         return self.mask.config.text_tokens == "words"
 
+    @property
+    def has_word_keys(self) -> bool:
+        """Whether the words are keys of the mask transformer's self-attention (prefix
+        words): what an attention recording and a word reweighting see. Words read by
+        cross-attention (`word_attention: cross`) are not."""
+        return self.uses_words and self.mask.config.word_attention == "prefix"
+
     def word_condition(self, texts: list[str]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """texts (b) → their per-word features (b, l, text_dim) (the text encoder's tokens,
         start and end tokens included, padded to the longest text) and word_mask (b, l)
@@ -317,8 +324,8 @@ class SegMo:
     def word_texts(self, texts: list[str]) -> list[list[str]]:
         """texts (b) → the text of each word key the transformers see for each text
         (`TextEncoder.token_texts`: start and end tokens included, cut at the model's
-        max_words), the labels "word 0", "word 1", … of a recording in that order; empty
-        lists for transformers without word keys."""
+        max_words), the labels "word 0", "word 1", … of a recording in that order (when
+        they are prefix keys, `has_word_keys`); empty lists for transformers without words."""
         texts = check_texts(texts)
         if not self.uses_words:
             return [[] for _ in texts]
@@ -536,8 +543,7 @@ class SegMo:
             if not weights:
                 raise SegmoError("SegMo.edit_text: mode 'reweight' needs weights, e.g. "
                                  "{1: 2.0} or {'jumps': 2.0}")
-            word_keys = self.uses_words and self.mask.config.word_attention == "prefix"
-            reweight = [self._weight_labels(weights, segs, word_keys) for segs in used]
+            reweight = [self._weight_labels(weights, segs, self.has_word_keys) for segs in used]
         editable = None
         if keep_outside:
             changed = [sorted({int(label.split()[1]) for label in row if label.startswith("segment ")})
