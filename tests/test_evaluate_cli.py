@@ -381,6 +381,24 @@ def test_attention_report_on_words_read_by_cross_attention(setup, hash_text_enco
     assert 1 <= len(last["plots"]) <= 2 and all(Path(p).is_file() for p in last["plots"])
 
 
+def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder, tmp_path, capsys):
+    tool = load_tool("order_by_template")
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+                      "--action-classifier", str(setup["classifier"]), "--repeats", "1"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rows = tool.first_captions(setup["data"], "train", 196)
+    assert last["all"]["motions"] == len(rows) == sum(v["motions"] for v in last["by_template"].values())
+    assert set(last["by_template"]) == {r["template"] for r in rows}
+    assert all(0.0 <= v["sequence_accuracy"] <= 1.0 for v in last["by_template"].values())
+    # Train captions never use the held-out templates.
+    assert "held_out" not in last and last["trained"] == last["all"]
+    plain = tmp_path / "plain"
+    (plain / "new_joint_vecs").mkdir(parents=True)
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(plain),
+                      "--action-classifier", str(setup["classifier"])]) == 2
+    assert "ground truth" in capsys.readouterr().err
+
+
 def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_encoder, tmp_path, capsys):
     tool = load_tool("attention_report")
     plain = tmp_path / "plain"

@@ -1,0 +1,104 @@
+"""Action order of generated motions by the template of their caption, on the built-in corpus.
+
+    python tools/order_by_template.py --model B --data data/synth \\
+        --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0]
+
+`segmo evaluate` scores action order on each motion's first caption. The corpus words its
+captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
+val/test captions (`HELD_OUT_TEMPLATES`: "…, followed by …" and "before …", which names the
+last action first). This tool generates the first caption of every motion of two or more
+segments (at its length, `--repeats` seeds each), reads the action sequence with the
+action classifier and reports the sequence accuracy per template, over the trained and the
+held-out templates, and over all; the last stdout line is the JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from segmo.data.layout import has_ground_truth, read_ground_truth, read_split
+from segmo.errors import SegmoError
+from segmo.models.action_classifier import collapse
+from segmo.models.pretrained import load_pretrained
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
+from segmo.pipeline import SegMo
+from segmo.synth.captions import HELD_OUT_TEMPLATES
+
+BATCH = 32
+
+
+def first_captions(data: Path, split: str, max_frames: int) -> list[dict]:
+    """The first caption of each motion of two or more segments: text, template, the
+    collapsed true action sequence, frames (a whole number of tokens)."""
+    if not has_ground_truth(data):
+        raise SegmoError(f"--data {data}: no ground truth (segments/<id>.json): only the "
+                         "built-in corpus (segmo synth) has it")
+    rows = []
+    for motion_id in read_split(data, split):
+        record = read_ground_truth(data, motion_id)
+        caption = record["captions"][0]
+        frames = min(record["num_frames"], max_frames) // FRAMES_PER_TOKEN * FRAMES_PER_TOKEN
+        if len(caption["segments"]) < 2 or frames < FRAMES_PER_TOKEN:
+            continue
+        rows.append({"text": caption["text"], "template": caption["template"], "frames": frames,
+                     "actions": collapse([s["action"] for s in caption["segments"]])})
+    if not rows:
+        raise SegmoError(f"--data {data}: no {split} motion whose first caption has two or more segments")
+    return rows
+
+
+def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, seed: int) -> dict:
+    hits: dict[str, list[bool]] = defaultdict(list)
+    for repeat in range(repeats):
+        for start in range(0, len(rows), BATCH):
+            chunk = rows[start:start + BATCH]
+            out = model.generate([r["text"] for r in chunk], [r["frames"] for r in chunk],
+                                 generator=torch.Generator().manual_seed(seed + 1000 * repeat + start))
+            for k, row in enumerate(chunk):
+                features = out.features[k, : int(out.lengths[k])].float().cpu().numpy()
+                hits[row["template"]].append(classifier.predict_sequence(features) == row["actions"])
+
+    def entry(values: list[bool]) -> dict:
+        return {"sequence_accuracy": float(np.mean(values)), "motions": len(values) // repeats}
+
+    groups = {"trained": [h for t, v in hits.items() if t not in HELD_OUT_TEMPLATES for h in v],
+              "held_out": [h for t, v in hits.items() if t in HELD_OUT_TEMPLATES for h in v],
+              "all": [h for v in hits.values() for h in v]}
+    return {"by_template": {t: entry(v) for t, v in sorted(hits.items())},
+            **{name: entry(v) for name, v in groups.items() if v}, "repeats": repeats}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", required=True, type=Path, help="a SegMo bundle (segmo bundle)")
+    parser.add_argument("--data", required=True, type=Path, help="the built-in corpus' folder")
+    parser.add_argument("--action-classifier", required=True, type=Path)
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--repeats", type=int, default=2, help="generations per caption (seeds)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
+    try:
+        model = SegMo.from_pretrained(args.model)
+        classifier = load_pretrained(args.action_classifier).eval()
+        rows = first_captions(args.data, args.split, model.max_frames)
+    except (SegmoError, FileNotFoundError, OSError) as error:
+        print(f"order_by_template: {error}", file=sys.stderr)
+        return 2
+    result = order_by_template(model, classifier, rows, args.repeats, args.seed)
+    for template, value in result["by_template"].items():
+        print(f"{template:>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
