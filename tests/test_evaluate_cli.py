@@ -386,7 +386,7 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
     assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
                       "--action-classifier", str(setup["classifier"]), "--repeats", "1"]) == 0
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    rows = tool.first_captions(setup["data"], "train", 196)
+    rows = tool.multi_segment_rows(setup["data"], "train", 196)
     assert last["all"]["motions"] == len(rows) == sum(v["motions"] for v in last["by_template"].values())
     assert set(last["by_template"]) == {r["template"] for r in rows}
     assert all(0.0 <= v["sequence_accuracy"] <= 1.0 for v in last["by_template"].values())

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import torch
 
-from segmo.data.layout import has_ground_truth, read_ground_truth, read_motion, read_split
+from segmo.data.layout import first_captions, read_motion
 from segmo.errors import SegmoError
 from segmo.evaluation.attention import (
     attention_grounding,
@@ -50,13 +50,8 @@ BATCH = 16
 
 
 def samples(data: Path, split: str, count: int, max_frames: int) -> list[dict]:
-    if not has_ground_truth(data):
-        raise SegmoError(f"--data {data}: no ground truth (segments/<id>.json): only the "
-                         "built-in corpus (segmo synth) has it")
     out = []
-    for motion_id in read_split(data, split):
-        record = read_ground_truth(data, motion_id)
-        caption = record["captions"][0]
+    for motion_id, record, caption in first_captions(data, split):
         frames = min(record["num_frames"], max_frames) // FRAMES_PER_TOKEN * FRAMES_PER_TOKEN
         if frames < FRAMES_PER_TOKEN:
             continue

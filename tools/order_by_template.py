@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from segmo.data.layout import has_ground_truth, read_ground_truth, read_split
+from segmo.data.layout import first_captions
 from segmo.errors import SegmoError
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
@@ -34,16 +34,11 @@ from segmo.synth.captions import HELD_OUT_TEMPLATES
 BATCH = 32
 
 
-def first_captions(data: Path, split: str, max_frames: int) -> list[dict]:
+def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:
     """The first caption of each motion of two or more segments: text, template, the
     collapsed true action sequence, frames (a whole number of tokens)."""
-    if not has_ground_truth(data):
-        raise SegmoError(f"--data {data}: no ground truth (segments/<id>.json): only the "
-                         "built-in corpus (segmo synth) has it")
     rows = []
-    for motion_id in read_split(data, split):
-        record = read_ground_truth(data, motion_id)
-        caption = record["captions"][0]
+    for _, record, caption in first_captions(data, split):
         frames = min(record["num_frames"], max_frames) // FRAMES_PER_TOKEN * FRAMES_PER_TOKEN
         if len(caption["segments"]) < 2 or frames < FRAMES_PER_TOKEN:
             continue
@@ -89,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model = SegMo.from_pretrained(args.model)
         classifier = load_pretrained(args.action_classifier).eval()
-        rows = first_captions(args.data, args.split, model.max_frames)
+        rows = multi_segment_rows(args.data, args.split, model.max_frames)
     except (SegmoError, FileNotFoundError, OSError) as error:
         print(f"order_by_template: {error}", file=sys.stderr)
         return 2

@@ -149,6 +149,19 @@ def read_ground_truth(root: str | Path, motion_id: str) -> dict[str, Any]:
     return record
 
 
+def first_captions(root: str | Path, split: str) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
+    """(motion id, ground-truth record, its first caption) of every motion of `split`, in
+    split order: what the corpus tools score (`segmo evaluate` scores the first caption)."""
+    if not has_ground_truth(root):
+        raise SegmoError(f"{root}: no ground truth (segments/<id>.json): only the built-in "
+                         "corpus (segmo synth) has it")
+    out = []
+    for motion_id in read_split(root, split):
+        record = read_ground_truth(root, motion_id)
+        out.append((motion_id, record, record["captions"][0]))
+    return out
+
+
 def caption_spans(root: str | Path, motion_id: str, num_lines: int
                   ) -> list[tuple[tuple[int, int], ...]] | None:
     """Per caption line of ``texts/<id>.txt``, the frame spans (start, end exclusive) of its
