@@ -19,6 +19,9 @@ from segmo.pipeline import SegMo
 
 REPO = Path(__file__).resolve().parents[1]
 ENCODER = "hash16"
+# The transformers of the tiny random bundles.
+TINY = dict(codebook_size=16, text_dim=16, max_segments=5, max_tokens=49, dim=32, depth=1,
+            heads=2, ff_dim=64)
 GENERATION = ("top1", "top2", "top3", "fid", "matching", "diversity")
 COMMON = ["--split", "train", "--max-motions", "10", "--repeats", "2", "--batch-size", "8", "--no-progress"]
 
@@ -39,13 +42,11 @@ def setup(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("evaluate")
     corpus = build_corpus(root / "synth", 24, seed=0, progress=False)
     torch.manual_seed(0)
-    tiny = dict(codebook_size=16, text_dim=16, max_segments=5, max_tokens=49, dim=32, depth=1,
-                heads=2, ff_dim=64)
     tokenizer = RVQVAE.from_pretrained(build_tokenizer(root / "rvq", 263))
     paths = {"data": corpus}
     for name, alignment in (("segmo", AlignmentConfig(out_dim=16)), ("no_align", None)):
-        mask = MaskTransformer(MaskTransformerConfig(**tiny, alignment=alignment))
-        residual = ResidualTransformer(ResidualTransformerConfig(**tiny, num_quantizers=3))
+        mask = MaskTransformer(MaskTransformerConfig(**TINY, alignment=alignment))
+        residual = ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3))
         SegMo(tokenizer, mask, residual, config=SegMoConfig(text_encoder=ENCODER),
               text_encoder=hash_encoder(ENCODER, 16)).save_pretrained(root / name)
         paths[name] = root / name
@@ -366,8 +367,7 @@ def test_attention_report_on_words_read_by_cross_attention(setup, hash_text_enco
     tool = load_tool("attention_report")
     tokenizer = SegMo.from_pretrained(setup["segmo"]).tokenizer
     torch.manual_seed(0)
-    tiny = dict(codebook_size=16, text_dim=16, max_segments=5, max_tokens=49, dim=32, depth=1,
-                heads=2, ff_dim=64, text_tokens="words", word_attention="cross")
+    tiny = dict(TINY, text_tokens="words", word_attention="cross")
     bundle = SegMo(tokenizer, MaskTransformer(MaskTransformerConfig(**tiny)),
                    ResidualTransformer(ResidualTransformerConfig(**tiny, num_quantizers=3)),
                    config=SegMoConfig(text_encoder=ENCODER), text_encoder=hash_encoder(ENCODER, 16))
