@@ -15,8 +15,12 @@ TORCH := torch==2.13.0
 demo: .venv/ready
 	$(PY) -m segmo demo --out runs/demo
 
+# The suite runs on JOBS worker processes (pytest-xdist; every CPU up to 4, `make test JOBS=1`
+# for one): each test runs single-threaded, so a 2-core machine is used twice as well. Tests
+# that start their own multi-process runs (DDP) share one worker (`xdist_group`).
+JOBS ?= $(shell python3 -c "import os; print(min(4, len(os.sched_getaffinity(0))))")
 test: .venv/ready
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(JOBS) --dist loadgroup
 
 lint: .venv/ready
 	$(PY) -m ruff check segmo tests tools

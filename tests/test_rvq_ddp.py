@@ -40,6 +40,7 @@ def _worker(rank: int, world_size: int, directory: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp")  # under `make test`, one DDP run at a time (two ranks each)
 def test_ranks_share_codebooks_and_dropout(tmp_path):
     if not dist.is_available():
         pytest.skip("torch.distributed is not available in this build")

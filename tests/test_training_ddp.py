@@ -73,6 +73,7 @@ def run_fit(args: list[str], timeout: float = 300) -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp")  # under `make test`, one DDP run at a time (two ranks each)
 @pytest.mark.parametrize("stage", list(TINY))
 def test_two_cpu_ranks_end_with_identical_weights(stage, ddp_data, tokenizer_dir, tmp_path):
     if not torch.distributed.is_available():
