@@ -409,7 +409,7 @@ def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_enc
 
 
 def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_text_encoder) -> None:
-    """--ctrl-k-base and --unconditional replace the bundle's values and keep its others;
+    """--ctrl-k-base, --unconditional and --word-text replace the bundle's values and keep its others;
     without them the bundle's sampling is used as it is."""
     import numpy as np
 
@@ -421,9 +421,9 @@ def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_tex
     real = model.generate
     model.generate = lambda *a, **k: seen.append(k.get("sampling")) or real(*a, **k)
     mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
-    for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local"}):
+    for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local", "word_text": "segments"}):
         cfg = EvaluateConfig(data="", evaluator="", out="", progress=False, **given)
         Generator(model, cfg, mean, std)(["a person walks forward"], torch.tensor([8]), seed=0)
     assert seen[0] is None
-    assert (seen[1].ctrl_k_base, seen[1].unconditional) == (0.25, "local")
+    assert (seen[1].ctrl_k_base, seen[1].unconditional, seen[1].word_text) == (0.25, "local", "segments")
     assert seen[1].guidance_scale == model.sampling.guidance_scale

@@ -278,3 +278,61 @@ def test_reweighting_a_word_needs_word_keys():
     assert SegMo._weight_labels({"word 2": 2.0}, ["walks"], True) == {"word 2": 2.0}
     with pytest.raises(SegmoError, match="no word keys.*cross-attention"):
         SegMo._weight_labels({"word 2": 2.0}, ["walks"], False)
+
+
+def test_word_keys_can_read_the_segments_in_execution_order(tmp_path, tokenizer_dir, monkeypatch):
+    # "before jumping, a man walks" names the last action first: word keys read from the
+    # caption carry that mention order; read from the segments they carry the execution
+    # order that the segment keys carry (`SamplingOptions.word_text`).
+    from dataclasses import replace
+
+    from test_pipeline import build_stages
+
+    from segmo.errors import SegmoError
+    from segmo.models.tokenizer import RVQVAE
+    from segmo.pipeline import SegMo
+    from segmo.pipeline.segmo import SegMoConfig
+    from segmo.text.extract import ordered_text
+
+    stages = build_stages(tmp_path, tokenizer_dir["t2m"])
+    torch.manual_seed(1)
+    config = dict(TINY, text_dim=8, max_segments=3, max_tokens=49, text_tokens="words")
+    model = SegMo(RVQVAE.from_pretrained(stages["tokenizer"]), MaskTransformer(MaskTransformerConfig(**config)),
+                  ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3)),
+                  config=SegMoConfig(text_encoder="hash"), text_encoder=hash_encoder("hash", 8))
+    caption = "before jumping, a man walks forward."
+    assert model.segment_texts([caption]) == [["a man walks forward", "a man jumps"]]
+    assert model.sampling.word_text == "caption"  # the default: today's word keys
+    assert model.word_sources([caption]) == [caption]
+    assert model.word_sources([caption], word_text="segments") == ["a man walks forward, then a man jumps"]
+    assert model.word_sources([caption], [["a man waves"]], "segments") == ["a man waves"]
+    words, mask = model.word_condition([caption], word_text="segments")
+    same, same_mask = model.word_condition(["a man walks forward, then a man jumps"])
+    assert torch.equal(words, same) and torch.equal(mask, same_mask)
+    assert model.word_texts([caption], word_text="segments")[0] == \
+        ["a", "man", "walks", "forward,", "then", "a", "man", "jumps"]
+    assert ordered_text(["one"]) == "one"
+
+    # generate, edit and the bundle's default pass the option on, with the segments used
+    read: list[list[str]] = []
+    sources = SegMo.word_sources
+    monkeypatch.setattr(SegMo, "word_sources", lambda self, *a, **k: read.append(sources(self, *a, **k)) or read[-1])
+    options = replace(model.sampling, word_text="segments")
+    out = model.generate([caption], 48, sampling=options, generator=torch.Generator().manual_seed(0))
+    assert out.sampling.word_text == "segments" and read[-1] == ["a man walks forward, then a man jumps"]
+    model.generate([caption], 48, segments=[["a man runs", "a man sits"]], sampling=options,
+                   generator=torch.Generator().manual_seed(0))
+    assert read[-1] == ["a man runs, then a man sits"]
+    model.edit(out, (8, 24), "a person kicks", generator=torch.Generator().manual_seed(1))
+    assert read[-1] == ["a person kicks"]  # the bundle's default: the caption
+    model.config.word_text = "segments"
+    saved = model.save_pretrained(tmp_path / "bundle")
+    assert json.loads(Path(saved, "segmo.json").read_text())["word_text"] == "segments"
+    loaded = SegMo.from_pretrained(saved, text_encoder=hash_encoder("hash", 8))
+    assert loaded.sampling.word_text == "segments"
+    assert torch.equal(loaded.generate([caption], 48, generator=torch.Generator().manual_seed(0)).tokens,
+                       out.tokens)
+    with pytest.raises(SegmoError, match="word_text must be 'caption' or 'segments', got 'words'"):
+        SamplingOptions(word_text="words")
+    with pytest.raises(SegmoError, match="word_text must be 'caption' or 'segments'"):
+        model.word_sources([caption], word_text="sentence")

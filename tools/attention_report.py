@@ -72,7 +72,7 @@ def report(model: SegMo, data: Path, split: str, count: int, k: int, seed: int) 
         batch = chosen[start:start + BATCH]
         texts, segments = [s["text"] for s in batch], [s["segments"] for s in batch]
         # Word panels for words that are keys of the recorded attention (not cross-attention).
-        pieces = model.word_texts(texts) if model.has_word_keys else [[] for _ in texts]
+        pieces = model.word_texts(texts, segments) if model.has_word_keys else [[] for _ in texts]
         for sample, sample_pieces in zip(batch, pieces, strict=True):
             sample["words"] = content_words(sample_pieces)
         with model.record_attention() as recording:

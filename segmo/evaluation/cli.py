@@ -94,7 +94,7 @@ class Generator:
         self.model, self.cfg, self.segments_of = model, cfg, segments_of
         self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
         # The bundle's sampling (None), but for the options only a SamplingOptions carries.
-        given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional")
+        given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional", "word_text")
                  if getattr(cfg, name) is not None}
         self.sampling = replace(model.sampling, **given) if given else None
         self.motions = 0
@@ -402,6 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "bundle's; 0 = plain CFG)")
     p.add_argument("--unconditional", choices=("none", "local"), default=None,
                    help="what guidance's unconditional rows keep (default: the bundle's)")
+    p.add_argument("--word-text", choices=("caption", "segments"), default=None,
+                   help="what a words model's word keys read: the caption or its text segments "
+                        "in execution order (default: the bundle's)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

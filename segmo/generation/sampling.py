@@ -16,12 +16,13 @@ import torch
 from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
-__all__ = ["Guidance", "Sampler", "SamplingOptions", "Unconditional", "cosine_schedule", "sample_tokens",
-           "top_k_count"]
+__all__ = ["Guidance", "Sampler", "SamplingOptions", "Unconditional", "WordText", "cosine_schedule",
+           "sample_tokens", "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
 Guidance = Literal["cfg", "sink_ctrl"]
 Unconditional = Literal["none", "local"]
+WordText = Literal["caption", "segments"]
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,12 @@ class SamplingOptions:
     unconditional: what the unconditional rows of the base tokens' guidance keep: "none"
         (no text) or "local" (the segments and words, without the sentence: MLA-Gen's
         unconditional branch, for mask transformers trained with `local_uncond_prob`); the
-        residual layers' unconditional rows keep no text either way.
+        residual layers' unconditional rows keep no text either way;
+    word_text: what the word keys of a transformer with words (`text_tokens: words`) are
+        read from: "caption" (the caption's tokens, in the order it mentions the actions) or
+        "segments" (its text segments joined in execution order, `ordered_text`: "a man
+        walks, then a man jumps" for "before jumping, a man walks", the order the segment
+        keys carry). Models without words ignore it.
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
@@ -69,6 +75,7 @@ class SamplingOptions:
     ctrl_alpha: float = 0.18
     sink_ratio: float = 0.0
     unconditional: Unconditional = "none"
+    word_text: WordText = "caption"
 
     def __post_init__(self) -> None:
         for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio",
@@ -96,6 +103,9 @@ class SamplingOptions:
         if self.unconditional not in get_args(Unconditional):
             raise SegmoError(f"SegMo: unconditional must be 'none' or 'local', got "
                              f"{self.unconditional!r}")
+        if self.word_text not in get_args(WordText):
+            raise SegmoError(f"SegMo: word_text must be 'caption' or 'segments', got "
+                             f"{self.word_text!r}")
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

@@ -29,7 +29,7 @@ def motion_attention(model: Any, texts: Sequence[str], segments: Sequence[Sequen
     token_mask = torch.zeros(len(tokens), n, dtype=torch.bool, device=model.device)
     for i, t in enumerate(tokens):
         indices[i, :len(t)], token_mask[i, :len(t)] = t, True
-    words, word_mask = model.word_condition(list(texts))
+    words, word_mask = model.word_condition(list(texts), [list(s) for s in segments])
     with torch.inference_mode(), model.record_attention() as recording:
         condition = model.mask.condition(sentence, vectors, segment_mask, words=words,
                                          word_mask=word_mask)

@@ -58,6 +58,7 @@ class SegMoConfig:
     ctrl_alpha: float = SamplingOptions.ctrl_alpha
     sink_ratio: float = SamplingOptions.sink_ratio
     unconditional: str = SamplingOptions.unconditional
+    word_text: str = SamplingOptions.word_text
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -65,7 +66,7 @@ class SegMoConfig:
 
 SAMPLING_FIELDS: tuple[str, ...] = (
     "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
-    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional")
+    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional", "word_text")
 
 
 def sampling_fields(config: SegMoConfig) -> dict:

@@ -112,6 +112,9 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--temperature", type=finite_float, default=None,
                         help=f"sampling temperature, 0 = greedy (default "
                              f"{SamplingOptions.temperature:g})")
+    parser.add_argument("--word-text", choices=("caption", "segments"), default=None,
+                        help="what a words model's word keys read: the caption or its text "
+                             "segments joined in execution order (default: the bundle's)")
     parser.add_argument("--device", default="cpu")
     _output_arguments(parser)
     args = parser.parse_args(argv)
@@ -130,6 +133,8 @@ def generate_main(argv: list[str] | None = None) -> None:
         model = model.to(args.device)
     except SegmoError as error:
         raise SegmoError(f"--device: {error}") from None
+    if args.word_text is not None:  # this run's default: the generation and the GIF's grounding
+        model.config.word_text = args.word_text
     generator = torch.Generator(device=args.device).manual_seed(args.seed)
     keep_freed_memory()
     out = model.generate(args.text, lengths, guidance_scale=args.guidance,
@@ -339,6 +344,9 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--unconditional", choices=("none", "local"), default=None,
                         help="what guidance's unconditional rows keep: none, or local (segments "
                              "and words; models trained with local_uncond_prob)")
+    parser.add_argument("--word-text", choices=("caption", "segments"), default=None,
+                        help="what the word keys of a words model read: the caption (default) or "
+                             "its text segments joined in execution order")
     parser.add_argument("--sink-ratio", type=finite_float, default=None,
                         help="the mask transformer's measured SinkRatio, for sink_ctrl "
                              "(tools/attention_report.py; default 0)")
@@ -373,7 +381,8 @@ def bundle_main(argv: list[str] | None = None) -> None:
                             ("residual_guidance_scale", "residual_guidance"), ("steps", "steps"),
                             ("residual_guided_layers", "residual_guided_layers"),
                             ("guidance", "guidance_mode"), ("sink_ratio", "sink_ratio"),
-                            ("unconditional", "unconditional"), ("ctrl_lambda", "ctrl_lambda"),
+                            ("unconditional", "unconditional"), ("word_text", "word_text"),
+                            ("ctrl_lambda", "ctrl_lambda"),
                             ("ctrl_k_base", "ctrl_k_base"), ("ctrl_alpha", "ctrl_alpha")):
         if getattr(args, argument) is not None:
             setattr(model.config, field, getattr(args, argument))

@@ -70,6 +70,7 @@ from segmo.pipeline.inputs import (
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
 from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segments
 from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
+from segmo.text.extract import ordered_text
 from segmo.text.llm import get_text_segmenter
 
 # `SegMo.compose`: the frames drawn between two parts by default, and the cross-fade at the
@@ -300,14 +301,33 @@ class SegMo:
         cross-attention (`word_attention: cross`) are not."""
         return self.uses_words and self.mask.config.word_attention == "prefix"
 
-    def word_condition(self, texts: list[str]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """texts (b) → their per-word features (b, l, text_dim) (the text encoder's tokens,
-        start and end tokens included, padded to the longest text) and word_mask (b, l)
-        bool, for transformers with word keys; (None, None) for the others. Cached in memory
-        per text like the sentence vectors."""
+    def word_sources(self, texts: list[str], segments: list[list[str]] | None = None,
+                     word_text: str | None = None) -> list[str]:
+        """The text each row's word keys are read from (`SamplingOptions.word_text`; None:
+        the bundle's): the text itself ("caption"), or its segments (default: the bundle's
+        text segmenter's) joined in execution order ("segments", `ordered_text`)."""
+        texts = check_texts(texts)
+        word_text = self.sampling.word_text if word_text is None else word_text
+        if word_text == "caption":
+            return texts
+        if word_text != "segments":
+            raise SegmoError(f"SegMo: word_text must be 'caption' or 'segments', got {word_text!r}")
+        if segments is None:
+            segments = self.segment_texts(texts)
+        if len(segments) != len(texts):
+            raise SegmoError(f"SegMo: {len(segments)} segment lists for {len(texts)} texts")
+        return [ordered_text(list(s)) for s in segments]
+
+    def word_condition(self, texts: list[str], segments: list[list[str]] | None = None,
+                       word_text: str | None = None
+                       ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """texts (b) → the per-word features (b, l, text_dim) of their word sources
+        (`word_sources`: the text encoder's tokens, start and end tokens included, padded to
+        the longest) and word_mask (b, l) bool, for transformers with word keys; (None,
+        None) for the others. Cached in memory per text like the sentence vectors."""
         if not self.uses_words:
             return None, None
-        texts = check_texts(texts)
+        texts = self.word_sources(texts, segments, word_text)
         missing = list(dict.fromkeys(t for t in texts if t not in self._word_cache))
         if missing:
             out = self.text_encoder.encode(missing)
@@ -321,15 +341,18 @@ class SegMo:
             words[i, : len(row)], mask[i, : len(row)] = row.to(self.device), True
         return words, mask
 
-    def word_texts(self, texts: list[str]) -> list[list[str]]:
-        """texts (b) → the text of each word key the transformers see for each text
-        (`TextEncoder.token_texts`: start and end tokens included, cut at the model's
-        max_words), the labels "word 0", "word 1", … of a recording in that order (when
-        they are prefix keys, `has_word_keys`); empty lists for transformers without words."""
+    def word_texts(self, texts: list[str], segments: list[list[str]] | None = None,
+                   word_text: str | None = None) -> list[list[str]]:
+        """texts (b) → the text of each word key the transformers see for each text (of its
+        word source, `word_sources`; `TextEncoder.token_texts`: start and end tokens
+        included, cut at the model's max_words), the labels "word 0", "word 1", … of a
+        recording in that order (when they are prefix keys, `has_word_keys`); empty lists
+        for transformers without words."""
         texts = check_texts(texts)
         if not self.uses_words:
             return [[] for _ in texts]
-        return [pieces[: self.mask.config.max_words] for pieces in self.text_encoder.token_texts(texts)]
+        sources = self.word_sources(texts, segments, word_text)
+        return [pieces[: self.mask.config.max_words] for pieces in self.text_encoder.token_texts(sources)]
 
     # -- motion side -------------------------------------------------------------------------
 
@@ -424,7 +447,7 @@ class SegMo:
         if lengths is None:
             lengths = self.sample_lengths(texts, generator)
         lengths = self.check_lengths(lengths, len(texts))
-        words, word_mask = self.word_condition(texts)
+        words, word_mask = self.word_condition(texts, segments, options.word_text)
         if generator is None:  # a generator of its own, so that the draws can be replayed
             seed = int(torch.randint(0, 2**62, (1,)))
             generator = torch.Generator(device=self.device).manual_seed(seed)
@@ -477,7 +500,7 @@ class SegMo:
         texts = [text] * b
         sentence, vectors, segment_mask, used = self.text_condition(
             texts, None if segments is None else [segments] * b)
-        words, word_mask = self.word_condition(texts)
+        words, word_mask = self.word_condition(texts, used, options.word_text)
         edited = edit_tokens(self.mask, self.residual, tokens, token_span((start, end)),
                              sentence, vectors, segment_mask, options=options,
                              generator=generator, precision=precision, words=words,
@@ -534,7 +557,7 @@ class SegMo:
         sides = []
         for texts, segments in ((source.texts, source.segments), (targets, target_segments)):
             sentence, vectors, segment_mask, used = self.text_condition(list(texts), segments)
-            words, word_mask = self.word_condition(list(texts))
+            words, word_mask = self.word_condition(list(texts), used, source.sampling.word_text)
             sides.append((TextSide(sentence, vectors, segment_mask, words, word_mask), used))
         (source_side, _), (target_side, used) = sides
         segment_map = [segment_counterparts(s, t, mode) for s, t in zip(source.segments, used)]
@@ -661,7 +684,7 @@ class SegMo:
         window_lengths = torch.tensor([(2 * c + t) * FRAMES_PER_TOKEN for c in contexts],
                                       device=self.device)
         sentence, vectors, segment_mask, _ = self.text_condition(pairs, segments)
-        words, word_mask = self.word_condition(pairs)
+        words, word_mask = self.word_condition(pairs, segments, out.sampling.word_text)
         filled = edit_tokens(self.mask, self.residual, windows.to(self.device),
                              spans.to(self.device), sentence, vectors, segment_mask,
                              options=out.sampling, generator=generator, precision=precision,
@@ -729,7 +752,7 @@ class SegMo:
         sentence, vectors, segment_mask, used = self.text_condition(texts, segments)
         if len(texts) != z.shape[0]:
             raise SegmoError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
-        words, word_mask = self.word_condition(texts)
+        words, word_mask = self.word_condition(texts, used)
         return embed_segments(self.tokenizer, self.mask, z, frames, sentence, vectors,
                               segment_mask, used, words, word_mask)
 

@@ -77,6 +77,12 @@ def format_line(segments: list[str]) -> str:
     return SEPARATOR.join(clean)
 
 
+def ordered_text(segments: list[str]) -> str:
+    """A caption's text segments as one text, in execution order ("a man walks forward, then
+    a man jumps"): what the word keys read with `SamplingOptions.word_text` "segments"."""
+    return ", then ".join(segments)
+
+
 def placeholder(caption: str) -> str:
     """The line written for a caption without words: the caption itself, or '.' if empty."""
     return format_line([caption]) or "."
