@@ -392,6 +392,11 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
     assert all(0.0 <= v["sequence_accuracy"] <= 1.0 for v in last["by_template"].values())
     # Train captions never use the held-out templates.
     assert "held_out" not in last and last["trained"] == last["all"]
+    assert last["word_text"] == "caption"  # the bundle's
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+                      "--action-classifier", str(setup["classifier"]), "--repeats", "1",
+                      "--word-text", "segments"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["word_text"] == "segments"
     plain = tmp_path / "plain"
     (plain / "new_joint_vecs").mkdir(parents=True)
     assert tool.main(["--model", str(setup["segmo"]), "--data", str(plain),

@@ -1,7 +1,8 @@
 """Action order of generated motions by the template of their caption, on the built-in corpus.
 
     python tools/order_by_template.py --model B --data data/synth \\
-        --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0]
+        --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
+        [--word-text caption|segments]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -9,7 +10,8 @@ val/test captions (`HELD_OUT_TEMPLATES`: "…, followed by …" and "before …"
 last action first). This tool generates the first caption of every motion of two or more
 segments (at its length, `--repeats` seeds each), reads the action sequence with the
 action classifier and reports the sequence accuracy per template, over the trained and the
-held-out templates, and over all; the last stdout line is the JSON object.
+held-out templates, and over all; the last stdout line is the JSON object. --word-text: what
+a words model's word keys read (`SamplingOptions.word_text`; default: the bundle's).
 """
 
 from __future__ import annotations
@@ -78,11 +80,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split", default="test")
     parser.add_argument("--repeats", type=int, default=2, help="generations per caption (seeds)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--word-text", choices=("caption", "segments"), default=None,
+                        help="what a words model's word keys read (default: the bundle's)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
     try:
         model = SegMo.from_pretrained(args.model)
+        if args.word_text is not None:
+            model.config.word_text = args.word_text
         classifier = load_pretrained(args.action_classifier).eval()
         rows = multi_segment_rows(args.data, args.split, model.max_frames)
     except (SegmoError, FileNotFoundError, OSError) as error:
@@ -91,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     result = order_by_template(model, classifier, rows, args.repeats, args.seed)
     for template, value in result["by_template"].items():
         print(f"{template:>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
-    print(json.dumps(result))
+    print(json.dumps({**result, "word_text": model.sampling.word_text}))
     return 0
 
 
