@@ -18,7 +18,7 @@ demo: .venv/ready
 # The suite runs on JOBS worker processes (pytest-xdist; every CPU up to 4, `make test JOBS=1`
 # for one): each test runs single-threaded, so a 2-core machine is used twice as well. Tests
 # that start their own multi-process runs (DDP) share one worker (`xdist_group`).
-JOBS ?= $(shell python3 -c "import os; print(min(4, len(os.sched_getaffinity(0))))")
+JOBS ?= $(shell python3 -c "import os; n = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else os.cpu_count(); print(min(4, n or 1))")
 test: .venv/ready
 	$(PY) -m pytest -q -n $(JOBS) --dist loadgroup
 
