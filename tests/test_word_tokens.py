@@ -332,6 +332,17 @@ def test_word_keys_can_read_the_segments_in_execution_order(tmp_path, tokenizer_
     assert loaded.sampling.word_text == "segments"
     assert torch.equal(loaded.generate([caption], 48, generator=torch.Generator().manual_seed(0)).tokens,
                        out.tokens)
+    # `segmo generate --word-text` overrides the bundle's default for that run
+    import segmo.text.encoders
+    from segmo.pipeline.cli import generate_main
+
+    monkeypatch.setattr(segmo.text.encoders, "get_text_encoder", lambda name, device="cpu": hash_encoder(name, 8))
+    generate_main(["--model", str(saved), "--text", caption, "--length", "48", "--formats", "npy",
+                   "--word-text", "caption", "--out", str(tmp_path / "cli")])
+    assert read[-1] == [caption]
+    generate_main(["--model", str(saved), "--text", caption, "--length", "48", "--formats", "npy",
+                   "--out", str(tmp_path / "cli_default")])
+    assert read[-1] == ["a man walks forward, then a man jumps"]
     with pytest.raises(SegmoError, match="word_text must be 'caption' or 'segments', got 'words'"):
         SamplingOptions(word_text="words")
     with pytest.raises(SegmoError, match="word_text must be 'caption' or 'segments'"):
