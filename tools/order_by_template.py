@@ -21,12 +21,14 @@ import json
 import sys
 from collections import defaultdict
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 import torch
 
 from segmo.data.layout import first_captions
 from segmo.errors import SegmoError
+from segmo.generation.sampling import WordText
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split", default="test")
     parser.add_argument("--repeats", type=int, default=2, help="generations per caption (seeds)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--word-text", choices=("caption", "segments"), default=None,
+    parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what a words model's word keys read (default: the bundle's)")
     args = parser.parse_args(argv)
     if args.repeats < 1:

@@ -37,7 +37,7 @@ import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import torch
@@ -76,7 +76,7 @@ from segmo.evaluation.sections import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
-from segmo.generation.sampling import SamplingOptions
+from segmo.generation.sampling import SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
 from segmo.models.pretrained import load_pretrained, read_json
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -402,7 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "bundle's; 0 = plain CFG)")
     p.add_argument("--unconditional", choices=("none", "local"), default=None,
                    help="what guidance's unconditional rows keep (default: the bundle's)")
-    p.add_argument("--word-text", choices=("caption", "segments"), default=None,
+    p.add_argument("--word-text", choices=get_args(WordText), default=None,
                    help="what a words model's word keys read: the caption or its text segments "
                         "in execution order (default: the bundle's)")
     p.add_argument("--grounding-window", default="5",

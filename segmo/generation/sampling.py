@@ -16,13 +16,19 @@ import torch
 from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
-__all__ = ["Guidance", "Sampler", "SamplingOptions", "Unconditional", "WordText", "cosine_schedule",
-           "sample_tokens", "top_k_count"]
+__all__ = ["Guidance", "Sampler", "SamplingOptions", "Unconditional", "WordText", "check_word_text",
+           "cosine_schedule", "sample_tokens", "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
 Guidance = Literal["cfg", "sink_ctrl"]
 Unconditional = Literal["none", "local"]
 WordText = Literal["caption", "segments"]
+
+
+def check_word_text(value: object) -> None:
+    """SegmoError unless `value` is a `WordText` ("caption" or "segments")."""
+    if value not in get_args(WordText):
+        raise SegmoError(f"SegMo: word_text must be 'caption' or 'segments', got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -103,9 +109,7 @@ class SamplingOptions:
         if self.unconditional not in get_args(Unconditional):
             raise SegmoError(f"SegMo: unconditional must be 'none' or 'local', got "
                              f"{self.unconditional!r}")
-        if self.word_text not in get_args(WordText):
-            raise SegmoError(f"SegMo: word_text must be 'caption' or 'segments', got "
-                             f"{self.word_text!r}")
+        check_word_text(self.word_text)
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import get_args
 
 import torch
 
@@ -33,7 +34,7 @@ from segmo.errors import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
-from segmo.generation.sampling import SamplingOptions
+from segmo.generation.sampling import SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
 from segmo.pipeline.grounding import (
@@ -112,7 +113,7 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--temperature", type=finite_float, default=None,
                         help=f"sampling temperature, 0 = greedy (default "
                              f"{SamplingOptions.temperature:g})")
-    parser.add_argument("--word-text", choices=("caption", "segments"), default=None,
+    parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what a words model's word keys read: the caption or its text "
                              "segments joined in execution order (default: the bundle's)")
     parser.add_argument("--device", default="cpu")
@@ -344,7 +345,7 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--unconditional", choices=("none", "local"), default=None,
                         help="what guidance's unconditional rows keep: none, or local (segments "
                              "and words; models trained with local_uncond_prob)")
-    parser.add_argument("--word-text", choices=("caption", "segments"), default=None,
+    parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what the word keys of a words model read: the caption (default) or "
                              "its text segments joined in execution order")
     parser.add_argument("--sink-ratio", type=finite_float, default=None,

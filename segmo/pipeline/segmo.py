@@ -40,7 +40,7 @@ from segmo.generation.attention_edit import (
 )
 from segmo.generation.editing import edit_tokens, token_span
 from segmo.generation.generate import Precision, check_models, decode_tokens, generate_tokens
-from segmo.generation.sampling import Sampler, SamplingOptions
+from segmo.generation.sampling import Sampler, SamplingOptions, check_word_text
 from segmo.models.attention_recorder import AttentionRecording, record_attention
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
@@ -308,10 +308,9 @@ class SegMo:
         text segmenter's) joined in execution order ("segments", `ordered_text`)."""
         texts = check_texts(texts)
         word_text = self.sampling.word_text if word_text is None else word_text
+        check_word_text(word_text)
         if word_text == "caption":
             return texts
-        if word_text != "segments":
-            raise SegmoError(f"SegMo: word_text must be 'caption' or 'segments', got {word_text!r}")
         if segments is None:
             segments = self.segment_texts(texts)
         if len(segments) != len(texts):
