@@ -143,6 +143,14 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert 0 <= order["generated"]["sequence_accuracy"] <= 1
     assert order["reconstruction"]["motions"] == 10
     assert sum(v["count"] for v in order["by_num_segments"].values()) == 10
+    for row in ("generated", "reconstruction"):
+        errors = order[row]["errors"]
+        assert set(errors) == {"missing", "extra", "substituted", "reordered"}
+        assert sum(errors.values()) == pytest.approx(1 - order[row]["sequence_accuracy"])
+        found = order[row]["recall_by_share"]
+        assert set(found) <= {"<0.2", "0.2-0.4", ">=0.4"} and all(0 <= v["recall"] <= 1 for v in found.values())
+        assert sum(v["actions"] for v in found.values()) >= 10  # every first caption's actions
+    assert "How sequences fail" in (out / "report.md").read_text()
     attributes = metrics["attributes"]
     assert set(attributes) == {"real", "reconstruction", "generated"}
     checks = attributes["real"]["checks"]

@@ -10,8 +10,13 @@ import torch
 
 from segmo.evaluation.action_order import (
     collapse,
+    collapse_spans,
     edit_distance,
+    error_kind,
+    error_shares,
+    matched_actions,
     normalised_edit_distance,
+    recall_by_share,
     sequence_accuracy,
 )
 from segmo.evaluation.grounding import grounding_metrics, temporal_iou
@@ -266,3 +271,30 @@ def test_edit_distance_hand_made() -> None:
         pytest.approx((1 / 3 + 0 + 2 / 3) / 3)
     assert sequence_accuracy([["walk", "sit"], true], [true, true]) == 0.5
     assert collapse(["a", "a", "b", "a"]) == ["a", "b", "a"]
+
+
+def test_order_failures_named_and_short_actions_found_less() -> None:
+    true = ["walk", "wave", "sit"]
+    assert error_kind(true, true) is None
+    assert error_kind(["walk", "sit"], true) == "missing"
+    assert error_kind(["walk", "wave", "sit", "jump"], true) == "extra"
+    assert error_kind(["walk", "sit", "wave"], true) == "reordered"
+    assert error_kind(["walk", "kick", "sit"], true) == "substituted"
+    shares = error_shares([["walk", "sit"], true, ["walk", "sit", "wave"], ["run"]], [true] * 4)
+    assert shares == {"missing": 0.5, "extra": 0.0, "substituted": 0.0, "reordered": 0.25}
+    # Each true action: paired with an equal prediction by an optimal edit alignment?
+    assert matched_actions(["walk", "sit"], true) == [True, False, True]
+    assert matched_actions(["walk", "jump", "sit"], ["walk", "sit"]) == [True, True]
+    assert matched_actions(["sit", "wave", "walk"], true) == [False, True, False]
+    assert matched_actions([], true) == [False, False, False]
+    assert matched_actions(["punch", "walk", "punch"], ["walk", "punch"]) == [True, True]
+    # Consecutive repeats merge with their frames; shares are of the motion's frames.
+    segments = [{"action": "walk", "start": 0, "end": 60}, {"action": "walk", "start": 60, "end": 80},
+                {"action": "jump", "start": 80, "end": 90}, {"action": "sit", "start": 90, "end": 100}]
+    actions, share = collapse_spans(segments, 100)
+    assert actions == ["walk", "jump", "sit"] and share == pytest.approx([0.8, 0.1, 0.1])
+    # The short jump is lost, the long walk found: recall by share bin.
+    recall = recall_by_share([["walk", "sit"], ["walk", "jump", "sit"]], [actions] * 2, [share] * 2)
+    assert recall == {"<0.2": {"recall": 0.75, "actions": 4.0}, ">=0.4": {"recall": 1.0, "actions": 2.0}}
+    with pytest.raises(ValueError, match="a share per true action"):
+        recall_by_share([["walk"]], [["walk", "sit"]], [[1.0]])

@@ -11,6 +11,12 @@ the longer length; a missing or extra action costs 1, two swapped actions 2) com
 predicted and true sequences. Consecutive repeats of an action in a true sequence are
 merged, since no frame labelling can separate them.
 
+Where a sequence fails: `error_kind` names how a predicted sequence differs ("missing",
+"extra", "substituted", "reordered"), and `recall_by_share` says how often each true action
+is found (paired with an equal predicted action by an optimal edit alignment,
+`matched_actions`) by its share of the motion's frames, so that short actions lost beside
+long ones show as such.
+
 Example::
 
     clf = train_action_classifier("data/synth", epochs=15)  # segmo.tasks.action_classifier
@@ -29,19 +35,101 @@ from segmo.data.layout import read_actions, read_motion, read_split, split_file
 from segmo.errors import SegmoError
 from segmo.models.action_classifier import ActionClassifier, collapse
 
-__all__ = ["collapse", "edit_distance", "evaluate_action_order", "normalised_edit_distance",
-           "sequence_accuracy"]
+__all__ = ["ERROR_KINDS", "SHARE_BINS", "collapse", "collapse_spans", "edit_distance", "error_kind",
+           "error_shares", "evaluate_action_order", "matched_actions", "normalised_edit_distance",
+           "recall_by_share", "sequence_accuracy"]
+
+ERROR_KINDS = ("missing", "extra", "substituted", "reordered")
+# Upper edges of the action-share bins of `recall_by_share` (share of the motion's frames).
+SHARE_BINS = (0.2, 0.4)
 
 
 def edit_distance(a: Sequence[Any], b: Sequence[Any]) -> int:
     """Levenshtein distance (insertions, deletions, substitutions cost 1)."""
-    prev = list(range(len(b) + 1))
+    return _edit_table(a, b)[-1][-1]
+
+
+def _edit_table(a: Sequence[Any], b: Sequence[Any]) -> list[list[int]]:
+    """table[i][j]: edit distance between a[:i] and b[:j]."""
+    table = [list(range(len(b) + 1))]
     for i, x in enumerate(a, 1):
-        cur = [i]
+        row = [i]
         for j, y in enumerate(b, 1):
-            cur.append(min(prev[j] + 1, cur[j - 1] + 1, prev[j - 1] + (x != y)))
-        prev = cur
-    return prev[-1]
+            row.append(min(table[i - 1][j] + 1, row[j - 1] + 1, table[i - 1][j - 1] + (x != y)))
+        table.append(row)
+    return table
+
+
+def matched_actions(pred: Sequence[Any], true: Sequence[Any]) -> list[bool]:
+    """For each true action, whether an optimal edit alignment of `pred` to `true` pairs it
+    with an equal predicted action (the alignment that prefers matches, tracing back from
+    the end): ["walk", "sit"] against ["walk", "jump", "sit"] → [True, False, True]."""
+    table = _edit_table(pred, true)
+    found = [False] * len(true)
+    i, j = len(pred), len(true)
+    while i > 0 and j > 0:
+        if pred[i - 1] == true[j - 1] and table[i][j] == table[i - 1][j - 1]:
+            found[j - 1] = True
+            i, j = i - 1, j - 1
+        elif table[i][j] == table[i - 1][j - 1] + 1:
+            i, j = i - 1, j - 1
+        elif table[i][j] == table[i - 1][j] + 1:
+            i -= 1
+        else:
+            j -= 1
+    return found
+
+
+def error_kind(pred: Sequence[Any], true: Sequence[Any]) -> str | None:
+    """How `pred` differs from `true`: None (equal), "missing" (fewer actions), "extra"
+    (more), "reordered" (the same actions in another order), "substituted" (as many, some
+    of them other actions)."""
+    pred, true = list(pred), list(true)
+    if pred == true:
+        return None
+    if len(pred) != len(true):
+        return "missing" if len(pred) < len(true) else "extra"
+    return "reordered" if sorted(map(str, pred)) == sorted(map(str, true)) else "substituted"
+
+
+def error_shares(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequence[Sequence[str]]) -> dict[str, float]:
+    """Share of the motions of each `ERROR_KINDS` kind (the four add up to 1 − sequence
+    accuracy)."""
+    kinds = [error_kind(p, t) for p, t in _pairs(pred_seqs, true_seqs)]
+    return {kind: kinds.count(kind) / len(kinds) for kind in ERROR_KINDS}
+
+
+def collapse_spans(segments: Sequence[dict], frames: int) -> tuple[list[str], list[float]]:
+    """A caption's true action sequence (consecutive repeats merged, as `collapse`) and each
+    action's share of the motion's `frames` (a merged action's spans summed), from its
+    ground-truth segments (dicts with "action", "start", "end" in frames)."""
+    actions: list[str] = []
+    shares: list[float] = []
+    for seg in segments:
+        share = max(int(seg["end"]) - int(seg["start"]), 0) / max(frames, 1)
+        if actions and actions[-1] == seg["action"]:
+            shares[-1] += share
+        else:
+            actions.append(seg["action"])
+            shares.append(share)
+    return actions, shares
+
+
+def recall_by_share(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequence[Sequence[str]],
+                    shares: Sequence[Sequence[float]]) -> dict[str, dict[str, float]]:
+    """Share of the true actions found (`matched_actions`) per bin of their share of the
+    motion's frames (`SHARE_BINS`: "<0.2", "0.2-0.4", ">=0.4"); bins without actions are
+    left out. `shares[i]` holds one value per action of `true_seqs[i]`."""
+    names = [f"<{SHARE_BINS[0]:g}"] + [f"{lo:g}-{hi:g}" for lo, hi in zip(SHARE_BINS, SHARE_BINS[1:])] \
+        + [f">={SHARE_BINS[-1]:g}"]
+    found: dict[str, list[bool]] = {name: [] for name in names}
+    for (pred, true), share in zip(_pairs(pred_seqs, true_seqs), shares, strict=True):
+        if len(share) != len(true):
+            raise ValueError(f"need a share per true action, got {len(share)} for {len(true)}")
+        for hit, value in zip(matched_actions(pred, true), share, strict=True):
+            found[names[int(np.searchsorted(SHARE_BINS, value, side="right"))]].append(hit)
+    return {name: {"recall": float(np.mean(hits)), "actions": float(len(hits))}
+            for name, hits in found.items() if hits}
 
 
 def _pairs(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequence[Sequence[str]]) -> list:

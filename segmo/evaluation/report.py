@@ -171,6 +171,16 @@ def action_order_table(action_order: dict[str, Any]) -> str:
         table += "\n\nBy number of text segments of the first caption:\n\n" + _table(
             ["Segments"] + header, [[bucket] + row(name, v) for bucket, entry in buckets.items()
                                     for name, v in entry.items() if isinstance(v, dict)])
+    failing = {name: v for name, v in action_order.items() if name != "by_num_segments" and "errors" in v}
+    if failing:
+        kinds = list(next(iter(failing.values()))["errors"])
+        bins = list(dict.fromkeys(b for v in failing.values() for b in v.get("recall_by_share", {})))
+        table += ("\n\nHow sequences fail (share of the motions) and how often a true action is "
+                  "found, by its share of the motion's frames:\n\n") + _table(
+            ["Motions", *kinds, *[f"found, share {b}" for b in bins]],
+            [[name, *[cell(v["errors"][k]) for k in kinds],
+              *[cell(v.get("recall_by_share", {}).get(b, {}).get("recall")) for b in bins]]
+             for name, v in failing.items()])
     return table
 
 

@@ -20,9 +20,11 @@ from segmo.data.layout import ground_truth_file, read_ground_truth, split_file
 from segmo.errors import SegmoError
 from segmo.evaluation import report
 from segmo.evaluation.action_order import (
-    collapse,
+    collapse_spans,
+    error_shares,
     evaluate_action_order,
     normalised_edit_distance,
+    recall_by_share,
     sequence_accuracy,
 )
 from segmo.evaluation.grounding import auto_windows, grounding_metrics
@@ -309,9 +311,16 @@ def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
     return ActionClassifier.from_pretrained(cfg.action_classifier)
 
 
-def _order_metrics(preds: list[list[str]], trues: list[list[str]]) -> dict[str, float]:
-    return {"sequence_accuracy": sequence_accuracy(preds, trues),
-            "normalised_edit_distance": normalised_edit_distance(preds, trues), "motions": float(len(preds))}
+def _order_metrics(preds: list[list[str]], trues: list[list[str]],
+                   shares: list[list[float]] | None = None) -> dict[str, Any]:
+    """Sequence accuracy, normalised edit distance, the `error_shares` of the failures, and
+    with `shares` (each true action's share of its motion) `recall_by_share`."""
+    out: dict[str, Any] = {"sequence_accuracy": sequence_accuracy(preds, trues),
+                           "normalised_edit_distance": normalised_edit_distance(preds, trues),
+                           "motions": float(len(preds)), "errors": error_shares(preds, trues)}
+    if shares is not None:
+        out["recall_by_share"] = recall_by_share(preds, trues, shares)
+    return out
 
 
 def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict], generate: Any,
@@ -319,15 +328,18 @@ def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[d
                          ) -> dict[str, Any]:
     """Action order of the real motions (`evaluate_action_order`, with frame accuracy), and of
     the motions generated from / reconstructed (`cli.Reconstructor`) for each motion's first
-    caption, vs that caption's actions; with `num_segments` (caption → its text segments)
-    also per `SEGMENT_BUCKETS` bucket of the first captions, real motions included."""
+    caption, vs that caption's actions, with the kinds of failure and how often actions are
+    found by their share of the motion (`segmo.evaluation.action_order`); with
+    `num_segments` (caption → its text segments) also per `SEGMENT_BUCKETS` bucket of the
+    first captions, real motions included."""
     result = {"real": evaluate_action_order(clf, cfg.data, cfg.split, max_motions=cfg.max_motions)}
     if generate is None:
         return result
     firsts = [(b, r) for b, r in first_rows(batches) if ground_truth(cfg, b["id"][r], b["caption_index"][r], 1)]
-    trues = [collapse([seg["action"] for seg in ground_truth(cfg, b["id"][r], b["caption_index"][r],
-                                                             int(b["lengths"][r]))])
-             for b, r in firsts]
+    truth = [collapse_spans(ground_truth(cfg, b["id"][r], b["caption_index"][r], int(b["lengths"][r])),
+                            int(b["lengths"][r])) for b, r in firsts]
+    trues = [actions for actions, _ in truth]
+    shares = [share for _, share in truth]
     preds: dict[str, list[list[str]]] = {"generated": []}
     for s in range(0, len(firsts), cfg.batch_size):
         chunk = firsts[s:s + cfg.batch_size]
@@ -339,7 +351,7 @@ def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[d
         preds["reconstruction"] = [clf.predict_sequence(reconstruct.raw(b["id"][r])) for b, r in firsts]
     if not firsts:
         return result
-    result |= {name: _order_metrics(p, trues) for name, p in preds.items()}
+    result |= {name: _order_metrics(p, trues, shares) for name, p in preds.items()}
     if num_segments is not None:
         preds = {"real": [clf.predict_sequence(raw_features(ds, b, r)) for b, r in firsts]} | preds
         bucket = [segment_bucket(num_segments[b["caption"][r]]) for b, r in firsts]
@@ -348,7 +360,8 @@ def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[d
             rows = [i for i, x in enumerate(bucket) if x == k]
             if rows:
                 result["by_num_segments"][k] = {
-                    name: _order_metrics([p[i] for i in rows], [trues[i] for i in rows])
+                    name: _order_metrics([p[i] for i in rows], [trues[i] for i in rows],
+                                         [shares[i] for i in rows])
                     for name, p in preds.items()} | {"count": len(rows)}
     return result
 
