@@ -40,8 +40,11 @@ __all__ = ["ERROR_KINDS", "SHARE_BINS", "collapse", "collapse_spans", "edit_dist
            "recall_by_share", "sequence_accuracy"]
 
 ERROR_KINDS = ("missing", "extra", "substituted", "reordered")
-# Upper edges of the action-share bins of `recall_by_share` (share of the motion's frames).
+# Upper edges of the action-share bins of `recall_by_share` (share of the motion's frames),
+# and the bins' names in its output.
 SHARE_BINS = (0.2, 0.4)
+_SHARE_BIN_NAMES = (f"<{SHARE_BINS[0]:g}", *[f"{lo:g}-{hi:g}" for lo, hi in zip(SHARE_BINS, SHARE_BINS[1:])],
+                    f">={SHARE_BINS[-1]:g}")
 
 
 def edit_distance(a: Sequence[Any], b: Sequence[Any]) -> int:
@@ -120,14 +123,12 @@ def recall_by_share(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequence[Sequ
     """Share of the true actions found (`matched_actions`) per bin of their share of the
     motion's frames (`SHARE_BINS`: "<0.2", "0.2-0.4", ">=0.4"); bins without actions are
     left out. `shares[i]` holds one value per action of `true_seqs[i]`."""
-    names = [f"<{SHARE_BINS[0]:g}"] + [f"{lo:g}-{hi:g}" for lo, hi in zip(SHARE_BINS, SHARE_BINS[1:])] \
-        + [f">={SHARE_BINS[-1]:g}"]
-    found: dict[str, list[bool]] = {name: [] for name in names}
+    found: dict[str, list[bool]] = {name: [] for name in _SHARE_BIN_NAMES}
     for (pred, true), share in zip(_pairs(pred_seqs, true_seqs), shares, strict=True):
         if len(share) != len(true):
             raise ValueError(f"need a share per true action, got {len(share)} for {len(true)}")
         for hit, value in zip(matched_actions(pred, true), share, strict=True):
-            found[names[int(np.searchsorted(SHARE_BINS, value, side="right"))]].append(hit)
+            found[_SHARE_BIN_NAMES[int(np.searchsorted(SHARE_BINS, value, side="right"))]].append(hit)
     return {name: {"recall": float(np.mean(hits)), "actions": float(len(hits))}
             for name, hits in found.items() if hits}
 

@@ -311,16 +311,14 @@ def load_classifier(cfg: EvaluateConfig, out: Path) -> Any:
     return ActionClassifier.from_pretrained(cfg.action_classifier)
 
 
-def _order_metrics(preds: list[list[str]], trues: list[list[str]],
-                   shares: list[list[float]] | None = None) -> dict[str, Any]:
-    """Sequence accuracy, normalised edit distance, the `error_shares` of the failures, and
-    with `shares` (each true action's share of its motion) `recall_by_share`."""
-    out: dict[str, Any] = {"sequence_accuracy": sequence_accuracy(preds, trues),
-                           "normalised_edit_distance": normalised_edit_distance(preds, trues),
-                           "motions": float(len(preds)), "errors": error_shares(preds, trues)}
-    if shares is not None:
-        out["recall_by_share"] = recall_by_share(preds, trues, shares)
-    return out
+def _order_metrics(preds: list[list[str]], trues: list[list[str]], shares: list[list[float]]
+                   ) -> dict[str, Any]:
+    """Sequence accuracy, normalised edit distance, the `error_shares` of the failures and
+    `recall_by_share` (`shares`: each true action's share of its motion)."""
+    return {"sequence_accuracy": sequence_accuracy(preds, trues),
+            "normalised_edit_distance": normalised_edit_distance(preds, trues),
+            "motions": float(len(preds)), "errors": error_shares(preds, trues),
+            "recall_by_share": recall_by_share(preds, trues, shares)}
 
 
 def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict], generate: Any,
