@@ -487,7 +487,8 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
         assert np.load(out / f"sample_{i:02d}_joints.npy").shape == (16, 22, 3)
         assert (out / f"sample_{i:02d}.gif").stat().st_size > 0
         text = (out / f"sample_{i:02d}.bvh").read_text()
-        assert text.startswith("HIERARCHY") and "Frames: 16" in text
+        # at the animation rate: the 16 frames at 20 fps span 0.75 s, 46 frames at 60 fps
+        assert text.startswith("HIERARCHY") and "Frames: 46" in text and "Frame Time: 0.016667" in text
     index = json.loads((out / "prompts.json").read_text())
     assert [e["text"] for e in index] == PROMPTS and str(out / "sample_00.gif") in printed
     assert np.load(out / "sample_00_tokens.npy").shape == (4, 3)
@@ -500,12 +501,12 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
             assert np.array_equal(np.load(tmp_path / "again" / f"sample_{i:02d}_{what}.npy"),
                                   np.load(out / f"sample_{i:02d}_{what}.npy"))
     assert not (tmp_path / "again" / "sample_00.gif").exists()
-    # the BVH at another frame rate: 16 frames at 20 fps span 0.75 s, 46 frames at 60 fps
+    # the BVH at the motion's own frame rate
     generate_main(["--model", str(bundle), "--text", PROMPTS[0], "--length", "16", "--seed", "3",
-                   "--out", str(tmp_path / "fps"), "--formats", "bvh", "--bvh-fps", "60",
+                   "--out", str(tmp_path / "fps"), "--formats", "bvh", "--bvh-fps", "20",
                    "--no-foot-lock"])
     text = (tmp_path / "fps" / "sample_00.bvh").read_text()
-    assert "Frames: 46" in text and "Frame Time: 0.016667" in text
+    assert "Frames: 16" in text and "Frame Time: 0.050000" in text
 
 
 def test_cli_compose_writes_one_long_motion(bundle, tmp_path, hash_text_encoder, capsys):
@@ -516,7 +517,7 @@ def test_cli_compose_writes_one_long_motion(bundle, tmp_path, hash_text_encoder,
                   PROMPTS[1], "--length", "120", "--transition", "16", "--out", str(out),
                   "--formats", "npy,bvh"])
     assert np.load(out / "sample_00_features.npy").shape == (296, 263)
-    assert "Frames: 296" in (out / "sample_00.bvh").read_text()
+    assert "Frames: 886" in (out / "sample_00.bvh").read_text()  # 296 frames at 60 fps
     line = cli_failure(["compose", "--model", str(bundle), "--text", "walk", "--text", "jump",
                         "--length", "40", "--out", str(tmp_path / "bad")], capsys)
     assert "--length given 1 times for 2 --text" in line
@@ -640,7 +641,8 @@ def test_saved_joints_gif_and_bvh_are_one_skeleton(model, generated, tmp_path):
     mocap = pybvh.read_bvh_file(str(tmp_path / "fixed" / "sample_00.bvh"))
     names = list(mocap.joint_names)
     read = mocap.joint_positions()[:, [names.index(n) for n in T2M.joint_names]]
-    assert np.linalg.norm(read - joints, axis=-1).max() < 0.001
+    assert len(read) == 3 * (len(joints) - 1) + 1  # written at 60 fps, the motion's frames kept
+    assert np.linalg.norm(read[::3] - joints, axis=-1).max() < 0.001
     lengths = np.linalg.norm(joints[:, 1:] - joints[:, list(T2M.parents[1:])], axis=-1)
     assert np.allclose(lengths, np.asarray(T2M.reference_bone_lengths[1:]), atol=1e-5)
     generated.save(tmp_path / "raw", formats=("npy",), fixed_skeleton=False)

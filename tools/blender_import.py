@@ -1,13 +1,16 @@
 """Import a segmo BVH into Blender headless and compare its bones with segmo's joints.
 
-    blender -b --python tools/blender_import.py -- MOTION.bvh JOINTS.npy [--fps 20]
+    blender -b --python tools/blender_import.py -- MOTION.bvh JOINTS.npy
 
 Runs inside Blender (its own Python, `bpy`): imports the file with Blender's own BVH
 importer (native per-bone rotation orders, y up converted to Blender's z up), plays every
 frame, and measures each bone's head against the joints (t, 22, 3) in metres, and half way
-between frames against the mean of the two frames' joints (Blender interpolates the Euler
-curves: a flip of the angles would swing a limb there). The last printed line is a JSON
-object: bones, frames, scene fps, mean / max error and the half-frame deviation (mm).
+between the file's frames against the mean of the bone heads at those two frames (Blender
+interpolates the Euler curves: a flip of the angles, or a joint turning far in one frame,
+swings a limb off that line). A file at a whole multiple k of the joints' frame rate (segmo
+writes 60 fps for 20 fps joints) is compared at every k-th frame, where the joints are.
+The last printed line is a JSON object: bones, frames, scene fps, frames per joints frame,
+mean / max error and the half-frame deviation (mm).
 """
 
 import builtins
@@ -31,14 +34,21 @@ bpy.ops.import_anim.bvh(filepath=bvh_path, rotate_mode="NATIVE", axis_forward="-
 armature = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
 names = [b.name for b in armature.pose.bones]
 scene = bpy.context.scene
-start = scene.frame_start
+# the file's frames (the importer extends the scene's range, never shortens it)
+first, last = armature.animation_data.action.frame_range
+start = int(round(first))
+frames = int(round(last - first)) + 1
+every = (frames - 1) // max(len(joints) - 1, 1)
+if (len(joints) - 1) * every + 1 != frames:
+    sys.exit(f"blender_import: {bvh_path} has {frames} frames, not a whole multiple of the "
+             f"{len(joints)} frames of {joints_path}")
 heads = []
-for f in range(len(joints)):
+for f in range(frames):
     scene.frame_set(start + f)
     heads.append([list(armature.matrix_world @ armature.pose.bones[n].head) for n in names])
 heads = np.asarray(heads)  # (t, bones, 3), Blender z up
 halves = []  # Blender's interpolation half way between frames (where angle flips would show)
-for f in range(len(joints) - 1):
+for f in range(frames - 1):
     scene.frame_set(start + f, subframe=0.5)
     halves.append([list(armature.matrix_world @ armature.pose.bones[n].head) for n in names])
 halves = np.asarray(halves)
@@ -46,9 +56,9 @@ halves = np.asarray(halves)
 expected = np.stack([joints[..., 0], -joints[..., 2], joints[..., 1]], -1)
 from_names = json.loads(argv[argv.index("--names") + 1]) if "--names" in argv else None
 order = [from_names.index(n) for n in names] if from_names else list(range(len(names)))
-error = np.linalg.norm(heads - expected[:, order], axis=-1) * 1000
-middle = (expected[1:, order] + expected[:-1, order]) / 2
+error = np.linalg.norm(heads[::every] - expected[:, order], axis=-1) * 1000
+middle = (heads[1:] + heads[:-1]) / 2
 between = np.linalg.norm(halves - middle, axis=-1) * 1000 if len(halves) else np.zeros(1)
-print(json.dumps({"bones": len(names), "frames": len(heads), "fps": scene.render.fps,
+print(json.dumps({"bones": len(names), "frames": len(heads), "fps": scene.render.fps, "every": every,
                   "mean_mm": round(float(error.mean()), 3), "max_mm": round(float(error.max()), 3),
                   "half_frame_vs_mean_of_neighbours_max_mm": round(float(between.max()), 2)}))

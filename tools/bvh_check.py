@@ -1,7 +1,7 @@
 """BVH export checked as an animation tool would see it, on corpus and generated motions.
 
     python tools/bvh_check.py --data data/synth --split test [--model models/segmo] \\
-        [--limit N] [--bvh-fps 60] [--out runs/bvh_check]
+        [--limit N] [--bvh-fps 20] [--out runs/bvh_check]
 
 For every motion of the split (the corpus' joints) and, with --model, one generated motion
 per motion (its first caption and length, seed 0): write the BVH with and without foot
@@ -16,7 +16,7 @@ speed of the foot joints in contact, cm/s) of the input joints and of both BVH f
 the contacts of the input joints. The last printed line is a JSON object of these figures.
 
 --bvh-fps writes the files at that rate (`write_bvh`'s target_fps; a whole multiple of the
-motions' 20 fps): channel changes are then between the file's frames, and positions are
+motions' 20 fps; default 60, the rate `segmo generate` writes): channel changes are then between the file's frames, and positions are
 compared at the input's frames (every k-th frame of the file).
 """
 
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from segmo.motion import T2M
-from segmo.motion.bvh import write_bvh
+from segmo.motion.bvh import ANIMATION_FPS, write_bvh
 from segmo.motion.skeleton_fit import fit_motion, foot_contacts, foot_skating
 
 
@@ -123,8 +123,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--model", help="SegMo bundle: also check generated motions")
     p.add_argument("--limit", type=int, default=None, help="first N motions of the split")
     p.add_argument("--bvhio-files", type=int, default=20, help="files also read with bvhio")
-    p.add_argument("--bvh-fps", type=float, default=None,
-                   help="write the files at this rate, a whole multiple of 20 (default: 20)")
+    p.add_argument("--bvh-fps", type=float, default=ANIMATION_FPS,
+                   help=f"write the files at this rate, a whole multiple of 20 (default {ANIMATION_FPS:g}, "
+                   "the exporter's; 20: the motions' own frames)")
     p.add_argument("--out", default="runs/bvh_check")
     args = p.parse_args(argv)
     if args.bvh_fps is not None and (args.bvh_fps <= 0 or args.bvh_fps % T2M.fps):

@@ -36,6 +36,7 @@ from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
+from segmo.motion.bvh import ANIMATION_FPS
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
 from segmo.pipeline.grounding import (
     METHODS,
@@ -82,8 +83,9 @@ def _output_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--formats", default=",".join(FORMATS),
                         help=f"comma-separated subset of {','.join(FORMATS)}")
-    parser.add_argument("--bvh-fps", type=positive_float, default=None,
-                        help="frame rate of the BVH files (default the motion's, 20 for t2m)")
+    parser.add_argument("--bvh-fps", type=positive_float, default=ANIMATION_FPS,
+                        help=f"frame rate of the BVH files (default {ANIMATION_FPS:g}: the motion's "
+                        "frames kept, slerp between them; 20 writes t2m motions' own frames)")
     parser.add_argument("--no-foot-lock", action="store_true",
                         help="BVH: do not hold the feet still while they touch the ground")
 

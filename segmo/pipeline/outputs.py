@@ -17,7 +17,7 @@ import torch
 from segmo.errors import SegmoError
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.motion.bvh import write_bvh
+from segmo.motion.bvh import ANIMATION_FPS, write_bvh
 from segmo.motion.skeleton import SkeletonSpec
 from segmo.motion.skeleton_fit import fit_motion
 from segmo.render import save_animation
@@ -67,15 +67,16 @@ class GenerationOutput:
         return self.joints[i, : int(self.lengths[i])].cpu().numpy()
 
     def save(self, directory: str | Path, formats: Sequence[str] = FORMATS,
-             prefix: str = "sample", bvh_fps: float | None = None,
+             prefix: str = "sample", bvh_fps: float | None = ANIMATION_FPS,
              foot_lock: bool = True, spans: Sequence[Sequence[tuple[int, int]]] | None = None,
              progress: bool = False, fixed_skeleton: bool = True) -> list[Path]:
         """Write each sample as `{prefix}_{i:02d}` files into `directory`.
 
         npy: `_features.npy` (t, d), `_joints.npy` (t, j, 3), `_tokens.npy` (t // 4, q); gif: a stick-figure
         animation titled with the prompt; bvh: a BVH file of a fixed skeleton fitted to the joints
-        (`segmo.motion.skeleton_fit.fit_motion`), at `bvh_fps` frames per second (default the
-        motion's), with the feet locked while in contact unless `foot_lock` is False. With
+        (`segmo.motion.skeleton_fit.fit_motion`), at `bvh_fps` frames per second (default
+        `segmo.motion.bvh.ANIMATION_FPS`, 60, resampled by slerp with the motion's frames kept;
+        None: the motion's own rate, 20 for t2m), with the feet locked while in contact unless `foot_lock` is False. With
         `fixed_skeleton` (default) the joints file and the GIF show that same skeleton, so
         that every file of a sample is one motion (the decoder's joints can stretch a bone;
         `motion_joints` keeps them); False writes the decoder's joints. spans: per sample, a
