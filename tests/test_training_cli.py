@@ -125,6 +125,23 @@ def _load_eval_tokenizer():
 
 
 @pytest.mark.slow
+def test_resuming_a_run_under_a_relative_runs_dir_updates_last_ckpt(tmp_path, monkeypatch):
+    """`--runs_dir runs` (relative, as the README's commands) and `--ckpt_path
+    runs/.../last.ckpt`: the resumed run writes its final weights to last.ckpt, the file
+    `segmo export` is given. (Lightning saw the checkpoint folder change from relative to
+    absolute, wrote last-v1.ckpt, and last.ckpt kept the weights of the resume point.)"""
+    root = make_dataset(tmp_path / "data")
+    monkeypatch.chdir(tmp_path)
+    common = ["--config", str(REPO / "configs/rvq/synthetic.yaml"), *tiny_overrides(root, Path("runs")),
+              "--trainer.val_check_interval=2"]
+    cli_main(["fit", *common, "--trainer.max_steps=2"])
+    last = Path("runs/rvq/synthetic/version_0/checkpoints/last.ckpt")
+    assert torch.load(last, weights_only=False)["global_step"] == 2
+    cli_main(["fit", *common, "--trainer.max_steps=4", f"--ckpt_path={last}"])
+    assert torch.load(last, weights_only=False)["global_step"] == 4
+    assert sorted(p.name for p in last.parent.glob("last*")) == ["last.ckpt"]
+
+
 def test_run_directory_resume_export_and_eval(tmp_path, capsys):
     root = make_dataset(tmp_path / "data")
     runs = tmp_path / "runs"

@@ -98,7 +98,10 @@ class SegmoCLI(LightningCLI):
         if not name:
             files = config.get("config") or []
             name = Path(str(files[-1])).stem if files else "default"
-        return Path(config.get("runs_dir") or "runs") / stage, name, None, None
+        # Absolute, as a resumed run's folder is (`checkpoint_run`): Lightning compares the
+        # checkpoint folder stored in a checkpoint with its own, and on a mismatch it forgets
+        # which file is last.ckpt.
+        return Path(config.get("runs_dir") or "runs").resolve() / stage, name, None, None
 
     def instantiate_trainer(self, **kwargs: Any):
         if self.datamodule is not None:
@@ -124,6 +127,9 @@ class SegmoCLI(LightningCLI):
                     mode="min",
                     save_last=True,
                     save_top_k=1,
+                    # A resumed run overwrites last.ckpt (the file `segmo export` is given)
+                    # instead of writing last-v1.ckpt beside the stale one: one run per folder.
+                    enable_version_counter=False,
                     filename="best-{epoch:03d}-{step}" if monitor else "{epoch:03d}-{step}",
                     auto_insert_metric_name=False,
                 )
