@@ -142,6 +142,7 @@ def test_resuming_a_run_under_a_relative_runs_dir_updates_last_ckpt(tmp_path, mo
     assert sorted(p.name for p in last.parent.glob("last*")) == ["last.ckpt"]
 
 
+@pytest.mark.slow
 def test_run_directory_resume_export_and_eval(tmp_path, capsys):
     root = make_dataset(tmp_path / "data")
     runs = tmp_path / "runs"

@@ -16,8 +16,9 @@ speed of the foot joints in contact, cm/s) of the input joints and of both BVH f
 the contacts of the input joints. The last printed line is a JSON object of these figures.
 
 --bvh-fps writes the files at that rate (`write_bvh`'s target_fps; a whole multiple of the
-motions' 20 fps; default 60, the rate `segmo generate` writes): channel changes are then between the file's frames, and positions are
-compared at the input's frames (every k-th frame of the file).
+motions' 20 fps; default 60, the rate `segmo generate` writes): channel changes are then
+between the file's frames, and positions are compared at the input's frames (every k-th
+frame of the file).
 """
 
 from __future__ import annotations
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
                    "the exporter's; 20: the motions' own frames)")
     p.add_argument("--out", default="runs/bvh_check")
     args = p.parse_args(argv)
-    if args.bvh_fps is not None and (args.bvh_fps <= 0 or args.bvh_fps % T2M.fps):
+    if args.bvh_fps <= 0 or args.bvh_fps % T2M.fps:
         p.error(f"--bvh-fps must be a whole multiple of {T2M.fps:g}, got {args.bvh_fps:g}")
     root = Path(args.data)
     ids = (root / f"{args.split}.txt").read_text().split()[: args.limit]

@@ -76,8 +76,8 @@ class GenerationOutput:
         animation titled with the prompt; bvh: a BVH file of a fixed skeleton fitted to the joints
         (`segmo.motion.skeleton_fit.fit_motion`), at `bvh_fps` frames per second (default
         `segmo.motion.bvh.ANIMATION_FPS`, 60, resampled by slerp with the motion's frames kept;
-        None: the motion's own rate, 20 for t2m), with the feet locked while in contact unless `foot_lock` is False. With
-        `fixed_skeleton` (default) the joints file and the GIF show that same skeleton, so
+        None: the motion's own rate, 20 for t2m), with the feet locked while in contact unless
+        `foot_lock` is False. With `fixed_skeleton` (default) the joints file and the GIF show that same skeleton, so
         that every file of a sample is one motion (the decoder's joints can stretch a bone;
         `motion_joints` keeps them); False writes the decoder's joints. spans: per sample, a
         (start, end) frame span per text segment (e.g. `SegMo.ground(method="attention")`):
