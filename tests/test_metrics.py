@@ -14,6 +14,7 @@ from segmo.evaluation.action_order import (
     edit_distance,
     error_kind,
     error_shares,
+    frame_confusions,
     matched_actions,
     normalised_edit_distance,
     recall_by_share,
@@ -298,3 +299,30 @@ def test_order_failures_named_and_short_actions_found_less() -> None:
     assert recall == {"<0.2": {"recall": 0.75, "actions": 4.0}, ">=0.4": {"recall": 1.0, "actions": 2.0}}
     with pytest.raises(ValueError, match="a share per true action"):
         recall_by_share([["walk"]], [["walk", "sit"]], [[1.0]])
+
+
+class _ReadsFeatureZero:
+    """A stand-in classifier: frame i is read as class int(features[i, 0])."""
+
+    classes = ["walk", "jump_forward", "jump_in_place"]
+
+    def frame_probabilities(self, features):
+        return np.eye(len(self.classes))[np.asarray(features)[:, 0].astype(int)]
+
+
+def test_frame_confusions_say_which_action_each_true_span_is_read_as(tmp_path):
+    import json
+
+    from segmo.data.layout import ground_truth_file
+
+    spans = [{"action": "walk", "start": 0, "end": 10}, {"action": "jump_forward", "start": 10, "end": 20}]
+    path = ground_truth_file(tmp_path, "000001")
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"actions": spans}))
+    read = np.zeros((18, 3))  # the clip ends 2 frames before the leap does: 8 of its frames
+    read[10:16, 0] = 2  # 6 of the leap's 8 frames read as a jump in place
+    read[16:, 0] = 1
+    result = frame_confusions(_ReadsFeatureZero(), tmp_path, {"000001": read})
+    assert result["frame_accuracy"] == {"jump_forward": pytest.approx(0.25), "walk": 1.0}
+    assert result["confusions"] == [{"true": "jump_forward", "read_as": "jump_in_place", "frames": 6,
+                                     "share": pytest.approx(0.75)}]

@@ -20,7 +20,7 @@ from segmo.data import MotionDataModule
 from segmo.errors import SegmoError
 from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
-from segmo.models.tokenizer import RVQVAE
+from segmo.models.tokenizer import RVQVAE, RVQOutput
 from segmo.motion.skeleton import get_skeleton
 from segmo.tasks.base import step_schedule
 from segmo.tasks.tokenizer import RVQTask
@@ -105,6 +105,22 @@ def test_the_former_class_path_still_trains_and_exports(tmp_path):
     assert torch.load(last, weights_only=False)["hyper_parameters"]["_class_path"] == \
         "segmo.tasks.rvq.RVQTask"
     assert isinstance(load_pretrained(export(last, tmp_path / "tokenizer")), RVQVAE)
+
+
+def test_root_weight_adds_the_root_features_error_to_the_loss():
+    task = RVQTask(**TINY_MODEL, root_weight=2.0)
+    d = task.skeleton.feature_dim
+    motion = torch.zeros(2, 8, d)
+    wrong = motion.clone()
+    wrong[..., 1] = 2.0  # only the root's forward velocity is wrong: SmoothL1 of 2 is 1.5
+    nothing = torch.zeros(())
+    out = RVQOutput(reconstruction=wrong, indices=torch.zeros(2, 2, 3, dtype=torch.long),
+                    commitment_loss=nothing, perplexity=torch.zeros(3), code_usage=torch.zeros(3))
+    terms = task.losses(motion, out, torch.ones(2, 8, dtype=torch.bool))
+    assert float(terms["root"]) == pytest.approx(1.5 / 4)  # the mean over the root's 4 features
+    assert float(terms["recon"]) == pytest.approx(1.5 / d) and float(terms["positions"]) == 0.0
+    assert float(terms["loss"]) == pytest.approx(1.5 / d + 2.0 * 1.5 / 4)
+    assert RVQTask(**TINY_MODEL).hparams.root_weight == 0.0  # the reference's loss by default
 
 
 def test_skeleton_mismatch_is_an_error(tmp_path):
@@ -199,6 +215,35 @@ def test_run_directory_resume_export_and_eval(tmp_path, capsys):
     assert len(result["mpjpe_mm"]) == len(result["code_usage"]) == TINY_MODEL["num_quantizers"]
     assert len(result["mpjpe_global_mm"]) == TINY_MODEL["num_quantizers"]
     assert all(v > 0 for v in result["mpjpe_mm"]) and result["clips"] == 2
+
+
+def test_eval_tokenizer_reads_the_reconstructions_actions_on_the_built_in_corpus(tmp_path, tokenizer_dir, capsys):
+    from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig
+    from segmo.synth.actions import ACTIONS
+    from segmo.synth.corpus import build_corpus
+
+    corpus = build_corpus(tmp_path / "corpus", 6, seed=0, progress=False)
+    (corpus / "test.txt").write_text("\n".join(sorted(p.stem for p in (corpus / "segments").glob("*.json"))))
+    classifier = ActionClassifier(ActionClassifierConfig(num_classes=len(ACTIONS), width=8, depth=1))
+    classifier.save_pretrained(tmp_path / "classifier", meta={"classes": list(ACTIONS)})
+    tool = _load_eval_tokenizer()
+    tool.main(["--model", str(tokenizer_dir["t2m"]), "--data", str(corpus),
+               "--action-classifier", str(tmp_path / "classifier")])
+    actions = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["actions"]
+    assert actions["clips"]["all"] == 6 and sum(v for k, v in actions["clips"].items() if k != "all") == 6
+    assert all(0.0 <= v <= 1.0 for v in actions["sequence_accuracy"].values())
+    assert set(actions["frame_accuracy"]) <= set(ACTIONS) and actions["frame_accuracy"]
+    for confusion in actions["confusions"]:  # an untrained classifier confuses: shares of true frames
+        assert confusion["true"] != confusion["read_as"] and 0 < confusion["share"] <= 1
+    with pytest.raises(SystemExit):  # a tokenizer is not an action classifier
+        tool.main(["--model", str(tokenizer_dir["t2m"]), "--data", str(corpus),
+                   "--action-classifier", str(tokenizer_dir["t2m"])])
+    assert "not an action classifier" in capsys.readouterr().err
+    plain = make_dataset(tmp_path / "plain")  # HumanML3D layout, no ground-truth actions
+    with pytest.raises(SystemExit):
+        tool.main(["--model", str(tokenizer_dir["t2m"]), "--data", str(plain),
+                   "--action-classifier", str(tmp_path / "classifier")])
+    assert "no ground-truth actions" in capsys.readouterr().err
 
 
 def test_export_without_task_class_is_an_error(tmp_path):

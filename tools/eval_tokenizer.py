@@ -12,6 +12,16 @@ batched only with clips of the same length, so no padding enters the convolution
 usage (fraction of codes used) and perplexity are computed per layer over all tokens of
 the split. The last printed line is a JSON object:
 {"mpjpe_mm": [q floats], "mpjpe_global_mm": [q], "code_usage": [q], "perplexity": [q], ...}.
+
+On the built-in corpus, `--action-classifier DIR` (configs/action_classifier) also reads
+the actions of the full reconstructions: their sequence accuracy against the true action
+sequence, overall and by number of actions (1, 2, 3+; real motions score 1.0), each
+action's frame accuracy on its true span, and the most frequent confusions, under
+"actions" in the JSON object. A tokenizer that blurs two actions into one (a leap forward
+decoded as a jump in place, a punch as a clap) caps every generator trained on it there.
+
+    python tools/eval_tokenizer.py --model models/rvq --data data/synth \
+        --action-classifier models/action_classifier
 """
 
 from __future__ import annotations
@@ -21,9 +31,14 @@ import json
 import sys
 from collections import defaultdict
 
+import numpy as np
 import torch
 
 from segmo.data import MotionWindowDataset
+from segmo.data.layout import has_ground_truth, read_actions
+from segmo.evaluation.action_order import frame_confusions
+from segmo.models.action_classifier import ActionClassifier, collapse
+from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import RVQVAE
 from segmo.motion.features import features_to_joints, joint_errors
 from segmo.motion.skeleton import get_skeleton
@@ -73,6 +88,26 @@ def evaluate(model: RVQVAE, dataset: MotionWindowDataset, batch_size: int = 32,
     }
 
 
+@torch.no_grad()
+def action_fidelity(model: RVQVAE, dataset: MotionWindowDataset, classifier: ActionClassifier) -> dict:
+    """How the action classifier reads each clip's full reconstruction (see the module
+    docstring); needs the corpus' ground-truth actions."""
+    model = model.cpu().eval()
+    reconstructions, hits = {}, defaultdict(list)
+    for i in range(len(dataset)):
+        item = dataset[i]
+        decoded = model.decode(model.encode(item["motion"][None].float()))
+        features = model.denormalize(decoded)[0].float().numpy()
+        reconstructions[item["id"]] = features
+        true = collapse(read_actions(dataset.root, item["id"])[0])
+        hit = classifier.predict_sequence(features) == true
+        hits["all"].append(hit)
+        hits[str(len(true)) if len(true) < 3 else "3+"].append(hit)
+    reading = frame_confusions(classifier, dataset.root, reconstructions)
+    return {"sequence_accuracy": {k: float(np.mean(v)) for k, v in sorted(hits.items())},
+            "clips": {k: len(v) for k, v in sorted(hits.items())}, **reading}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", required=True, help="exported tokenizer directory")
@@ -81,6 +116,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--max-motions", type=int, default=None, help="first N ids of the split")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--action-classifier", default=None,
+                        help="built-in corpus: also read the reconstructions' actions with this classifier")
     args = parser.parse_args(argv)
 
     model = RVQVAE.from_pretrained(args.model)
@@ -93,12 +130,26 @@ def main(argv: list[str] | None = None) -> dict:
     )
     result = evaluate(model, dataset, args.batch_size, args.device)
     result.update(model=args.model, data=args.data, split=args.split)
+    if args.action_classifier is not None:
+        if not has_ground_truth(args.data):
+            parser.error(f"--action-classifier: {args.data} has no ground-truth actions (segments/); "
+                         "only the built-in corpus (segmo synth) has them")
+        classifier = load_pretrained(args.action_classifier)
+        if not isinstance(classifier, ActionClassifier):
+            parser.error(f"--action-classifier {args.action_classifier}: not an action classifier")
+        result["actions"] = action_fidelity(model, dataset, classifier.eval())
     print(f"{'layers':>6}  {'MPJPE (mm)':>10}  {'global (mm)':>11}")
     for depth, (value, drift) in enumerate(zip(result["mpjpe_mm"], result["mpjpe_global_mm"]), 1):
         print(f"{depth:>6}  {value:>10.2f}  {drift:>11.2f}")
     print(f"{'layer':>6}  {'usage':>6}  {'perplexity':>10}")
     for layer, (usage, ppl) in enumerate(zip(result["code_usage"], result["perplexity"])):
         print(f"{layer:>6}  {usage:>6.3f}  {ppl:>10.1f}")
+    if "actions" in result:
+        actions = result["actions"]
+        print("action sequence of the reconstructions: " + ", ".join(
+            f"{k} {v:.3f} ({actions['clips'][k]})" for k, v in actions["sequence_accuracy"].items()))
+        for c in actions["confusions"]:
+            print(f"  {c['true']} read as {c['read_as']}: {c['share']:.1%} of its frames")
     print(json.dumps(result))
     return result
 

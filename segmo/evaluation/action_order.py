@@ -15,7 +15,9 @@ Where a sequence fails: `error_kind` names how a predicted sequence differs ("mi
 "extra", "substituted", "reordered"), and `recall_by_share` says how often each true action
 is found (paired with an equal predicted action by an optimal edit alignment,
 `matched_actions`) by its share of the motion's frames, so that short actions lost beside
-long ones show as such.
+long ones show as such. `frame_confusions` says, frame by frame on the true spans, which
+action each action is read as (how a tokenizer's reconstruction blurs a leap forward into a
+jump in place: `tools/eval_tokenizer.py --action-classifier`).
 
 Example::
 
@@ -36,7 +38,7 @@ from segmo.errors import SegmoError
 from segmo.models.action_classifier import ActionClassifier, collapse
 
 __all__ = ["ERROR_KINDS", "SHARE_BINS", "collapse", "collapse_spans", "edit_distance", "error_kind",
-           "error_shares", "evaluate_action_order", "matched_actions", "normalised_edit_distance",
+           "error_shares", "evaluate_action_order", "frame_confusions", "matched_actions", "normalised_edit_distance",
            "recall_by_share", "sequence_accuracy"]
 
 ERROR_KINDS = ("missing", "extra", "substituted", "reordered")
@@ -148,6 +150,37 @@ def sequence_accuracy(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequence[Se
 def normalised_edit_distance(pred_seqs: Sequence[Sequence[str]], true_seqs: Sequence[Sequence[str]]) -> float:
     """Mean of edit_distance(p, t) / max(len p, len t) (0 when both are empty)."""
     return float(np.mean([edit_distance(p, t) / max(len(p), len(t), 1) for p, t in _pairs(pred_seqs, true_seqs)]))
+
+
+def frame_confusions(classifier: ActionClassifier, dataset_root: str | Path, features: dict[str, np.ndarray],
+                     top: int = 8) -> dict[str, Any]:
+    """Frame-wise reading of the true spans of motions `features` (id → raw (t, d), e.g.
+    reconstructions; frames past a clip's end are left out): each action's frame accuracy
+    ("frame_accuracy": {action: share}) and the `top` most frequent confusions
+    ("confusions": [{"true", "read_as", "frames", "share"}], share of the true action's
+    frames), most frames first."""
+    root = Path(dataset_root)
+    index = {c: i for i, c in enumerate(classifier.classes)}
+    hits: dict[str, int] = {}
+    totals: dict[str, int] = {}
+    wrong: dict[tuple[str, str], int] = {}
+    for mid, x in features.items():
+        labels = classifier.frame_probabilities(x).argmax(1)
+        actions, spans = read_actions(root, mid)
+        for action, (start, end) in zip(actions, spans, strict=True):
+            read = labels[start:min(end, len(labels))]
+            if not len(read):
+                continue
+            totals[action] = totals.get(action, 0) + len(read)
+            hits[action] = hits.get(action, 0) + int((read == index.get(action, -1)).sum())
+            for label, count in zip(*np.unique(read, return_counts=True), strict=True):
+                name = classifier.classes[int(label)]
+                if name != action:
+                    wrong[(action, name)] = wrong.get((action, name), 0) + int(count)
+    ranked = sorted(wrong.items(), key=lambda kv: (-kv[1], kv[0]))[:top]
+    return {"frame_accuracy": {a: hits[a] / totals[a] for a in sorted(totals)},
+            "confusions": [{"true": t, "read_as": r, "frames": n, "share": n / totals[t]}
+                           for (t, r), n in ranked]}
 
 
 def evaluate_action_order(classifier: ActionClassifier, dataset_root: str | Path, split: str = "test",
