@@ -123,6 +123,17 @@ def test_root_weight_adds_the_root_features_error_to_the_loss():
     assert RVQTask(**TINY_MODEL).hparams.root_weight == 0.0  # the reference's loss by default
 
 
+def test_a_tokenizer_seed_is_set_once_by_the_data(tmp_path):
+    root = make_dataset(tmp_path / "data")
+    config = str(REPO / "configs/rvq/synthetic.yaml")
+    cli = cli_main(["fit", "--config", config, *tiny_overrides(root, tmp_path / "runs"),
+                    "--data.init_args.seed=3", "--trainer.fast_dev_run=true"])
+    assert cli.trainer.state.finished and cli.model.hparams.seed == 3 and cli.datamodule.seed == 3
+    line = cli_failure_line(["fit", "--config", config, *tiny_overrides(root, tmp_path / "r2"),
+                             "--model.init_args.seed=1", "--trainer.fast_dev_run=true"])
+    assert "model.init_args.seed" in line and "data.init_args.seed" in line
+
+
 def test_skeleton_mismatch_is_an_error(tmp_path):
     root = make_dataset(tmp_path / "data", "t2m")
     with pytest.raises(ValueError, match="skeleton"):

@@ -50,8 +50,11 @@ from segmo.training.trainer import SegmoTrainer
 
 SUBCOMMANDS = ("fit", "validate", "test")
 # Stated once, by the data, and linked to the transformers (source, target).
+# The tokenizer's seed (quantizer dropout, codebook seeding) is the data's (windows): one
+# `--data.init_args.seed` trains another tokenizer seed.
 LINKS = (("data.init_args.max_segments", "model.init_args.max_segments"),
-         ("data.init_args.text_tokens", "model.init_args.text_tokens"))
+         ("data.init_args.text_tokens", "model.init_args.text_tokens"),
+         ("data.init_args.seed", "model.init_args.seed"))
 
 
 class SegmoCLI(LightningCLI):
