@@ -17,7 +17,10 @@ def test_truth_segments_are_the_ground_truth_and_resume(tmp_path: Path):
     segment_folder(data, RuleSegmenter(), "rule", progress=False)
     result = tool.main(["--data", str(data)])
     assert result["summary"]["processed_files"] == 8
-    assert 0.0 <= result["rule_agreement"]["rule_equals_truth"] <= 1.0
+    agreement = result["rule_agreement"]
+    assert 0.0 <= agreement["rule_equals_truth"] <= agreement["rule_count_equals_truth"] <= 1.0
+    # the corpus' own captions ("raises ... and brings it back down" is one action)
+    assert agreement["rule_count_equals_truth"] >= 0.95, agreement
     record = json.loads((data / "segments" / "000000.json").read_text())
     lines = (data / "text_segments" / "truth" / "000000.txt").read_text().splitlines()
     assert lines == ["#".join(s["text"] for s in c["segments"]) for c in record["captions"]]

@@ -49,11 +49,12 @@ class TruthSegmenter:
 
 
 def rule_agreement(data: Path, truth: TruthSegmenter) -> dict[str, float] | None:
-    """Share of captions whose rule segments equal the ground truth (None: no rule folder)."""
+    """Share of captions whose rule segments equal the ground truth, and whose number of
+    segments does (None: no rule folder)."""
     rule = data / "text_segments" / "rule"
     if not rule.is_dir():
         return None
-    same = total = 0
+    same = same_count = total = 0
     for path in sorted(rule.glob("*.txt")):
         captions = [line.caption for line in read_caption_lines(texts_file(data, path.stem))]
         answers = path.read_text(encoding="utf-8").splitlines()
@@ -61,7 +62,9 @@ def rule_agreement(data: Path, truth: TruthSegmenter) -> dict[str, float] | None
             if caption in truth.table:
                 total += 1
                 same += answer.split("#") == truth.table[caption]
-    return {"captions": float(total), "rule_equals_truth": same / max(total, 1)}
+                same_count += len(answer.split("#")) == len(truth.table[caption])
+    return {"captions": float(total), "rule_equals_truth": same / max(total, 1),
+            "rule_count_equals_truth": same_count / max(total, 1)}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -80,7 +83,8 @@ def main(argv: list[str] | None = None) -> dict:
           f"{args.data / 'text_segments' / 'truth'} (processed {summary['processed_files']} files)")
     if agreement is not None:
         print(f"the rule extractor gives exactly the ground truth for "
-              f"{100 * agreement['rule_equals_truth']:.1f}% of {int(agreement['captions'])} captions")
+              f"{100 * agreement['rule_equals_truth']:.1f}% of {int(agreement['captions'])} captions, "
+              f"as many segments for {100 * agreement['rule_count_equals_truth']:.1f}%")
     result = {"summary": {k: summary[k] for k in ("motions", "captions", "processed_files")},
               "rule_agreement": agreement}
     print(json.dumps(result))

@@ -17,8 +17,9 @@ captions it was made from, its rule fallbacks) is appended to ``manifest.jsonl``
 missing, stale (a caption edited in place), unrecorded (a killed run), or that hold
 captions which fell back to the rules (only those captions are asked again), and a
 killed run resumes to the same output as an uninterrupted one. ``--overwrite`` redoes
-everything. ``meta.json`` records the backend, model and prompt hash (a rerun with
-another model or prompt into the same folder is refused without ``--overwrite``);
+everything. ``meta.json`` records the backend, model and prompt hash, or the rules'
+version (a rerun with another model, prompt or rules into the same folder is refused
+without ``--overwrite``);
 ``summary.json`` the counts of the whole folder after the run.
 
 LLM outages are loud: when more than ``--max-fallback-share`` (default 0) of the
@@ -62,7 +63,7 @@ from segmo.text.captions import (
 )
 from segmo.text.llm import check_base_url, get_text_segmenter
 from segmo.text.manifest import SegmentManifest
-from segmo.text.rules import TextSegmenter
+from segmo.text.rules import RULES_VERSION, TextSegmenter
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +98,7 @@ def describe(segmenter: TextSegmenter, backend: str) -> dict[str, Any]:
         "model": (getattr(segmenter, "model_name", None) or getattr(segmenter, "model", None))
         if backend != "rule" else None,
         "prompt_hash": prompt.hash if prompt is not None else None,
+        "rules_version": RULES_VERSION if backend == "rule" else None,
         "max_segments": getattr(segmenter, "max_segments", None),
     }
 
@@ -215,7 +217,8 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
                     raise ValueError("not a JSON object")
             except ValueError as err:
                 raise SegmoError(f"{meta_path}: not valid JSON ({err}); delete it or use --overwrite") from err
-            changed = [k for k in ("backend", "model", "prompt_hash") if old.get(k) != meta[k]]
+            changed = [k for k in ("backend", "model", "prompt_hash", "rules_version")
+                       if old.get(k) != meta[k]]
             if changed:
                 raise SegmoError(f"{out_dir} was made with other {', '.join(changed)} ({old}); "
                                  "use --overwrite or another folder")

@@ -30,6 +30,7 @@ bring set drag spin lift flick swipe swat sway knock shield cover hide clean com
 compensate counterbalance end avoid stroke receive let bump search repeat gain protect assume
 inspect beat change support check curve use circulate evade find yank stoop give listen form
 show need knee drift prepare practice practise simulate demonstrate execute complete reverse
+side-step
 """
 # "base 3sg past participle gerund" where the regular rules fail
 IRREGULAR = {
@@ -55,18 +56,29 @@ shoot shoots shot shot shooting | sweep sweeps swept swept sweeping |
 wind winds wound wound winding | dig digs dug dug digging | slide slides slid slid sliding |
 spread spreads spread spread spreading | hide hides hid hidden hiding |
 stride strides strode stridden striding | leave leaves left left leaving |
-seem seems seemed seemed seeming | sneak sneaks snuck snuck sneaking
+seem seems seemed seemed seeming | sneak sneaks snuck snuck sneaking | let lets let let letting
 """.split("|")
 }
 # Words an inflection would make that are really nouns/directions in captions.
 NOT_VERB_FORMS = {"left", "leaves", "lay"}
 DOUBLED = set("""jog step trip hop skip flip slip stop pat rub tap nod flap bob drop
-shrug grab jab swat slap chop mop knit dig plan drag stab""".split())
+shrug grab jab swat slap chop mop knit dig plan drag stab side-step clap hug stir sidestep""".split())
 STATIC = {"stand", "sit", "kneel", "lie", "stay", "remain", "hover", "wait", "rest", "balance"}
 # after a static posture these start a new action, not a simultaneous one ("stands and walks away")
 MOVING = set("""walk run jog sprint march jump hop skip leap crawl climb fall step stride limp stumble go
 come leave turn spin rise get stand sit lie kneel squat crouch""".split())
 PARTICLES = {"up", "down", "back", "over", "onto", "off", "out"}
+# One gesture, one segment: a verb that takes back what the one before did. A raise
+# lowered on the same thing named by a pronoun ("raises his arm and lowers it"; RETURNS_WITH
+# need "down"/"back": "puts it down", not "puts it on the table"), or a dip risen back from
+# ("squats down and stands back up"; not "sits down and stands up", two postures).
+RAISING = {"raise", "lift"}
+RETURNS = {"lower", "drop"}
+RETURNS_WITH = {"put", "bring", "return", "move"}
+RETURN_PARTICLES = {"down", "back"}
+BACK_REFERENCES = {"it", "them"}
+DIPS = {"squat", "crouch", "bend", "duck", "stoop"}
+RISES = {"stand", "get", "come", "rise", "straighten"}
 TRANSITIVE = set("""raise lift lower swing bend move extend stretch rotate twist shake open
 close cross fold flex pick put drop throw toss catch push pull wave kick punch grab hold
 clap rub wipe tap touch spread straighten flap wiggle release""".split())

@@ -14,7 +14,11 @@ Rules, in the order they are applied:
 2. Simultaneous actions stay one segment: "while"/"as"/"at the same time" joins; a
    static posture before a plain "and" ("stands and waves", "is kneeling and praying",
    but not "stands and walks away" or "kneels and gets up") joins; a gerund after a plain "and"/"," in a finite sentence is a manner
-   ("walks forward, waving") and joins.
+   ("walks forward, waving") and joins. A movement taken back after a plain "and" is one
+   gesture and joins: a raise lowered on the same thing named by a pronoun ("raises his
+   arm and lowers it", "lifts the arm up and puts it down") and a dip risen back from
+   ("squats down and stands back up"); but "raises his arm and then lowers it", "raises
+   and lowers his arms" and "sits down and stands up" are two steps.
 3. Execution order, not mention order: "A after B" puts B first (", after B" moves B
    before everything said before it in the sentence); "before B, A" puts B last.
 4. A segment without its own subject gets the caption's subject back ("a person walks
@@ -34,12 +38,16 @@ so an empty or whitespace-only caption gives ``[""]``. `segment` never raises on
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 from segmo.text import lexicon
 
 MAX_SEGMENTS = 5
+# Raised whenever a rule change gives other segments for some captions, so that a segment
+# folder made by older rules is not silently mixed with newer ones (`segment-texts`).
+# 2: a movement and its return after a plain "and" are one segment.
+RULES_VERSION = 2
 
 
 @runtime_checkable
@@ -76,6 +84,7 @@ class _Clause:
     wide: bool = False  # ", after ..." reaches back to the start of the sentence
     copied_verb: str = ""
     suffix: str = ""  # object shared from the next clause ("raises and lowers his arms")
+    joined: list[int] = field(default_factory=list)  # verbs of clauses joined as one gesture
 
 
 def _kinds(tok: _Tok) -> frozenset[str]:
@@ -238,6 +247,22 @@ def _split(toks: list[_Tok]) -> list[_Clause]:
     return clauses
 
 
+def _undoes(toks: list[_Tok], prev_base: str, verb_base: str, c: _Clause) -> bool:
+    """Whether clause c takes back what the previous clause did, as one gesture: a raise
+    lowered on the same thing, named by a pronoun right after the verb ("... and lowers it",
+    "... and brings it back down"), or a dip risen back from ("squats down and stands back
+    up", "crouches low and gets back up")."""
+    if c.verb is None:
+        return False
+    rest = [t.low for t in toks[c.verb + 1 : c.end]]
+    if prev_base in lexicon.DIPS:
+        return verb_base in lexicon.RISES and "back" in rest and "up" in rest
+    if prev_base not in lexicon.RAISING or not rest or rest[0] not in lexicon.BACK_REFERENCES:
+        return False
+    return verb_base in lexicon.RETURNS or (
+        verb_base in lexicon.RETURNS_WITH and bool(set(rest[1:]) & lexicon.RETURN_PARTICLES))
+
+
 def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozenset[str]) -> list[_Clause]:
     """Join simultaneous clauses (rule 2) and share objects between bare verbs (rule 4)."""
     units: list[_Clause] = []
@@ -260,23 +285,37 @@ def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozens
             and not c.own_subject
         )
         manner = c.join == "weak" and not c.own_subject and verb_kinds == {"ing"} and "ing" not in main
+        undo = c.join == "weak" and not c.own_subject and _undoes(toks, prev_base, verb_base, c)
         if (
             c.join == "simul"
             or prev.join == "lead-simul" and len(units) == 1
             or static
             or manner
+            or undo
             or (c.join in ("weak", "simul") and any(p in text for p in lexicon.SIMULTANEOUS_PHRASES))
         ):
             prev.end = c.end
+            if undo:
+                prev.joined.append(c.verb)
             continue
         bare = prev.verb is not None and all(_is_adverb(t.low) for t in toks[prev.verb + 1 : prev.end])
         if (
-            bare and c.join == "weak" and prev_base in lexicon.TRANSITIVE and c.verb is not None
+            bare and c.join == "weak" and not c.own_subject and prev_base in lexicon.TRANSITIVE
+            and c.verb is not None
             and c.verb + 1 < c.end and toks[c.verb + 1].low in lexicon.OBJECT_STARTERS
         ):
             prev.suffix = " " + caption[toks[c.verb + 1].start : toks[c.end - 1].end]
         units.append(c)
     return units
+
+
+def _main_clause(clauses: list[_Clause]) -> _Clause:
+    """The clause whose subject and tense the caption's segments share: the first, or after
+    a lead ("after walking, ...") the first later clause naming its subject ("after lifting
+    the arm and putting it down, a man claps"), else the one right after the lead."""
+    if not clauses[0].join.startswith("lead-") or len(clauses) == 1:
+        return clauses[0]
+    return next((c for c in clauses[1:] if c.own_subject), clauses[1])
 
 
 def _order(units: list[_Clause]) -> list[_Clause]:
@@ -337,7 +376,7 @@ class RuleSegmenter:
             return [_strip(caption)]
         clauses = _split(toks)
         first = clauses[0].verb
-        main_clause = clauses[1] if clauses[0].join.startswith("lead-") and len(clauses) > 1 else clauses[0]
+        main_clause = _main_clause(clauses)
         main = _verb_kinds(toks, main_clause.verb)
         units = _order(_merge(caption, toks, clauses, main))
         if len(units) <= 1 or first is None:
@@ -381,9 +420,14 @@ class RuleSegmenter:
         gerund = verb_tok is not None and _kinds(verb_tok) == {"ing"}
         if verb_tok is not None and gerund and not u.own_subject and "3sg" in main and verb_tok.low in lexicon.FORMS:
             # "runs after walking" -> "walks": one tense across the segments of a caption
-            third = lexicon.THIRD[lexicon.FORMS[verb_tok.low][0]]
-            a, b = verb_tok.start - toks[u.start].start, verb_tok.end - toks[u.start].start
-            body = body[:a] + third + body[b:]
+            # (and across a joined gesture: "raising his arm and lowering it")
+            for k in sorted([u.verb, *u.joined], reverse=True):
+                tok = toks[k]
+                if _kinds(tok) != {"ing"} or tok.low not in lexicon.FORMS:
+                    continue
+                third = lexicon.THIRD[lexicon.FORMS[tok.low][0]]
+                a, b = tok.start - toks[u.start].start, tok.end - toks[u.start].start
+                body = body[:a] + third + body[b:]
             gerund = False
         first_word = toks[u.start].low
         if not u.own_subject and "3sg" in main and first_word in ("being", "having"):
@@ -409,7 +453,7 @@ def action_clauses(caption: str) -> list[str]:
     if not toks:
         return []
     clauses = _split(toks)
-    main_clause = clauses[1] if clauses[0].join.startswith("lead-") and len(clauses) > 1 else clauses[0]
+    main_clause = _main_clause(clauses)
     units = _order(_merge(caption, toks, clauses, _verb_kinds(toks, main_clause.verb)))
     return [" ".join(filter(None, (u.copied_verb, caption[toks[u.start].start : toks[u.end - 1].end])))
             for u in units if u.start < u.end]
