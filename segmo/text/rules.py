@@ -29,6 +29,7 @@ Rules, in the order they are applied:
    ("walks forward turns around"), unless it is usually a noun ("forward steps").
    "raises and lowers his arms" shares the object: two segments with "his arms".
 5. At most `MAX_SEGMENTS`; the tail is merged into the last one with ", then ".
+An opening "first," orders nothing and is left out of the segments.
 
 Conventions chosen here: every segment has its final punctuation removed; a caption that
 yields a single segment is returned as ``[caption.strip() minus final punctuation]``,
@@ -162,6 +163,15 @@ def _find_verb(toks: list[_Tok], j: int, join: str, main: frozenset[str], has_au
 
 def _tokenize(text: str) -> list[_Tok]:
     return [_Tok(m.group(), m.group().lower(), m.start(), m.end()) for m in _TOKEN_RE.finditer(text)]
+
+
+def _tokenize_actions(caption: str) -> list[_Tok]:
+    """The caption's tokens without an opening "first," / "firstly," ("first, a man walks,
+    then he runs"): it orders nothing, and left in place it hides the caption's subject."""
+    toks = _tokenize(caption)
+    if len(toks) > 2 and toks[0].low in ("first", "firstly") and toks[1].low == ",":
+        return toks[2:]
+    return toks
 
 
 def _match_connective(toks: list[_Tok], i: int) -> tuple[int, str, bool]:
@@ -371,7 +381,7 @@ class RuleSegmenter:
         """Ordered segments of one caption; ``[caption minus final punctuation]`` if one action."""
         if not isinstance(caption, str):
             raise TypeError(f"RuleSegmenter.segment: captions must be str, got {type(caption).__name__}")
-        toks = _tokenize(caption)
+        toks = _tokenize_actions(caption)
         if not toks:
             return [_strip(caption)]
         clauses = _split(toks)
@@ -449,7 +459,7 @@ def action_clauses(caption: str) -> list[str]:
     runs"]``. The LLM validator checks an answer's order against them. A single action
     gives one clause.
     """
-    toks = _tokenize(caption)
+    toks = _tokenize_actions(caption)
     if not toks:
         return []
     clauses = _split(toks)
