@@ -15,7 +15,7 @@ from segmo.errors import SegmoError
 from segmo.text.captions import captions_hash, read_caption_lines
 from segmo.text.extract import format_line, segment_folder
 from segmo.text.manifest import SegmentManifest
-from segmo.text.rules import RULES_VERSION, RuleSegmenter
+from segmo.text.rules import RuleSegmenter
 
 TEXTS = {
     "000001": ["a person walks forward, then waves twice.#a/DET person/NOUN#0.0#0.0",
@@ -102,19 +102,6 @@ def test_changed_texts_file_is_redone_and_overwrite_redoes_all(tmp_path):
     assert summary["processed_files"] == 1
     assert _outputs(root)["000002.txt"] == "a man jumps#a man sits\na man claps\n"
     assert segment_folder(root, RuleSegmenter(), overwrite=True, progress=False)["processed_files"] == 5
-
-
-def test_a_folder_made_by_older_rules_is_refused_not_mixed(tmp_path):
-    root = _dataset(tmp_path / "data")
-    segment_folder(root, RuleSegmenter(), progress=False)
-    meta_path = root / "text_segments" / "rule" / "meta.json"
-    meta = json.loads(meta_path.read_text())
-    assert meta["rules_version"] == RULES_VERSION
-    meta_path.write_text(json.dumps({k: v for k, v in meta.items() if k != "rules_version"}))
-    before = {p.name: p.read_bytes() for p in meta_path.parent.glob("*.txt")}
-    with pytest.raises(SegmoError, match="rules_version"):
-        segment_folder(root, RuleSegmenter(), progress=False)
-    assert {p.name: p.read_bytes() for p in meta_path.parent.glob("*.txt")} == before
 
 
 def test_errors_name_the_file_and_line(tmp_path):

@@ -13,7 +13,7 @@ from fake_openai import FakeOpenAI
 from segmo.cli import main as segmo_main
 from segmo.text.cache import update_cache
 from segmo.text.extract import segment_folder
-from segmo.text.rules import RuleSegmenter
+from segmo.text.rules import RULES_VERSION, RuleSegmenter
 
 
 def _data(tmp_path, texts=None):
@@ -141,6 +141,20 @@ def test_segment_texts_meta_of_another_prompt(tmp_path, capsys):
     meta.write_text(json.dumps({**json.loads(meta.read_text()), "backend": "openai"}))
     _fails(["segment-texts", "--data", str(root)], capsys, "text_segments/rule was made with other backend",
            "use --overwrite or another folder")
+
+
+def test_segment_texts_folder_of_older_rules(tmp_path, capsys):
+    """A rule folder written before a rule change is refused, not mixed with newer segments."""
+    root = _data(tmp_path)
+    segment_folder(root, RuleSegmenter(), progress=False)
+    meta = root / "text_segments" / "rule" / "meta.json"
+    record = json.loads(meta.read_text())
+    assert record["rules_version"] == RULES_VERSION
+    meta.write_text(json.dumps({k: v for k, v in record.items() if k != "rules_version"}))
+    before = {p.name: p.read_bytes() for p in meta.parent.glob("*.txt")}
+    _fails(["segment-texts", "--data", str(root)], capsys, "text_segments/rule was made with other rules_version",
+           "use --overwrite or another folder")
+    assert {p.name: p.read_bytes() for p in meta.parent.glob("*.txt")} == before
 
 
 def test_segment_texts_corrupt_manifest(tmp_path, capsys):
