@@ -47,7 +47,8 @@ from segmo.text import lexicon
 MAX_SEGMENTS = 5
 # Raised whenever a rule change gives other segments for some captions, so that a segment
 # folder made by older rules is not silently mixed with newer ones (`segment-texts`).
-# 2: a movement and its return after a plain "and" are one segment.
+# 2: a movement and its return after a plain "and" are one segment; an opening "first,"
+#    is left out (version 1: segmo up to commit de0c29e).
 RULES_VERSION = 2
 
 
