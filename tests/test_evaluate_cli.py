@@ -398,6 +398,11 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
     assert last["all"]["motions"] == len(rows) == sum(v["motions"] for v in last["by_template"].values())
     assert set(last["by_template"]) == {r["template"] for r in rows}
     assert all(0.0 <= v["sequence_accuracy"] <= 1.0 for v in last["by_template"].values())
+    # by the true number of actions: every row once in 2 / 3 / 4-5, the 3+ rows again in "3+"
+    counts = {k: v["motions"] for k, v in last["by_num_actions"].items()}
+    assert sum(counts.get(k, 0) for k in ("2", "3", "4-5")) == len(rows)
+    assert counts.get("3+", 0) == sum(r["num_actions"] >= 3 for r in rows)
+    assert counts.get("3+", 0) == counts.get("3", 0) + counts.get("4-5", 0)
     # Train captions never use the held-out templates.
     assert "held_out" not in last and last["trained"] == last["all"]
     assert last["word_text"] == "caption"  # the bundle's

@@ -10,8 +10,10 @@ val/test captions (`HELD_OUT_TEMPLATES`: "…, followed by …" and "before …"
 last action first). This tool generates the first caption of every motion of two or more
 segments (at its length, `--repeats` seeds each), reads the action sequence with the
 action classifier and reports the sequence accuracy per template, over the trained and the
-held-out templates, and over all; the last stdout line is the JSON object. --word-text: what
-a words model's word keys read (`SamplingOptions.word_text`; default: the bundle's).
+held-out templates, over all, and by the caption's true number of actions (2, 3, 4-5, and
+3+: `by_num_actions`; `segmo evaluate` buckets by the segments the model is given, which
+the text extractor may miscount); the last stdout line is the JSON object. --word-text:
+what a words model's word keys read (`SamplingOptions.word_text`; default: the bundle's).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import torch
 
 from segmo.data.layout import first_captions
 from segmo.errors import SegmoError
+from segmo.evaluation.metrics import segment_bucket
 from segmo.generation.sampling import WordText
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
@@ -47,7 +50,8 @@ def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:
         if len(caption["segments"]) < 2 or frames < FRAMES_PER_TOKEN:
             continue
         rows.append({"text": caption["text"], "template": caption["template"], "frames": frames,
-                     "actions": collapse([s["action"] for s in caption["segments"]])})
+                     "actions": collapse([s["action"] for s in caption["segments"]]),
+                     "num_actions": len(caption["segments"])})
     if not rows:
         raise SegmoError(f"--data {data}: no {split} motion whose first caption has two or more segments")
     return rows
@@ -55,6 +59,7 @@ def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:
 
 def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, seed: int) -> dict:
     hits: dict[str, list[bool]] = defaultdict(list)
+    by_actions: dict[str, list[bool]] = defaultdict(list)
     for repeat in range(repeats):
         for start in range(0, len(rows), BATCH):
             chunk = rows[start:start + BATCH]
@@ -62,7 +67,11 @@ def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, 
                                  generator=torch.Generator().manual_seed(seed + 1000 * repeat + start))
             for k, row in enumerate(chunk):
                 features = out.features[k, : int(out.lengths[k])].float().cpu().numpy()
-                hits[row["template"]].append(classifier.predict_sequence(features) == row["actions"])
+                hit = classifier.predict_sequence(features) == row["actions"]
+                hits[row["template"]].append(hit)
+                by_actions[segment_bucket(row["num_actions"])].append(hit)
+                if row["num_actions"] >= 3:
+                    by_actions["3+"].append(hit)
 
     def entry(values: list[bool]) -> dict:
         return {"sequence_accuracy": float(np.mean(values)), "motions": len(values) // repeats}
@@ -71,6 +80,7 @@ def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, 
               "held_out": [h for t, v in hits.items() if t in HELD_OUT_TEMPLATES for h in v],
               "all": [h for v in hits.values() for h in v]}
     return {"by_template": {t: entry(v) for t, v in sorted(hits.items())},
+            "by_num_actions": {k: entry(v) for k, v in sorted(by_actions.items())},
             **{name: entry(v) for name, v in groups.items() if v}, "repeats": repeats}
 
 
@@ -99,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     result = order_by_template(model, classifier, rows, args.repeats, args.seed)
     for template, value in result["by_template"].items():
         print(f"{template:>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
+    for bucket, value in result["by_num_actions"].items():
+        print(f"{bucket + ' actions':>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     print(json.dumps({**result, "word_text": model.sampling.word_text}))
     return 0
 
