@@ -44,8 +44,11 @@ def setup(tmp_path_factory) -> dict[str, Path]:
     torch.manual_seed(0)
     tokenizer = RVQVAE.from_pretrained(build_tokenizer(root / "rvq", 263))
     paths = {"data": corpus}
-    for name, alignment in (("segmo", AlignmentConfig(out_dim=16)), ("no_align", None)):
-        mask = MaskTransformer(MaskTransformerConfig(**TINY, alignment=alignment))
+    for name, alignment, timing in (("segmo", AlignmentConfig(out_dim=16), False),
+                                    ("no_align", None, False),
+                                    ("timed", AlignmentConfig(out_dim=16), True)):
+        mask = MaskTransformer(MaskTransformerConfig(**TINY, alignment=alignment,
+                                                     segment_timing=timing))
         residual = ResidualTransformer(ResidualTransformerConfig(**TINY, num_quantizers=3))
         SegMo(tokenizer, mask, residual, config=SegMoConfig(text_encoder=ENCODER),
               text_encoder=hash_encoder(ENCODER, 16)).save_pretrained(root / name)
@@ -417,6 +420,32 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
     assert "ground truth" in capsys.readouterr().err
 
 
+def test_order_by_template_gives_a_timing_model_the_true_durations(setup, hash_text_encoder,
+                                                                    capsys, monkeypatch):
+    tool = load_tool("order_by_template")
+    common = ["--data", str(setup["data"]), "--split", "train", "--action-classifier",
+              str(setup["classifier"]), "--repeats", "1"]
+    seen = []
+    real = SegMo.generate
+
+    def spy(self, texts, lengths, **options):
+        seen.append(options)
+        return real(self, texts, lengths, **options)
+
+    monkeypatch.setattr(SegMo, "generate", spy)
+    assert tool.main(["--model", str(setup["timed"]), *common, "--segment-timing", "truth"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["segment_timing"] == "truth"
+    rows = tool.multi_segment_rows(setup["data"], "train", 196)
+    durations = [d for options in seen for d in options["durations"]]
+    assert durations == [r["durations"] for r in rows]
+    segments = [s for options in seen for s in options["segments"]]
+    assert all(len(s) == len(d) for s, d in zip(segments, durations))
+    assert tool.main(["--model", str(setup["timed"]), *common, "--segment-timing", "none"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["segment_timing"] == "none"
+    assert tool.main(["--model", str(setup["segmo"]), *common, "--segment-timing", "truth"]) == 2
+    assert "has no segment timing" in capsys.readouterr().err
+
+
 def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_encoder, tmp_path, capsys):
     tool = load_tool("attention_report")
     plain = tmp_path / "plain"
@@ -439,9 +468,11 @@ def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_tex
     real = model.generate
     model.generate = lambda *a, **k: seen.append(k.get("sampling")) or real(*a, **k)
     mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
-    for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local", "word_text": "segments"}):
+    for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local", "word_text": "segments",
+                       "segment_timing": "none"}):
         cfg = EvaluateConfig(data="", evaluator="", out="", progress=False, **given)
         Generator(model, cfg, mean, std)(["a person walks forward"], torch.tensor([8]), seed=0)
     assert seen[0] is None
-    assert (seen[1].ctrl_k_base, seen[1].unconditional, seen[1].word_text) == (0.25, "local", "segments")
+    assert (seen[1].ctrl_k_base, seen[1].unconditional, seen[1].word_text,
+            seen[1].segment_timing) == (0.25, "local", "segments", "none")
     assert seen[1].guidance_scale == model.sampling.guidance_scale

@@ -235,3 +235,32 @@ def test_segment_probe_tool_scores_any_mask_transformer(tmp_path, capsys):
             assert result["segments"] == expected and result["unordered"] == bool(mode)
             assert 0.0 <= result["probe"] <= 1.0
             assert ("own_head" in result) == (alignment is not None)
+
+
+@pytest.mark.parametrize("source", ["truth", "segmenter"])
+def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_dataset,
+                                                              tokenizer_dir, tmp_path):
+    """Timing from the corpus' ground-truth spans or from the motion segmenter: the head
+    learns (a loss above 0 needs segments with a span of less than the whole motion) and
+    the exported model carries it."""
+    from conftest import hash_encoder
+
+    from segmo.synth.corpus import build_corpus
+    from segmo.text.cache import update_cache
+    from segmo.text.extract import segment_folder
+    from segmo.text.rules import RuleSegmenter
+
+    config = REPO / "configs/mask/synthetic.yaml"
+    args = overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs")
+    if source == "truth":  # the built-in corpus has ground-truth spans
+        root = build_corpus(tmp_path / "synth", 24, seed=1, progress=False)
+        segment_folder(root, RuleSegmenter(), "rule", progress=False)
+        update_cache(root, hash_encoder("minilm", 384), segments=["rule"], progress=False)
+        args = [a for a in args if not a.startswith("--data.root")] + [f"--data.root={root}"]
+    cli = cli_main(["fit", "--config", str(config), *args,
+                    f"--model.init_args.segment_timing={source}", "--model.init_args.segmenter=cpd",
+                    "--data.init_args.batch_size=16", "--trainer.fast_dev_run=true"])
+    metrics = cli.trainer.callback_metrics
+    assert torch.isfinite(metrics["train/timing_loss"]) and float(metrics["train/timing_loss"]) > 0
+    model = cli.model.export_model()
+    assert model.config.segment_timing and model.meta["segment_timing"] == source

@@ -37,7 +37,8 @@ TINY = dict(codebook_size=16, text_dim=TEXT_DIM, max_segments=3, max_tokens=49, 
 PROMPTS = ["a person walks forward, then waves.", "someone jumps twice and then sits down."]
 
 
-def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=True):
+def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=True,
+                 segment_timing=False):
     """A tokenizer with random codebooks (the fixture's are all zero, so every token would
     decode alike) and random mask/residual/length stages; returns their directories."""
     torch.manual_seed(0)
@@ -47,12 +48,15 @@ def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=T
     tokenizer = rvq.save_pretrained(root / "tokenizer")
     config = dict(TINY, text_dim=text_dim)
     mask = MaskTransformer(MaskTransformerConfig(
-        **config, alignment=AlignmentConfig(out_dim=16) if alignment else None))
+        **config, alignment=AlignmentConfig(out_dim=16) if alignment else None,
+        segment_timing=segment_timing))
     residual = ResidualTransformer(ResidualTransformerConfig(**config, num_quantizers=3))
     length = LengthEstimator(LengthEstimatorConfig(text_dim=text_dim, hidden=16, max_tokens=49))
     with torch.no_grad():  # sharper than the 0.02-std initialisation, so the text matters
         mask.classifier.weight.mul_(50)
         residual.code_embeddings.mul_(50)
+        if segment_timing:  # and the timing
+            mask.timing.embed.weight.mul_(50)
     meta = {"text_encoder": encoder, "tokenizer": str(tokenizer)}
     dirs = {"tokenizer": tokenizer}
     for name, model in (("mask", mask), ("residual", residual), ("length", length)):
@@ -456,6 +460,39 @@ def test_no_alignment_head_is_a_clear_error(tmp_path, tokenizer_dir, generated):
         plain.ground(PROMPTS[0], generated.motion(0))
 
 
+def test_segment_durations_steer_a_timing_model(tmp_path, tokenizer_dir, model):
+    """A mask transformer with segment timing generates from given durations, from its
+    head's prediction or from none; durations that do not fit get one line naming them."""
+    dirs = build_stages(tmp_path, tokenizer_dir["t2m"], segment_timing=True)
+    timed = SegMo.from_stages(dirs["tokenizer"], dirs["mask"], dirs["residual"],
+                              text_encoder=hash_encoder("hash", TEXT_DIM))
+    assert timed.sampling.segment_timing == "predicted"
+    lengths = [64, 64]
+
+    def tokens(**options):
+        return timed.generate(PROMPTS, lengths, generator=seeded(), **options).tokens
+
+    first = tokens(durations=[[1, 5], [1, 5]])
+    assert torch.equal(first, tokens(durations=[[2, 10], [0.5, 2.5]]))  # shares, not units
+    assert not torch.equal(first, tokens(durations=[[5, 1], [5, 1]]))
+    predicted = tokens()
+    spans = timed.mask.predict_spans(*timed.text_condition(PROMPTS)[1:3], torch.tensor([16, 16]))
+    shares = (spans[..., 1] - spans[..., 0]).tolist()
+    assert torch.equal(predicted, tokens(durations=shares))
+    assert not torch.equal(predicted, tokens(sampling=dataclasses.replace(
+        timed.sampling, segment_timing="none")))
+    with pytest.raises(SegmoError, match=r"durations\[1\] has 3 values, text 1 has 2 segments"):
+        tokens(durations=[[1, 1], [1, 1, 1]])
+    with pytest.raises(SegmoError, match=r"durations\[0\] must be finite"):
+        tokens(durations=[[-1, 2], [1, 1]])
+    with pytest.raises(SegmoError, match="one list per text"):
+        tokens(durations=[[1, 1]])
+    with pytest.raises(SegmoError, match="trained with segment timing"):
+        model.generate(PROMPTS, lengths, durations=[[1, 1], [1, 1]])
+    with pytest.raises(SegmoError, match="segment_timing must be 'predicted' or 'none'"):
+        SamplingOptions(segment_timing="truth")
+
+
 def test_grounding_accuracy_on_builtin_corpus(model, tmp_path_factory):
     from segmo.synth.corpus import build_corpus
 
@@ -549,6 +586,9 @@ def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, ca
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),
     (["--formats", "npy,mp3"], "--formats"),
+    (["--durations", "1,x"], "--durations '1,x': expected numbers >= 0"),
+    (["--durations", "0,0"], "not all 0"),
+    (["--durations", "1,4"], "durations need a mask transformer trained with segment timing"),
 ])
 def test_cli_generate_errors(bundle, tmp_path, hash_text_encoder, capsys, argv, message):
     base = {"--model": str(bundle), "--text": "a person walks", "--out": str(tmp_path)}

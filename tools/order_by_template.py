@@ -2,7 +2,7 @@
 
     python tools/order_by_template.py --model B --data data/synth \\
         --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
-        [--word-text caption|segments]
+        [--word-text caption|segments] [--segment-timing predicted|none|truth]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -14,6 +14,10 @@ held-out templates, over all, and by the caption's true number of actions (2, 3,
 3+: `by_num_actions`; `segmo evaluate` buckets by the segments the model is given, which
 the text extractor may miscount); the last stdout line is the JSON object. --word-text:
 what a words model's word keys read (`SamplingOptions.word_text`; default: the bundle's).
+--segment-timing, for a mask transformer trained with segment timing: the spans its timing
+head predicts, none, or "truth": each segment's true duration from the corpus (the model's
+own text segments where it finds as many as the caption has actions, else the corpus'
+segment texts), the ceiling of what predicted timing can give.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import torch
 from segmo.data.layout import first_captions
 from segmo.errors import SegmoError
 from segmo.evaluation.metrics import segment_bucket
-from segmo.generation.sampling import WordText
+from segmo.generation.sampling import SegmentTiming, WordText
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -51,20 +55,32 @@ def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:
             continue
         rows.append({"text": caption["text"], "template": caption["template"], "frames": frames,
                      "actions": collapse([s["action"] for s in caption["segments"]]),
-                     "num_actions": len(caption["segments"])})
+                     "num_actions": len(caption["segments"]),
+                     "segments": [s["text"] for s in caption["segments"]],
+                     "durations": [s["end"] - s["start"] for s in caption["segments"]]})
     if not rows:
         raise SegmoError(f"--data {data}: no {split} motion whose first caption has two or more segments")
     return rows
 
 
-def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, seed: int) -> dict:
+def true_timing(model: SegMo, chunk: list[dict]) -> dict:
+    """`SegMo.generate`'s segments and durations for the corpus' true timing: the model's
+    own segments where it finds one per true action, else the corpus' segment texts."""
+    own = model.segment_texts([r["text"] for r in chunk])
+    segments = [s if len(s) == len(r["durations"]) else r["segments"] for s, r in zip(own, chunk)]
+    return {"segments": segments, "durations": [r["durations"] for r in chunk]}
+
+
+def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, seed: int,
+                      truth: bool = False) -> dict:
     hits: dict[str, list[bool]] = defaultdict(list)
     by_actions: dict[str, list[bool]] = defaultdict(list)
     for repeat in range(repeats):
         for start in range(0, len(rows), BATCH):
             chunk = rows[start:start + BATCH]
             out = model.generate([r["text"] for r in chunk], [r["frames"] for r in chunk],
-                                 generator=torch.Generator().manual_seed(seed + 1000 * repeat + start))
+                                 generator=torch.Generator().manual_seed(seed + 1000 * repeat + start),
+                                 **(true_timing(model, chunk) if truth else {}))
             for k, row in enumerate(chunk):
                 features = out.features[k, : int(out.lengths[k])].float().cpu().numpy()
                 hit = classifier.predict_sequence(features) == row["actions"]
@@ -94,6 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what a words model's word keys read (default: the bundle's)")
+    parser.add_argument("--segment-timing", choices=(*get_args(SegmentTiming), "truth"),
+                        default=None, help="what a mask transformer with segment timing is "
+                        "given (default: the bundle's); truth: the corpus' durations")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
@@ -101,17 +120,24 @@ def main(argv: list[str] | None = None) -> int:
         model = SegMo.from_pretrained(args.model)
         if args.word_text is not None:
             model.config.word_text = args.word_text
+        if args.segment_timing in get_args(SegmentTiming):
+            model.config.segment_timing = args.segment_timing
+        if args.segment_timing == "truth" and not model.mask.config.segment_timing:
+            raise SegmoError(f"--segment-timing truth: {args.model}'s mask transformer has no "
+                             "segment timing")
         classifier = load_pretrained(args.action_classifier).eval()
         rows = multi_segment_rows(args.data, args.split, model.max_frames)
     except (SegmoError, FileNotFoundError, OSError) as error:
         print(f"order_by_template: {error}", file=sys.stderr)
         return 2
-    result = order_by_template(model, classifier, rows, args.repeats, args.seed)
+    result = order_by_template(model, classifier, rows, args.repeats, args.seed,
+                               truth=args.segment_timing == "truth")
     for template, value in result["by_template"].items():
         print(f"{template:>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     for bucket, value in result["by_num_actions"].items():
         print(f"{bucket + ' actions':>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
-    print(json.dumps({**result, "word_text": model.sampling.word_text}))
+    timing = args.segment_timing or model.sampling.segment_timing
+    print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing}))
     return 0
 
 

@@ -76,7 +76,7 @@ from segmo.evaluation.sections import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
-from segmo.generation.sampling import SamplingOptions, WordText
+from segmo.generation.sampling import SamplingOptions, SegmentTiming, WordText
 from segmo.models.hub import is_hub_id
 from segmo.models.pretrained import load_pretrained, read_json
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -94,7 +94,8 @@ class Generator:
         self.model, self.cfg, self.segments_of = model, cfg, segments_of
         self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
         # The bundle's sampling (None), but for the options only a SamplingOptions carries.
-        given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional", "word_text")
+        given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional", "word_text",
+                                                  "segment_timing")
                  if getattr(cfg, name) is not None}
         self.sampling = replace(model.sampling, **given) if given else None
         self.motions = 0
@@ -405,6 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--word-text", choices=get_args(WordText), default=None,
                    help="what a words model's word keys read: the caption or its text segments "
                         "in execution order (default: the bundle's)")
+    p.add_argument("--segment-timing", choices=get_args(SegmentTiming), default=None,
+                   help="what a mask transformer trained with segment timing is given: the "
+                        "spans its timing head predicts, or none (default: the bundle's)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

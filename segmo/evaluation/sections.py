@@ -83,6 +83,7 @@ class EvaluateConfig:
     ctrl_k_base: float | None = None  # sink_ctrl's correction strength; None: the bundle's
     unconditional: str | None = None  # "none" | "local"; None: the bundle's
     word_text: str | None = None  # "caption" | "segments"; None: the bundle's
+    segment_timing: str | None = None  # "predicted" | "none"; None: the bundle's
     grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True

@@ -26,6 +26,7 @@ from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_t
 from segmo.models.attention_recorder import is_recorded
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
+from segmo.models.segment_timing import durations_to_spans
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.models.transformer import Condition
 
@@ -54,11 +55,14 @@ def token_mask_from_lengths(lengths: torch.Tensor, max_tokens: int) -> torch.Ten
 def guidance_condition(model: MaskTransformer | ResidualTransformer, sentence: torch.Tensor,
                        segments: torch.Tensor, segment_mask: torch.Tensor,
                        words: torch.Tensor | None = None, word_mask: torch.Tensor | None = None,
-                       unconditional: str = "none") -> Condition:
+                       unconditional: str = "none", spans: torch.Tensor | None = None
+                       ) -> Condition:
     """The prefix of a 2b-row guidance batch: rows 0..b−1 conditional, b..2b−1 not (their
     words dropped with the rest; with unconditional "local" they drop the sentence only and
     keep segments and words, MLA-Gen's unconditional branch). words (b, l, text_dim),
-    word_mask (b, l): the captions' word features, for a model with word keys."""
+    word_mask (b, l): the captions' word features, for a model with word keys; spans
+    (b, a, 2): the segments' token spans, for a mask transformer with segment timing
+    (`segment_spans`)."""
     b = sentence.shape[0]
     drop = torch.arange(2 * b, device=sentence.device) >= b
     two = (lambda x: None if x is None else torch.cat([x, x]))  # noqa: E731
@@ -66,8 +70,31 @@ def guidance_condition(model: MaskTransformer | ResidualTransformer, sentence: t
         "words": two(words), "word_mask": two(word_mask)}
     if unconditional == "local":
         extra["keep_local"] = drop
+    if spans is not None:
+        extra["spans"] = two(spans)
     return model.condition(torch.cat([sentence, sentence]), torch.cat([segments, segments]),
                            torch.cat([segment_mask, segment_mask]), drop, **extra)
+
+
+def segment_spans(model: MaskTransformer, segments: torch.Tensor, segment_mask: torch.Tensor,
+                  token_mask: torch.Tensor, timing: str = "predicted",
+                  durations: torch.Tensor | None = None) -> torch.Tensor | None:
+    """The segments' token spans (b, a, 2) a mask transformer with segment timing is
+    given: from `durations` (b, a) (any unit, read as shares of each motion) where given,
+    else from the model's timing head (`timing` "predicted"); None for a model without
+    timing or with `timing` "none" (the model generates as trained without spans)."""
+    if not model.config.segment_timing:
+        return None
+    lengths = token_mask.sum(1)
+    if durations is not None:
+        durations = torch.as_tensor(durations, dtype=torch.float32, device=segments.device)
+        if durations.shape != segment_mask.shape:
+            raise ValueError(f"durations must be (b, a) = {tuple(segment_mask.shape)}, one per "
+                             f"segment slot, got {tuple(durations.shape)}")
+        return durations_to_spans(durations, segment_mask.bool(), lengths)
+    if timing == "none":
+        return None
+    return model.predict_spans(segments, segment_mask, lengths)
 
 
 def guided_logits(logits: torch.Tensor, scale: float) -> torch.Tensor:
@@ -324,18 +351,21 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
                 sentence: torch.Tensor, segments: torch.Tensor, segment_mask: torch.Tensor,
                 options: SamplingOptions, generator: torch.Generator | None,
                 precision: Precision, words: torch.Tensor | None = None,
-                word_mask: torch.Tensor | None = None) -> torch.Tensor:
+                word_mask: torch.Tensor | None = None,
+                spans: torch.Tensor | None = None) -> torch.Tensor:
     """Draw the `editable` tokens of `indices` under a text condition; keep the others.
 
     indices (b, n, q) long; editable ⊆ token_mask (b, n) bool. Base tokens at the editable
     positions are masked and refilled by masked decoding with every other position
     visible, then residual layers 1..q−1 are drawn there (q = 1: base tokens only).
-    → (b, n, q), −1 where token_mask is False. Generation is the case editable = token_mask.
+    spans (b, a, 2): the segments' token spans, for a mask transformer with segment timing
+    (`segment_spans`; None: without, as edits run). → (b, n, q), −1 where token_mask is
+    False. Generation is the case editable = token_mask.
     """
     models = [mask_model] + ([residual_model] if residual_model is not None else [])
     with _inference(models, precision, sentence.device):
         condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask,
-                                       options.unconditional)
+                                       options.unconditional, spans)
         ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
         base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
         out = indices.clone()
@@ -363,6 +393,7 @@ def generate_tokens(
     precision: Precision = "auto",
     words: torch.Tensor | None = None,
     word_mask: torch.Tensor | None = None,
+    durations: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Text → motion tokens, drawn as `options` say (default `SamplingOptions()`).
 
@@ -370,18 +401,24 @@ def generate_tokens(
     (b, l, text_dim) and word_mask (b, l) bool (for models with word keys; ignored by others),
     lengths (b,) frames (multiples of 4 in [4, 4·max_tokens]) → indices (b, n, q) long with
     n = max(lengths) // 4, q = residual_model.config.num_quantizers (1 without a residual
-    model); positions beyond a sample's length hold −1. Models run in eval mode (their mode
-    is restored afterwards); precision "bf16" runs the passes under bf16 autocast, "auto"
-    does so on CPUs with native bf16 only (`resolve_precision`).
+    model); positions beyond a sample's length hold −1. durations (b, a): how long each
+    segment lasts, for a mask transformer with segment timing (any unit, read as shares of
+    the motion; without them such a model predicts them, `segment_spans`). Models run in
+    eval mode (their mode is restored afterwards); precision "bf16" runs the passes under
+    bf16 autocast, "auto" does so on CPUs with native bf16 only (`resolve_precision`).
     """
     check_models(mask_model, residual_model)
     lengths = torch.as_tensor(lengths, device=sentence.device)
     token_mask = token_mask_from_lengths(lengths, mask_model.config.max_tokens)
     q = residual_model.config.num_quantizers if residual_model is not None else 1
     empty = torch.full((*token_mask.shape, q), -1, device=sentence.device)
+    options = options or SamplingOptions()
+    with torch.no_grad():
+        spans = segment_spans(mask_model, segments, segment_mask, token_mask,
+                              options.segment_timing, durations)
     return fill_tokens(mask_model, residual_model, empty, token_mask, token_mask, sentence,
-                       segments, segment_mask, options or SamplingOptions(), generator, precision,
-                       words, word_mask)
+                       segments, segment_mask, options, generator, precision, words, word_mask,
+                       spans)
 
 
 def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,

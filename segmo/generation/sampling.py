@@ -23,6 +23,7 @@ Sampler = Literal["categorical", "gumbel"]
 Guidance = Literal["cfg", "sink_ctrl"]
 Unconditional = Literal["none", "local"]
 WordText = Literal["caption", "segments"]
+SegmentTiming = Literal["predicted", "none"]
 
 
 def check_word_text(value: object) -> None:
@@ -60,7 +61,11 @@ class SamplingOptions:
         read from: "caption" (the caption's tokens, in the order it mentions the actions) or
         "segments" (its text segments joined in execution order, `ordered_text`: "a man
         walks, then a man jumps" for "before jumping, a man walks", the order the segment
-        keys carry). Models without words ignore it.
+        keys carry). Models without words ignore it;
+    segment_timing: for a mask transformer trained with segment timing, "predicted" gives
+        it the spans its timing head predicts from the segments, "none" none (as the share
+        of training samples without timing); durations given to the generation win over
+        both. Models without timing ignore it.
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
@@ -82,6 +87,7 @@ class SamplingOptions:
     sink_ratio: float = 0.0
     unconditional: Unconditional = "none"
     word_text: WordText = "caption"
+    segment_timing: SegmentTiming = "predicted"
 
     def __post_init__(self) -> None:
         for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio",
@@ -110,6 +116,9 @@ class SamplingOptions:
             raise SegmoError(f"SegMo: unconditional must be 'none' or 'local', got "
                              f"{self.unconditional!r}")
         check_word_text(self.word_text)
+        if self.segment_timing not in get_args(SegmentTiming):
+            raise SegmoError(f"SegMo: segment_timing must be 'predicted' or 'none', got "
+                             f"{self.segment_timing!r}")
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

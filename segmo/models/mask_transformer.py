@@ -23,6 +23,7 @@ from torch import nn
 
 from segmo.models.alignment import AlignmentConfig, AlignmentHead
 from segmo.models.pretrained import Pretrained
+from segmo.models.segment_timing import SegmentTiming, TimingHead, predicted_spans
 from segmo.models.transformer import (
     Condition,
     EncodedPrefix,
@@ -52,6 +53,9 @@ class MaskTransformerConfig(TransformerConfig):
     # the sentence key, the sink of the diagnostics. None = off; the paper's strong 0.2
     # and weak 0.6 are the values to measure.
     sink_mask_t: float | None = None
+    # Segment timing (`segmo.models.segment_timing`): each segment slot also carries its span
+    # in motion tokens, given or predicted by a timing head. False = the model without it.
+    segment_timing: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.alignment, dict):  # read back from config.json
@@ -103,21 +107,57 @@ class MaskTransformer(nn.Module, Pretrained):
         # alignment so that no parameter goes without gradient (DDP rejects that).
         self.alignment = (AlignmentHead(config.dim, config.alignment)
                           if config.alignment is not None else None)
+        # Absent without timing, so that such a model is exactly the one before it.
+        if config.segment_timing:
+            self.timing = SegmentTiming(config.dim, config.max_tokens)
+            self.timing_head = TimingHead(config.dim)
+            self.timing.apply(init_weights)
+            self.timing_head.apply(init_weights)
 
     def condition(self, sentence: torch.Tensor, segments: torch.Tensor,
                   segment_mask: torch.Tensor, drop_condition: torch.Tensor | None = None,
                   unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
                   word_mask: torch.Tensor | None = None,
-                  keep_local: torch.Tensor | None = None) -> Condition:
+                  keep_local: torch.Tensor | None = None, spans: torch.Tensor | None = None,
+                  span_known: torch.Tensor | None = None) -> Condition:
         """Prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which does not
         depend on the motion tokens: computed once per generation, reused at every step.
         `unordered` (b,) bool: rows whose segments enter without order; `words`
         (b, l, text_dim), `word_mask` (b, l): the caption's word features, used where
-        `config.text_tokens` is "words" (`TextPrefix`)."""
+        `config.text_tokens` is "words" (`TextPrefix`); `spans` (b, a, 2) long token spans
+        of the segments and `span_known` (b, a) bool (None = all): the segment timing of a
+        model with it (`predict_spans`); a model without timing refuses spans."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered,
                                 words, word_mask, keep_local)
+        if spans is not None:
+            if not hasattr(self, "timing"):
+                raise ValueError("MaskTransformer: this model has no segment timing "
+                                 "(segment_timing: false); give no spans")
+            if tuple(spans.shape) != (*segment_mask.shape, 2):
+                raise ValueError(f"MaskTransformer: spans must be (b, a, 2) = "
+                                 f"{(*segment_mask.shape, 2)}, got {tuple(spans.shape)}")
+            a = segment_mask.shape[1]
+            known = condition.mask[:, 1:1 + a]
+            if span_known is not None:
+                known = known & span_known.bool()
+            timing = self.timing(spans.long(), known).to(condition.tokens.dtype)
+            tokens = condition.tokens
+            condition.tokens = torch.cat([tokens[:, :1], tokens[:, 1:1 + a] + timing,
+                                          tokens[:, 1 + a:]], dim=1)
         condition.encoded = self.trunk.encoded(condition)
         return condition
+
+    def predict_spans(self, segments: torch.Tensor, segment_mask: torch.Tensor,
+                      lengths: torch.Tensor) -> torch.Tensor:
+        """The timing head's token spans: segments (b, a, text_dim) in execution order,
+        segment_mask (b, a) bool, lengths (b,) motion tokens → (b, a, 2) long spans that
+        tile each motion (`segmo.models.segment_timing.shares_to_spans`)."""
+        if not hasattr(self, "timing_head"):
+            raise ValueError("MaskTransformer: this model has no segment timing "
+                             "(segment_timing: false)")
+        mask = segment_mask.bool()
+        content = self.prefix.project(segments.masked_fill(~mask[..., None], 0.0))
+        return predicted_spans(self.timing_head, content, mask, lengths)
 
     def forward_condition(self, indices: torch.Tensor, token_mask: torch.Tensor,
                           condition: Condition, positions: torch.Tensor | None = None,
@@ -151,15 +191,17 @@ class MaskTransformer(nn.Module, Pretrained):
                 unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
                 word_mask: torch.Tensor | None = None,
                 sink_rows: torch.Tensor | None = None,
-                keep_local: torch.Tensor | None = None) -> MaskTransformerOutput:
+                keep_local: torch.Tensor | None = None, spans: torch.Tensor | None = None,
+                span_known: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long with masked positions already replaced by `mask_id`;
         token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim) in
         execution order; segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free
         guidance); unordered (b,) bool (segments as a set, as grounding uses them);
         sink_rows (b,) bool: the sink mask's rows (`sink_mask_rows`); keep_local (b,) bool:
-        dropped rows that keep their segments and words (`TextPrefix`)."""
+        dropped rows that keep their segments and words (`TextPrefix`); spans (b, a, 2) and
+        span_known (b, a): the segment timing (`condition`)."""
         condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered,
-                                   words, word_mask, keep_local)
+                                   words, word_mask, keep_local, spans, span_known)
         return self.forward_condition(indices, token_mask, condition, sink_rows=sink_rows)
 
     def sink_mask_rows(self, t: torch.Tensor) -> torch.Tensor | None:

@@ -59,6 +59,7 @@ class SegMoConfig:
     sink_ratio: float = SamplingOptions.sink_ratio
     unconditional: str = SamplingOptions.unconditional
     word_text: str = SamplingOptions.word_text
+    segment_timing: str = SamplingOptions.segment_timing
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -66,7 +67,8 @@ class SegMoConfig:
 
 SAMPLING_FIELDS: tuple[str, ...] = (
     "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
-    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional", "word_text")
+    "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional", "word_text",
+    "segment_timing")
 
 
 def sampling_fields(config: SegMoConfig) -> dict:

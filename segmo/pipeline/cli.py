@@ -118,10 +118,20 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what a words model's word keys read: the caption or its text "
                              "segments joined in execution order (default: the bundle's)")
+    parser.add_argument("--durations", action="append", default=None, metavar="D1,D2,...",
+                        help="how long each text segment lasts, e.g. 1,4 (any unit, read as "
+                             "shares of the motion), for a model trained with segment timing; "
+                             "once per --text; default: its timing head predicts them")
     parser.add_argument("--device", default="cpu")
     _output_arguments(parser)
     args = parser.parse_args(argv)
     formats = _formats(parser, args.formats)
+    durations = None
+    if args.durations is not None:
+        if len(args.durations) != len(args.text):
+            parser.error(f"--durations given {len(args.durations)} times for {len(args.text)} "
+                         "--text; give it once per --text")
+        durations = [_durations(parser, value) for value in args.durations]
     lengths = args.length
     if lengths is not None and len(lengths) not in (1, len(args.text)):
         parser.error(f"--length given {len(lengths)} times for {len(args.text)} --text; "
@@ -145,7 +155,7 @@ def generate_main(argv: list[str] | None = None) -> None:
                          residual_guided_layers=args.residual_guided_layers,
                          guidance=args.guidance_mode,
                          temperature=args.temperature, generator=generator,
-                         precision=args.precision)
+                         precision=args.precision, durations=durations)
     spans = None
     if "gif" in formats:  # which segment each frame shows, from the model's own attention
         spans = [model.ground(text, out.motion(i), segments=out.segments[i], method="attention")
@@ -153,6 +163,18 @@ def generate_main(argv: list[str] | None = None) -> None:
     for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,
                          spans=spans, progress=True):
         print(path)
+
+
+def _durations(parser: argparse.ArgumentParser, value: str) -> list[float]:
+    """`--durations 1,4` → [1.0, 4.0]; one error line for anything else."""
+    try:
+        numbers = [float(v) for v in value.split(",")]
+    except ValueError:
+        numbers = []
+    if not numbers or not all(math.isfinite(v) and v >= 0 for v in numbers) or sum(numbers) <= 0:
+        parser.error(f"--durations {value!r}: expected numbers >= 0 separated by commas, "
+                     "not all 0, e.g. 1,4")
+    return numbers
 
 
 def _weight(parser: argparse.ArgumentParser, value: str) -> tuple[str | int, float]:

@@ -17,6 +17,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 import os
 from collections.abc import Iterator
@@ -426,13 +427,19 @@ class SegMo:
                  steps: int | None = None, residual_guided_layers: int | None = None,
                  guidance: str | None = None, temperature: float | None = None,
                  top_k_ratio: float | None = None, sampler: Sampler | None = None,
-                 generator: torch.Generator | None = None, precision: Precision = "auto"
-                 ) -> GenerationOutput:
+                 generator: torch.Generator | None = None, precision: Precision = "auto",
+                 durations: list[list[float]] | None = None) -> GenerationOutput:
         """Text → motions. lengths: frames per text (multiples of 4 in [4, max_frames]), an
         int for all, or None to sample them from the length estimator. Tokens are drawn as
         `sampling` says (default `self.sampling`: the bundle's guidance scales), an option
         given by keyword (guidance_scale=..., steps=...) in its place. Reproducible for a
-        seeded `generator`."""
+        seeded `generator`. durations: per text, how long each of its segments lasts (any
+        unit, read as shares of the motion: [1, 3] = the second segment three times as
+        long), for a mask transformer trained with segment timing; without them such a
+        model predicts them (`SamplingOptions.segment_timing`).
+
+            >>> model.generate(["a person jumps, then walks forward"], [120], durations=[[1, 4]])
+        """
         if isinstance(texts, str):
             texts = [texts]
         if not texts:
@@ -447,16 +454,43 @@ class SegMo:
             lengths = self.sample_lengths(texts, generator)
         lengths = self.check_lengths(lengths, len(texts))
         words, word_mask = self.word_condition(texts, segments, options.word_text)
+        timing = None if durations is None else self.segment_durations(durations, segments)
         if generator is None:  # a generator of its own, so that the draws can be replayed
             seed = int(torch.randint(0, 2**62, (1,)))
             generator = torch.Generator(device=self.device).manual_seed(seed)
         state = generator.get_state()
         tokens = generate_tokens(self.mask, self.residual, sentence, vectors, segment_mask,
                                  lengths, options=options, generator=generator,
-                                 precision=precision, words=words, word_mask=word_mask)
+                                 precision=precision, words=words, word_mask=word_mask,
+                                 durations=timing)
         out = self.decode(tokens, lengths, texts, segments, precision)
         out.sampling, out.generator_state = options, state
         return out
+
+    def segment_durations(self, durations: Any, segments: list[list[str]]) -> torch.Tensor:
+        """Per text, its segments' durations → (b, a) float32, 0 in empty slots; one
+        SegmoError naming the text whose durations do not fit."""
+        if not self.mask.config.segment_timing:
+            raise SegmoError("SegMo.generate: durations need a mask transformer trained with "
+                             "segment timing (segment_timing: truth or segmenter); this one has none")
+        if isinstance(durations, (str, bytes)) or len(durations) != len(segments):
+            raise SegmoError(f"SegMo.generate: durations must be one list per text "
+                             f"({len(segments)}), got {durations!r:.80}")
+        out = torch.zeros(len(segments), max(len(s) for s in segments))
+        for i, (values, segs) in enumerate(zip(durations, segments)):
+            try:
+                values = [float(v) for v in values]
+            except (TypeError, ValueError):
+                raise SegmoError(f"SegMo.generate: durations[{i}] must be numbers, got "
+                                 f"{values!r:.80}") from None
+            if len(values) != len(segs):
+                raise SegmoError(f"SegMo.generate: durations[{i}] has {len(values)} values, "
+                                 f"text {i} has {len(segs)} segments {segs!r:.120}")
+            if not all(math.isfinite(v) and v >= 0 for v in values) or sum(values) <= 0:
+                raise SegmoError(f"SegMo.generate: durations[{i}] must be finite, ≥ 0 and not "
+                                 f"all 0, got {values!r:.80}")
+            out[i, : len(values)] = torch.tensor(values)
+        return out.to(self.device)
 
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
              segments: list[str] | None = None, sampling: SamplingOptions | None = None,

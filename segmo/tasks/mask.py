@@ -30,6 +30,7 @@ from segmo.models.mask_transformer import (
     mask_tokens,
     masked_token_loss,
 )
+from segmo.models.segment_timing import timing_loss
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import SegmenterName, segment_batch
 from segmo.tasks.alignment_loss import AlignmentLoss, AlignMethod
@@ -57,18 +58,19 @@ def former_temperature(temperature: float, alignment_temperature: float) -> floa
     return temperature
 
 
-def gt_token_spans(spans: list, num_segments: Tensor, lengths: Tensor, slots: int) -> tuple[Tensor, Tensor]:
+def gt_token_spans(spans: list, num_segments: Tensor, lengths: Tensor, slots: int,
+                   min_segments: int = 2) -> tuple[Tensor, Tensor]:
     """Ground-truth frame spans → token spans (b, slots, 2) and a (b,) bool of usable samples.
 
     A sample is usable when it has ground truth with as many spans as text segments
-    (≥ 2) and every span covers at least one token.
+    (≥ min_segments) and every span covers at least one token.
     """
     b = len(spans)
     out = torch.zeros(b, slots, 2, dtype=torch.long)
     usable = torch.zeros(b, dtype=torch.bool)
     for i, sample_spans in enumerate(spans):
         a = int(num_segments[i])
-        if sample_spans is None or len(sample_spans) != a or a < 2 or a > slots:
+        if sample_spans is None or len(sample_spans) != a or a < min_segments or a > slots:
             continue
         n = int(lengths[i]) // FRAMES_PER_TOKEN
         tokens = [(round(s / FRAMES_PER_TOKEN), round(e / FRAMES_PER_TOKEN)) for s, e in sample_spans]
@@ -121,6 +123,9 @@ class MaskTask(TransformerTask):
         alignment_dim: int = 512,
         temperature: float | None = None,
         sink_mask_t: float | None = None,
+        segment_timing: Literal["none", "truth", "segmenter"] = "none",
+        timing_drop_prob: float = 0.3,
+        timing_weight: float = 0.1,
         **kwargs,
     ) -> None:
         """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
@@ -128,7 +133,13 @@ class MaskTask(TransformerTask):
         former name of `alignment_temperature` (configs and checkpoints written before hold
         it): it is read as that, with a warning. `sink_mask_t`: MLA-Gen's sink mask
         (`MaskTransformerConfig.sink_mask_t`), applied to the samples whose mask ratio's t
-        exceeds it. The other arguments (`**kwargs`) are `TransformerTask`'s."""
+        exceeds it. `segment_timing`: each segment slot also carries its span in motion tokens
+        (`segmo.models.segment_timing`), from the data's ground-truth spans ("truth"; samples
+        without them train without timing) or from `segmenter` ("segmenter", for data
+        without ground truth); left out of a share `timing_drop_prob` of the samples, so the
+        model also generates without them; the timing head learns each segment's share of
+        the motion at `timing_weight`. The other arguments (`**kwargs`) are
+        `TransformerTask`'s."""
         super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
         if temperature is not None:  # checkpoints of this run hold the new name only
             alignment_temperature = former_temperature(temperature, alignment_temperature)
@@ -138,9 +149,16 @@ class MaskTask(TransformerTask):
             self.alignment_loss = AlignmentLoss(alignment, alignment_temperature,
                                                 alignment_weight, segmenter)
             align = AlignmentConfig(out_dim=alignment_dim)
+        if segment_timing not in ("none", "truth", "segmenter"):
+            raise SegmoError(f"model.init_args.segment_timing={segment_timing!r}: one of "
+                             "none, truth, segmenter")
+        if not 0.0 <= timing_drop_prob <= 1.0:
+            raise SegmoError(f"model.init_args.timing_drop_prob={timing_drop_prob}: a share "
+                             "in [0, 1]")
         self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
                                                            alignment=align,
-                                                           sink_mask_t=sink_mask_t))
+                                                           sink_mask_t=sink_mask_t,
+                                                           segment_timing=segment_timing != "none"))
 
     # -- one step ----------------------------------------------------------------------------
 
@@ -153,7 +171,7 @@ class MaskTask(TransformerTask):
 
     def spans(self, batch: dict, num_segments: Tensor, lengths: Tensor) -> Tensor:
         """Motion-segment token spans (b, A, 2) from the configured segmenter."""
-        method = self.alignment_loss.segmenter
+        method = self.hparams.segmenter
         features = None
         if method != "uniform":
             with torch.no_grad():  # the tokenizer's latents describe the motion itself
@@ -161,10 +179,28 @@ class MaskTask(TransformerTask):
         return segment_batch(features, num_segments, lengths, method,
                              max_segments=self.hparams.max_segments)
 
+    def timing(self, batch: dict, segment_mask: Tensor, lengths: Tensor
+               ) -> tuple[Tensor, Tensor] | None:
+        """The segments' token spans (b, a, 2) and which are known (b, a) bool, from the
+        ground truth or the segmenter (`segment_timing`); None for a model without timing."""
+        source = self.hparams.segment_timing
+        if source == "none":
+            return None
+        num_segments = torch.minimum(segment_mask.sum(1), lengths)
+        if source == "segmenter":
+            spans = self.spans(batch, num_segments, lengths).to(lengths.device)
+            return spans, segment_mask & (spans[..., 1] > spans[..., 0])
+        spans, usable = gt_token_spans(batch.get("spans") or [None] * len(lengths),
+                                       segment_mask.sum(1), batch["lengths"],
+                                       segment_mask.shape[1], min_segments=1)
+        return spans.to(lengths.device), segment_mask & usable.to(lengths.device)[:, None]
+
     def step(self, batch: dict, generator: torch.Generator | None = None,
-             drop: Tensor | None = None, unordered: Tensor | None = None) -> dict[str, Tensor]:
-        """Losses of one batch; `drop` (condition dropped) and `unordered` (segments without
-        order) are drawn with their probabilities unless given, (b,) bool."""
+             drop: Tensor | None = None, unordered: Tensor | None = None,
+             timing_drop: Tensor | None = None) -> dict[str, Tensor]:
+        """Losses of one batch; `drop` (condition dropped), `unordered` (segments without
+        order) and `timing_drop` (segment timing left out) are drawn with their
+        probabilities unless given, (b,) bool."""
         base, valid, lengths = self.tokens(batch)
         sentence, segments, segment_mask = text_condition(batch)
         inputs, target = mask_tokens(base, valid, self.model.config.codebook_size, generator)
@@ -173,15 +209,26 @@ class MaskTask(TransformerTask):
             drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
         if unordered is None:
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
+        timing = self.timing(batch, segment_mask, lengths)
+        spans, span_known = (None, None) if timing is None else timing
+        if timing is not None:
+            if timing_drop is None:
+                timing_drop = torch.rand(b, device=base.device) < self.hparams.timing_drop_prob
+            span_known = span_known & ~timing_drop[:, None]
         sink_rows = self.model.sink_mask_rows(mask_ratio_time(target, valid))
         out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered,
                          **word_condition(batch, self.model), sink_rows=sink_rows,
-                         keep_local=self.keep_local(drop))
+                         keep_local=self.keep_local(drop), spans=spans, span_known=span_known)
         mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
         terms = {"mask_loss": mask_loss,
                  "accuracy": correct.sum() / target.sum().clamp(min=1)}
         loss = mask_loss
+        if timing is not None:
+            # The head learns from the text vectors without moving them: detached.
+            log_shares = self.model.timing_head(out.segment_features.detach(), segment_mask)
+            terms["timing_loss"] = timing_loss(log_shares, *timing)
+            loss = loss + self.hparams.timing_weight * terms["timing_loss"]
         if self.alignment_loss is not None:
             # Segments the motion cannot hold (a > tokens; tiny clips only) sit out.
             num_segments = torch.minimum(segment_mask.sum(1), lengths)
@@ -211,7 +258,7 @@ class MaskTask(TransformerTask):
         # The same masking every epoch, so the accuracy of two runs is comparable.
         generator = torch.Generator(device=batch["motion"].device).manual_seed(batch_idx)
         never = torch.zeros(b, dtype=torch.bool, device=batch["motion"].device)
-        terms = self.step(batch, generator, drop=never, unordered=never)
+        terms = self.step(batch, generator, drop=never, unordered=never, timing_drop=never)
         self.log_dict({f"{prefix}/{k}": v for k, v in terms.items()}, batch_size=b,
                       sync_dist=True, prog_bar=False)
         if batch.get("spans") is not None:
@@ -283,5 +330,6 @@ class MaskTask(TransformerTask):
             "alignment": self.hparams.alignment,
             "segmenter": self.hparams.segmenter,
             "cond_drop_prob": self.hparams.cond_drop_prob,
+            "segment_timing": self.hparams.segment_timing,
         }
         return self.model
