@@ -262,5 +262,6 @@ def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_datas
                     "--data.init_args.batch_size=16", "--trainer.fast_dev_run=true"])
     metrics = cli.trainer.callback_metrics
     assert torch.isfinite(metrics["train/timing_loss"]) and float(metrics["train/timing_loss"]) > 0
+    assert 0.0 <= float(metrics["val/timing_iou"]) <= 1.0
     model = cli.model.export_model()
     assert model.config.segment_timing and model.meta["segment_timing"] == source

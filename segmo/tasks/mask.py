@@ -263,6 +263,27 @@ class MaskTask(TransformerTask):
                       sync_dist=True, prog_bar=False)
         if batch.get("spans") is not None:
             self._log_segment_top1(prefix, batch)
+        if self.hparams.segment_timing != "none":
+            self._log_timing_iou(prefix, batch)
+
+    def _log_timing_iou(self, prefix: str, batch: dict) -> None:
+        """Mean temporal IoU of the timing head's spans with the training spans (ground
+        truth or segmenter), over the segments of the samples whose spans are known."""
+        _, _, lengths = self.tokens(batch)
+        _, segments, segment_mask = text_condition(batch)
+        spans, known = self.timing(batch, segment_mask, lengths)
+        known = known & (known.sum(1) == segment_mask.sum(1))[:, None]
+        any_rank = self.trainer.strategy.reduce(known.any().float(), reduce_op="sum")
+        if float(any_rank) == 0:  # every rank decides alike (see `_log_segment_top1`)
+            return
+        predicted = self.model.predict_spans(segments, segment_mask, lengths)
+        inter = (torch.minimum(predicted[..., 1], spans[..., 1])
+                 - torch.maximum(predicted[..., 0], spans[..., 0])).clamp(min=0)
+        union = (predicted[..., 1] - predicted[..., 0]) + (spans[..., 1] - spans[..., 0]) - inter
+        iou = torch.where(union > 0, inter / union.clamp(min=1), 0.0)
+        total = int(known.sum())
+        self.log(f"{prefix}/timing_iou", (iou * known).sum() / max(total, 1),
+                 batch_size=total, sync_dist=True)
 
     def _log_segment_top1(self, prefix: str, batch: dict) -> None:
         base, valid, lengths = self.tokens(batch)
