@@ -56,7 +56,7 @@ def build_stages(root, tokenizer, text_dim=TEXT_DIM, encoder="hash", alignment=T
         mask.classifier.weight.mul_(50)
         residual.code_embeddings.mul_(50)
         if segment_timing:  # and the timing
-            mask.timing.embed.weight.mul_(50)
+            mask.timing.index.mul_(50)
     meta = {"text_encoder": encoder, "tokenizer": str(tokenizer)}
     dirs = {"tokenizer": tokenizer}
     for name, model in (("mask", mask), ("residual", residual), ("length", length)):

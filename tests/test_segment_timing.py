@@ -72,14 +72,22 @@ def test_a_model_without_timing_is_unchanged_and_refuses_spans():
         plain.condition(sentence, segments, mask, spans=spans)
     with pytest.raises(ValueError, match="spans must be"):
         timed.condition(sentence, segments, mask, spans=spans[:, :3])
-    # spans change the segment slots only, and only where known
-    base = timed.condition(sentence, segments, mask).tokens
-    given = timed.condition(sentence, segments, mask, spans=spans).tokens
+    # the prefix is unchanged; each motion position is told its segment, where known
+    timed.eval()
+    base = timed.condition(sentence, segments, mask)
+    given = timed.condition(sentence, segments, mask, spans=spans)
     unknown = timed.condition(sentence, segments, mask, spans=spans,
-                              span_known=torch.zeros(2, 5, dtype=torch.bool)).tokens
-    changed = (given - base).abs().sum(-1) > 0
-    assert changed[:, 1:].tolist() == mask.tolist() and not changed[:, 0].any()
-    assert torch.equal(unknown, base)
+                              span_known=torch.zeros(2, 5, dtype=torch.bool))
+    assert torch.equal(given.tokens, base.tokens) and base.token_segments is None
+    assert given.token_segments[0, :12].tolist() == [k for k in range(3) for _ in
+                                                     range(int(spans[0, k, 1] - spans[0, k, 0]))]
+    assert given.token_segments[1, :7].tolist() == [0] * 7 and (given.token_segments[1, 7:] == -1).all()
+    assert (unknown.token_segments == -1).all()
+    ids, valid = torch.full((2, 12), 16), torch.ones(2, 12, dtype=torch.bool)
+    assert torch.equal(timed.forward_condition(ids, valid, unknown).logits,
+                       timed.forward_condition(ids, valid, base).logits)
+    assert not torch.equal(timed.forward_condition(ids, valid, given).logits,
+                           timed.forward_condition(ids, valid, base).logits)
 
 
 def test_timing_survives_save_and_load(tmp_path):

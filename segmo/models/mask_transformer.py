@@ -53,8 +53,9 @@ class MaskTransformerConfig(TransformerConfig):
     # the sentence key, the sink of the diagnostics. None = off; the paper's strong 0.2
     # and weak 0.6 are the values to measure.
     sink_mask_t: float | None = None
-    # Segment timing (`segmo.models.segment_timing`): each segment slot also carries its span
-    # in motion tokens, given or predicted by a timing head. False = the model without it.
+    # Segment timing (`segmo.models.segment_timing`): each motion position also carries the
+    # number of the segment it belongs to, from spans given or predicted by a timing head.
+    # False = the model without it.
     segment_timing: bool = False
 
     def __post_init__(self) -> None:
@@ -109,7 +110,7 @@ class MaskTransformer(nn.Module, Pretrained):
                           if config.alignment is not None else None)
         # Absent without timing, so that such a model is exactly the one before it.
         if config.segment_timing:
-            self.timing = SegmentTiming(config.dim, config.max_tokens)
+            self.timing = SegmentTiming(config.dim, config.max_segments)
             self.timing_head = TimingHead(config.dim)
             self.timing.apply(init_weights)
             self.timing_head.apply(init_weights)
@@ -126,7 +127,8 @@ class MaskTransformer(nn.Module, Pretrained):
         (b, l, text_dim), `word_mask` (b, l): the caption's word features, used where
         `config.text_tokens` is "words" (`TextPrefix`); `spans` (b, a, 2) long token spans
         of the segments and `span_known` (b, a) bool (None = all): the segment timing of a
-        model with it (`predict_spans`); a model without timing refuses spans."""
+        model with it, kept as `Condition.token_segments` for the motion positions
+        (`predict_spans`); a model without timing refuses spans."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered,
                                 words, word_mask, keep_local)
         if spans is not None:
@@ -136,14 +138,11 @@ class MaskTransformer(nn.Module, Pretrained):
             if tuple(spans.shape) != (*segment_mask.shape, 2):
                 raise ValueError(f"MaskTransformer: spans must be (b, a, 2) = "
                                  f"{(*segment_mask.shape, 2)}, got {tuple(spans.shape)}")
-            a = segment_mask.shape[1]
-            known = condition.mask[:, 1:1 + a]
+            known = condition.mask[:, 1:1 + segment_mask.shape[1]]  # not in dropped rows
             if span_known is not None:
                 known = known & span_known.bool()
-            timing = self.timing(spans.long(), known).to(condition.tokens.dtype)
-            tokens = condition.tokens
-            condition.tokens = torch.cat([tokens[:, :1], tokens[:, 1:1 + a] + timing,
-                                          tokens[:, 1 + a:]], dim=1)
+            condition.token_segments = self.timing.token_segments(
+                spans.long(), known, self.config.max_tokens)
         condition.encoded = self.trunk.encoded(condition)
         return condition
 
@@ -176,8 +175,10 @@ class MaskTransformer(nn.Module, Pretrained):
         encoded = self.trunk.encoded(condition)
         if sink_rows is not None and bool(sink_rows.any()):
             encoded = without_sentence(encoded, sink_rows)
-        motion = self.trunk.forward_motion(self.token_embedding(indices), token_mask, encoded,
-                                           positions)
+        tokens = self.token_embedding(indices)
+        if condition.token_segments is not None:
+            tokens = tokens + self.timing(condition.token_segments[:, :indices.shape[1]])
+        motion = self.trunk.forward_motion(tokens, token_mask, encoded, positions)
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),
             motion_features=motion,

@@ -1,16 +1,16 @@
-"""Segment timing: where each text segment lies in the motion, as a condition of the mask
-transformer, and a head that predicts it from the text.
+"""Segment timing: which text segment each motion position belongs to, as a condition of
+the mask transformer, and a head that predicts the segments' durations from the text.
 
 The mask transformer is told the order of the segments but not how long each lasts; on
 the built-in corpus the actions it loses are the short ones beside long ones (README,
-"Where action order fails"). With timing, each segment slot of the prefix also carries
-its span in motion tokens (start, end exclusive), embedded with the same sinusoidal table
-as the motion tokens' positions, so a motion token can tell by position which segment it
-belongs to. Training takes the spans from the data's ground truth or from the motion
-segmenter (`segmo.tasks.mask.MaskTask.segment_timing`) and leaves them out of a share of
-the samples, so the model also generates without them. At generation the spans come from
-the user or from `TimingHead`: a share of the motion per segment, predicted from what the
-segment says, then cut into whole tokens in execution order (`shares_to_spans`).
+"Segment timing"). With timing, every motion position also gets a learned embedding of
+its segment's number (1..A, the slot order), so that a motion token knows which segment
+it is in and reads that slot. Training takes the spans from the data's ground truth or
+from the motion segmenter (`segmo.tasks.mask.MaskTask.segment_timing`) and leaves them
+out of a share of the samples, so the model also generates without them. At generation
+the spans come from the user or from `TimingHead`: a share of the motion per segment,
+predicted from what the segment says, cut into whole tokens in execution order
+(`shares_to_spans`).
 """
 
 from __future__ import annotations
@@ -19,27 +19,27 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from segmo.models.transformer import sinusoidal_positions
-
 
 class SegmentTiming(nn.Module):
-    """Token spans → a vector added to each segment slot of the prefix.
+    """The segment number of each motion position → a vector added to its token embedding."""
 
-    max_tokens: the longest motion in tokens (an end may equal it).
-    """
-
-    def __init__(self, dim: int, max_tokens: int) -> None:
+    def __init__(self, dim: int, max_segments: int) -> None:
         super().__init__()
-        self.register_buffer("positions", sinusoidal_positions(max_tokens + 1, dim),
-                             persistent=False)
-        self.embed = nn.Linear(2 * dim, dim)
+        self.index = nn.Parameter(torch.randn(max_segments, dim) * 0.02)
 
-    def forward(self, spans: torch.Tensor, known: torch.Tensor) -> torch.Tensor:
-        """spans (b, a, 2) long token spans, known (b, a) bool: the slots whose span is
-        given → (b, a, dim), zero where not known."""
-        spans = spans.clamp(0, self.positions.shape[0] - 1)
-        both = torch.cat([self.positions[spans[..., 0]], self.positions[spans[..., 1]]], dim=-1)
-        return self.embed(both) * known[..., None].to(both.dtype)
+    @staticmethod
+    def token_segments(spans: torch.Tensor, known: torch.Tensor, n: int) -> torch.Tensor:
+        """spans (b, a, 2) long token spans (start, end exclusive), known (b, a) bool →
+        (b, n) long: the slot whose known span holds each position, −1 where none does."""
+        position = torch.arange(n, device=spans.device)[None, None]  # (1, 1, n)
+        inside = (position >= spans[..., :1]) & (position < spans[..., 1:]) & known[..., None]
+        first = inside.float().argmax(dim=1)  # the first slot holding it (spans tile)
+        return torch.where(inside.any(dim=1), first, -1)
+
+    def forward(self, token_segments: torch.Tensor) -> torch.Tensor:
+        """token_segments (b, n) long, −1 = unknown → (b, n, dim), zero where unknown."""
+        known = (token_segments >= 0)[..., None]
+        return self.index[token_segments.clamp(min=0)] * known.to(self.index.dtype)
 
 
 class TimingHead(nn.Module):

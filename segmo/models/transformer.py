@@ -276,6 +276,9 @@ class Condition:
     # blocks' cross-attention instead of entering the prefix; None otherwise.
     words: torch.Tensor | None = None
     word_mask: torch.Tensor | None = None
+    # Segment timing (`segmo.models.segment_timing`): the segment each motion position
+    # belongs to, (b, max_tokens) long, −1 where not known; None without timing.
+    token_segments: torch.Tensor | None = None
 
     def rows(self, index: torch.Tensor) -> Condition:
         """The condition of batch rows `index` (r,) long, its encoding included."""
@@ -284,9 +287,10 @@ class Condition:
             labels=self.encoded.labels, text_slots=self.encoded.text_slots)
         words = None if self.words is None else self.words[index]
         word_mask = None if self.word_mask is None else self.word_mask[index]
+        token_segments = None if self.token_segments is None else self.token_segments[index]
         return Condition(tokens=self.tokens[index], mask=self.mask[index],
                          content=self.content[index], encoded=encoded, labels=self.labels,
-                         words=words, word_mask=word_mask)
+                         words=words, word_mask=word_mask, token_segments=token_segments)
 
 
 class TextPrefix(nn.Module):
