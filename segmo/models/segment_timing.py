@@ -52,7 +52,7 @@ class TimingHead(nn.Module):
 
     def forward(self, segments: torch.Tensor, segment_mask: torch.Tensor) -> torch.Tensor:
         """segments (b, a, dim), segment_mask (b, a) bool → log shares (b, a), −inf at
-        empty slots (a row without segments gets all −inf)."""
+        empty slots (NaN in a row without segments: every caption has one)."""
         scores = self.score(segments.float()).squeeze(-1)
         return scores.masked_fill(~segment_mask, float("-inf")).log_softmax(dim=-1)
 
