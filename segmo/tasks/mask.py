@@ -179,17 +179,19 @@ class MaskTask(TransformerTask):
         return segment_batch(features, num_segments, lengths, method,
                              max_segments=self.hparams.max_segments)
 
-    def timing(self, batch: dict, segment_mask: Tensor, lengths: Tensor
-               ) -> tuple[Tensor, Tensor] | None:
+    def timing(self, batch: dict, segment_mask: Tensor, lengths: Tensor,
+               motion_spans: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
         """The segments' token spans (b, a, 2) and which are known (b, a) bool, from the
-        ground truth or the segmenter (`segment_timing`); None for a model without timing."""
+        ground truth or the segmenter (`segment_timing`; `motion_spans`: the segmenter's
+        spans where the caller has them already); None for a model without timing."""
         source = self.hparams.segment_timing
         if source == "none":
             return None
-        num_segments = torch.minimum(segment_mask.sum(1), lengths)
         if source == "segmenter":
-            spans = self.spans(batch, num_segments, lengths).to(lengths.device)
-            return spans, segment_mask & (spans[..., 1] > spans[..., 0])
+            if motion_spans is None:
+                num_segments = torch.minimum(segment_mask.sum(1), lengths)
+                motion_spans = self.spans(batch, num_segments, lengths).to(lengths.device)
+            return motion_spans, segment_mask & (motion_spans[..., 1] > motion_spans[..., 0])
         spans, usable = gt_token_spans(batch.get("spans") or [None] * len(lengths),
                                        segment_mask.sum(1), batch["lengths"],
                                        segment_mask.shape[1], min_segments=1)
@@ -209,7 +211,12 @@ class MaskTask(TransformerTask):
             drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
         if unordered is None:
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
-        timing = self.timing(batch, segment_mask, lengths)
+        # The motion segmenter's spans, cut once for the alignment loss and segmenter timing.
+        num_segments = torch.minimum(segment_mask.sum(1), lengths)
+        motion_spans = None
+        if self.alignment_loss is not None or self.hparams.segment_timing == "segmenter":
+            motion_spans = self.spans(batch, num_segments, lengths).to(base.device)
+        timing = self.timing(batch, segment_mask, lengths, motion_spans)
         spans, span_known = (None, None) if timing is None else timing
         if timing is not None:
             if timing_drop is None:
@@ -231,13 +238,11 @@ class MaskTask(TransformerTask):
             loss = loss + self.hparams.timing_weight * terms["timing_loss"]
         if self.alignment_loss is not None:
             # Segments the motion cannot hold (a > tokens; tiny clips only) sit out.
-            num_segments = torch.minimum(segment_mask.sum(1), lengths)
             keep = segment_mask & (torch.arange(segment_mask.shape[1], device=base.device)
                                    < num_segments[:, None])
-            spans = self.spans(batch, num_segments, lengths).to(base.device)
             aligned = self.alignment_loss(
                 self.model.alignment, out.motion_features, lengths, out.segment_features,
-                keep & ~drop[:, None], spans, out.sentence_features,
+                keep & ~drop[:, None], motion_spans, out.sentence_features,
             )
             terms["align"] = aligned.losses["align"]
             loss = loss + self.alignment_loss.weight * terms["align"]
