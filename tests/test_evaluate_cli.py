@@ -420,6 +420,49 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
     assert "ground truth" in capsys.readouterr().err
 
 
+def test_order_by_template_splits_generation_by_the_tokenizers_reconstruction(
+        setup, hash_text_encoder, capsys):
+    tool = load_tool("order_by_template")
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+                      "--action-classifier", str(setup["classifier"]), "--repeats", "2",
+                      "--reconstruction"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for bucket, value in last["by_num_actions"].items():
+        kept = last["generated_where_reconstructed"].get(bucket, {"motions": 0, "sequence_accuracy": 0.0})
+        lost = last["generated_where_not"].get(bucket, {"motions": 0, "sequence_accuracy": 0.0})
+        # every caption of the bucket on one side, and the two sides average to the whole
+        assert kept["motions"] + lost["motions"] == value["motions"]
+        assert last["reconstruction"][bucket]["motions"] == value["motions"]
+        assert kept["motions"] == round(last["reconstruction"][bucket]["sequence_accuracy"] * value["motions"])
+        assert (kept["sequence_accuracy"] * kept["motions"] + lost["sequence_accuracy"] * lost["motions"]
+                == pytest.approx(value["sequence_accuracy"] * value["motions"]))
+        assert 0 <= value["never_right"] <= value["motions"]
+
+    # A reader that reads every motion right, or none: the split and never_right follow.
+    model = SegMo.from_pretrained(setup["segmo"])
+    rows = tool.multi_segment_rows(setup["data"], "train", model.max_frames)[:3]
+
+    class Reader:  # the rows' true actions in turn (the tool reads rows in order), or nothing
+        def __init__(self, right: bool):
+            self.right, self.frames = right, []
+
+        def predict_sequence(self, features):
+            row = rows[len(self.frames) % len(rows)]
+            self.frames.append(len(features))
+            return row["actions"] if self.right else ["nothing"]
+
+    for right in (True, False):
+        reader = Reader(right)
+        read_right = tool.reconstructions_read_right(model, reader, rows, setup["data"])
+        assert read_right.tolist() == [right] * len(rows)
+        assert reader.frames == [r["frames"] for r in rows]  # each motion at its own length
+        result = tool.order_by_template(model, reader, rows, 1, 0, reconstructed=read_right)
+        assert result["all"]["sequence_accuracy"] == float(right)
+        assert result["all"]["never_right"] == (0 if right else len(rows))
+        assert sum(v["motions"] for k, v in result["generated_where_reconstructed"].items()
+                   if k != "3+") == (len(rows) if right else 0)
+
+
 def test_order_by_template_gives_a_timing_model_the_true_durations(setup, hash_text_encoder,
                                                                     capsys, monkeypatch):
     tool = load_tool("order_by_template")

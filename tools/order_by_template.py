@@ -2,7 +2,7 @@
 
     python tools/order_by_template.py --model B --data data/synth \\
         --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
-        [--word-text caption|segments] [--segment-timing predicted|none|truth]
+        [--word-text caption|segments] [--segment-timing predicted|none|truth] [--reconstruction]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -17,7 +17,12 @@ what a words model's word keys read (`SamplingOptions.word_text`; default: the b
 --segment-timing, for a mask transformer trained with segment timing: the spans its timing
 head predicts, none, or "truth": each segment's true duration from the corpus (the model's
 own text segments where it finds as many as the caption has actions, else the corpus'
-segment texts), the ceiling of what predicted timing can give.
+segment texts), the ceiling of what predicted timing can give. --reconstruction also reads
+each motion's tokenizer reconstruction (real motion → the bundle's tokenizer → decoded) and
+splits the generated accuracy by it: `reconstruction` (the tokenizer's ceiling on the same
+captions), `generated_where_reconstructed` and `generated_where_not` (the generator on the
+captions whose reconstruction is read right, and on the others), each by number of actions.
+Every bucket also counts its captions that no repeat got right (`never_right`).
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from typing import get_args
 import numpy as np
 import torch
 
-from segmo.data.layout import first_captions
+from segmo.data.layout import first_captions, read_motion
 from segmo.errors import SegmoError
 from segmo.evaluation.metrics import segment_bucket
 from segmo.generation.sampling import SegmentTiming, WordText
@@ -49,11 +54,11 @@ def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:
     """The first caption of each motion of two or more segments: text, template, the
     collapsed true action sequence, frames (a whole number of tokens)."""
     rows = []
-    for _, record, caption in first_captions(data, split):
+    for motion_id, record, caption in first_captions(data, split):
         frames = min(record["num_frames"], max_frames) // FRAMES_PER_TOKEN * FRAMES_PER_TOKEN
         if len(caption["segments"]) < 2 or frames < FRAMES_PER_TOKEN:
             continue
-        rows.append({"text": caption["text"], "template": caption["template"], "frames": frames,
+        rows.append({"id": motion_id, "text": caption["text"], "template": caption["template"], "frames": frames,
                      "actions": collapse([s["action"] for s in caption["segments"]]),
                      "num_actions": len(caption["segments"]),
                      "segments": [s["text"] for s in caption["segments"]],
@@ -72,9 +77,11 @@ def true_timing(model: SegMo, chunk: list[dict]) -> dict:
 
 
 def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, seed: int,
-                      truth: bool = False) -> dict:
-    hits: dict[str, list[bool]] = defaultdict(list)
-    by_actions: dict[str, list[bool]] = defaultdict(list)
+                      truth: bool = False, reconstructed: np.ndarray | None = None) -> dict:
+    """Sequence accuracy of `repeats` generations of each row, by template, by number of
+    actions and over the trained / held-out templates; with `reconstructed` (one bool per
+    row, `reconstructions_read_right`) also split by whether the tokenizer keeps the actions."""
+    hits = np.zeros((len(rows), repeats), dtype=bool)
     for repeat in range(repeats):
         for start in range(0, len(rows), BATCH):
             chunk = rows[start:start + BATCH]
@@ -83,21 +90,48 @@ def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, 
                                  **(true_timing(model, chunk) if truth else {}))
             for k, row in enumerate(chunk):
                 features = out.features[k, : int(out.lengths[k])].float().cpu().numpy()
-                hit = classifier.predict_sequence(features) == row["actions"]
-                hits[row["template"]].append(hit)
-                by_actions[segment_bucket(row["num_actions"])].append(hit)
-                if row["num_actions"] >= 3:
-                    by_actions["3+"].append(hit)
+                hits[start + k, repeat] = classifier.predict_sequence(features) == row["actions"]
 
-    def entry(values: list[bool]) -> dict:
-        return {"sequence_accuracy": float(np.mean(values)), "motions": len(values) // repeats}
+    def entry(indices: list[int], of: np.ndarray = hits) -> dict:
+        h = of[indices].reshape(len(indices), -1)
+        return {"sequence_accuracy": float(h.mean()), "motions": len(indices),
+                "never_right": int((~h.any(1)).sum())}
 
-    groups = {"trained": [h for t, v in hits.items() if t not in HELD_OUT_TEMPLATES for h in v],
-              "held_out": [h for t, v in hits.items() if t in HELD_OUT_TEMPLATES for h in v],
-              "all": [h for v in hits.values() for h in v]}
-    return {"by_template": {t: entry(v) for t, v in sorted(hits.items())},
-            "by_num_actions": {k: entry(v) for k, v in sorted(by_actions.items())},
-            **{name: entry(v) for name, v in groups.items() if v}, "repeats": repeats}
+    def by_actions(indices: list[int], of: np.ndarray = hits) -> dict:
+        buckets: dict[str, list[int]] = defaultdict(list)
+        for i in indices:
+            buckets[segment_bucket(rows[i]["num_actions"])].append(i)
+            if rows[i]["num_actions"] >= 3:
+                buckets["3+"].append(i)
+        return {k: entry(v, of) for k, v in sorted(buckets.items())}
+
+    templates: dict[str, list[int]] = defaultdict(list)
+    for i, row in enumerate(rows):
+        templates[row["template"]].append(i)
+    groups = {"trained": [i for t, v in templates.items() if t not in HELD_OUT_TEMPLATES for i in v],
+              "held_out": [i for t, v in templates.items() if t in HELD_OUT_TEMPLATES for i in v],
+              "all": list(range(len(rows)))}
+    result = {"by_template": {t: entry(v) for t, v in sorted(templates.items())},
+              "by_num_actions": by_actions(groups["all"]),
+              **{name: entry(v) for name, v in groups.items() if v}, "repeats": repeats}
+    if reconstructed is not None:
+        kept = [i for i in range(len(rows)) if reconstructed[i]]
+        result["reconstruction"] = by_actions(groups["all"], of=reconstructed)
+        result["generated_where_reconstructed"] = by_actions(kept)
+        result["generated_where_not"] = by_actions(sorted(set(groups["all"]) - set(kept)))
+    return result
+
+
+def reconstructions_read_right(model: SegMo, classifier, rows: list[dict], data: Path) -> np.ndarray:
+    """One bool per row: is the tokenizer's reconstruction of its motion (every layer, cut to
+    the row's frames) read as the row's true actions? The generator cannot beat this."""
+    read_right = []
+    for row in rows:
+        tokens = model.encode_motion(read_motion(data, row["id"])[: row["frames"]])
+        lengths = torch.tensor([tokens.shape[1] * FRAMES_PER_TOKEN], device=tokens.device)
+        out = model.decode(tokens, lengths, [row["text"]], [[row["text"]]])
+        read_right.append(classifier.predict_sequence(out.features[0].float().cpu().numpy()) == row["actions"])
+    return np.array(read_right, dtype=bool)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,6 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--segment-timing", choices=(*get_args(SegmentTiming), "truth"),
                         default=None, help="what a mask transformer with segment timing is "
                         "given (default: the bundle's); truth: the corpus' durations")
+    parser.add_argument("--reconstruction", action="store_true", help="also read the tokenizer's "
+                        "reconstructions and split the generated accuracy by them")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
@@ -130,12 +166,18 @@ def main(argv: list[str] | None = None) -> int:
     except (SegmoError, FileNotFoundError, OSError) as error:
         print(f"order_by_template: {error}", file=sys.stderr)
         return 2
+    reconstructed = (reconstructions_read_right(model, classifier, rows, args.data)
+                     if args.reconstruction else None)
     result = order_by_template(model, classifier, rows, args.repeats, args.seed,
-                               truth=args.segment_timing == "truth")
+                               truth=args.segment_timing == "truth", reconstructed=reconstructed)
     for template, value in result["by_template"].items():
         print(f"{template:>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     for bucket, value in result["by_num_actions"].items():
-        print(f"{bucket + ' actions':>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
+        print(f"{bucket + ' actions':>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions, "
+              f"{value['never_right']} never right)")
+    for name in ("reconstruction", "generated_where_reconstructed", "generated_where_not"):
+        for bucket, value in result.get(name, {}).items():
+            print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     timing = args.segment_timing or model.sampling.segment_timing
     print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing}))
     return 0
