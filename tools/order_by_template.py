@@ -118,7 +118,7 @@ def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, 
         kept = [i for i in range(len(rows)) if reconstructed[i]]
         result["reconstruction"] = by_actions(groups["all"], of=reconstructed)
         result["generated_where_reconstructed"] = by_actions(kept)
-        result["generated_where_not"] = by_actions(sorted(set(groups["all"]) - set(kept)))
+        result["generated_where_not"] = by_actions([i for i in groups["all"] if not reconstructed[i]])
     return result
 
 
@@ -163,11 +163,12 @@ def main(argv: list[str] | None = None) -> int:
                              "segment timing")
         classifier = load_pretrained(args.action_classifier).eval()
         rows = multi_segment_rows(args.data, args.split, model.max_frames)
+        # a motion file the corpus lacks fails here, in one line, before any generation
+        reconstructed = (reconstructions_read_right(model, classifier, rows, args.data)
+                         if args.reconstruction else None)
     except (SegmoError, FileNotFoundError, OSError) as error:
         print(f"order_by_template: {error}", file=sys.stderr)
         return 2
-    reconstructed = (reconstructions_read_right(model, classifier, rows, args.data)
-                     if args.reconstruction else None)
     result = order_by_template(model, classifier, rows, args.repeats, args.seed,
                                truth=args.segment_timing == "truth", reconstructed=reconstructed)
     for template, value in result["by_template"].items():
