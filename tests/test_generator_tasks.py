@@ -13,8 +13,16 @@ import pytest
 import torch
 import yaml
 
+from segmo.models.mask_transformer import masked_token_loss
 from segmo.models.pretrained import load_pretrained
-from segmo.tasks.mask import MaskTask, gt_token_spans, reversed_order, segment_top1
+from segmo.tasks.mask import (
+    MaskTask,
+    gt_token_spans,
+    mask_whole_segment,
+    reversed_order,
+    segment_balanced_weights,
+    segment_top1,
+)
 from segmo.training.cli import main as cli_main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -265,3 +273,76 @@ def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_datas
     assert 0.0 <= float(metrics["val/timing_iou"]) <= 1.0
     model = cli.model.export_model()
     assert model.config.segment_timing and model.meta["segment_timing"] == source
+
+
+def test_segment_balanced_weights_give_every_segment_the_same_total():
+    """A 2-token segment beside an 8-token one: each holds half of the sample's weight; a
+    sample with one known span, a token outside every span and padding are as documented."""
+    spans = torch.tensor([[[0, 2], [2, 10], [0, 0]],
+                          [[0, 4], [4, 8], [0, 0]],
+                          [[0, 3], [4, 10], [0, 0]]])
+    known = torch.tensor([[True, True, False], [True, False, False], [True, True, False]])
+    valid = torch.arange(12)[None] < torch.tensor([10, 8, 11])[:, None]
+    w = segment_balanced_weights(spans, known, valid)
+    assert torch.allclose(w[0, :2], torch.full((2,), 2.5)) and torch.allclose(w[0, 2:10], torch.full((8,), 0.625))
+    assert w[0, :2].sum() == w[0, 2:10].sum() == 5.0 and w[0, 10:].eq(0).all()
+    assert torch.equal(w[1], valid[1].float())  # one known span: unweighted
+    assert w[2, 3] == 1.0 and w[2, 10] == 1.0 and w[2, 11] == 0.0  # outside every span; padding
+    assert torch.allclose(w[2, :3].sum(), w[2, 4:10].sum())
+
+
+def test_weighted_masked_token_loss():
+    g = torch.Generator().manual_seed(0)
+    logits, targets = torch.randn(2, 5, 7, generator=g), torch.randint(0, 7, (2, 5), generator=g)
+    target = torch.rand(2, 5, generator=g) < 0.6
+    target[0, 1] = True
+    plain = masked_token_loss(logits, targets, target)
+    assert torch.allclose(masked_token_loss(logits, targets, target, torch.full((2, 5), 3.0)), plain)
+    only = torch.zeros(2, 5)
+    only[0, 1] = 1.0
+    ce = torch.nn.functional.cross_entropy(logits[0, 1][None], targets[0, 1][None])
+    assert torch.allclose(masked_token_loss(logits, targets, target, only), ce)
+
+
+def test_the_segment_options_train_and_a_wrong_value_is_named(text_dataset, tokenizer_dir,
+                                                              tmp_path):
+    from segmo.errors import SegmoError
+
+    config = REPO / "configs/mask/synthetic.yaml"
+    cli = cli_main(["fit", "--config", str(config),
+                    *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                    "--model.init_args.loss_weighting=segment",
+                    "--model.init_args.segment_mask_prob=0.5", "--trainer.fast_dev_run=true"])
+    assert cli.model.hparams.segment_mask_prob == 0.5
+    metrics = cli.trainer.callback_metrics
+    # training follows the balanced loss; the plain masked-token loss is still logged
+    assert torch.isfinite(metrics["train/mask_loss_balanced"]) and "train/mask_loss" in metrics
+    assert torch.isclose(metrics["train/loss"] - metrics["train/align"],
+                         metrics["train/mask_loss_balanced"], atol=1e-4)
+    with pytest.raises(SegmoError, match="model.init_args.loss_weighting='segments': one of "
+                                         "token, segment"):
+        MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, loss_weighting="segments")
+    with pytest.raises(SegmoError, match=r"model.init_args.segment_mask_prob=1.5: a share in \[0, 1\]"):
+        MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, segment_mask_prob=1.5)
+
+
+def test_mask_whole_segment_masks_one_known_segment_of_the_chosen_samples():
+    mask_id = 16
+    inputs = torch.tensor([[1, 2, 3, 4, 5, 6], [1, 2, 3, 4, 17, 17], [1, 2, 3, 4, 5, 6]])
+    valid = inputs != 17
+    target = torch.zeros(3, 6, dtype=torch.bool)
+    target[0, 5] = True
+    spans = torch.tensor([[[0, 2], [2, 5], [5, 6]], [[0, 1], [1, 6], [0, 0]], [[0, 3], [3, 6], [0, 0]]])
+    known = torch.tensor([[True, True, False], [False, True, False], [True, True, False]])
+    chosen = torch.tensor([True, True, False])
+    for seed in range(8):
+        g = torch.Generator().manual_seed(seed)
+        new, new_target = mask_whole_segment(inputs, target, valid, spans, known, chosen, mask_id, g)
+        masked = new == mask_id
+        # sample 0: exactly one of its two known segments, whole; the slot-2 span stays
+        assert masked[0].tolist() in ([True, True] + [False] * 4, [False, False, True, True, True, False])
+        assert new_target[0, 5] and torch.equal(new_target[0], masked[0] | target[0])
+        # sample 1: its one known span, but never its padded positions
+        assert masked[1].tolist() == [False, True, True, True, False, False]
+        assert torch.equal(new[1, 4:], inputs[1, 4:])
+        assert torch.equal(new[2], inputs[2]) and not new_target[2].any()  # not chosen

@@ -264,12 +264,18 @@ def mask_tokens(indices: torch.Tensor, token_mask: torch.Tensor, codebook_size: 
 
 
 def masked_token_loss(logits: torch.Tensor, targets: torch.Tensor,
-                      target_mask: torch.Tensor) -> torch.Tensor:
-    """Mean cross-entropy over the positions of `target_mask`.
+                      target_mask: torch.Tensor,
+                      weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean cross-entropy over the positions of `target_mask`, weighted by `weights`.
 
-    logits (b, n, v), targets (b, n) long, target_mask (b, n) bool → scalar. The residual
-    task uses it too, with target_mask = token_mask (every valid token of layer j).
+    logits (b, n, v), targets (b, n) long, target_mask (b, n) bool, weights (b, n) float or
+    None (every position alike) → scalar. The residual task uses it too, with target_mask =
+    token_mask (every valid token of layer j).
     """
     if not bool(target_mask.any()):
         raise ValueError("masked_token_loss: target_mask selects no position")
-    return F.cross_entropy(logits[target_mask].float(), targets[target_mask])
+    if weights is None:
+        return F.cross_entropy(logits[target_mask].float(), targets[target_mask])
+    losses = F.cross_entropy(logits[target_mask].float(), targets[target_mask], reduction="none")
+    w = weights[target_mask].float()
+    return (losses * w).sum() / w.sum().clamp(min=1e-8)

@@ -81,6 +81,47 @@ def gt_token_spans(spans: list, num_segments: Tensor, lengths: Tensor, slots: in
     return out, usable
 
 
+def segment_balanced_weights(spans: Tensor, known: Tensor, valid: Tensor) -> Tensor:
+    """Token weights (b, n) under which every segment of a sample counts alike in the loss.
+
+    spans (b, a, 2) token spans [start, end), known (b, a) bool, valid (b, n) bool. A token
+    inside known span j weighs (mean length of the sample's known spans) / (length of span
+    j): each known segment holds the same total weight and the sample the same total as
+    unweighted. Tokens outside every known span, and samples with fewer than two known
+    spans, weigh 1; padded tokens 0.
+    """
+    positions = torch.arange(valid.shape[1], device=valid.device)
+    length = (spans[..., 1] - spans[..., 0]).clamp(min=0)
+    known = known & (length > 0)
+    inside = known[..., None] & (positions >= spans[..., :1]) & (positions < spans[..., 1:])
+    count = known.sum(1)
+    mean = (length * known).sum(1) / count.clamp(min=1)
+    per_segment = torch.where(known, mean[:, None] / length.clamp(min=1), 0.0)
+    weights = torch.einsum("ba,ban->bn", per_segment, inside.float())
+    balanced = inside.any(1) & (count >= 2)[:, None]
+    return torch.where(balanced, weights, 1.0) * valid
+
+
+def mask_whole_segment(inputs: Tensor, target: Tensor, valid: Tensor, spans: Tensor,
+                       known: Tensor, chosen: Tensor, mask_id: int,
+                       generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """Mask every token of one known segment, drawn at random, of each `chosen` sample.
+
+    inputs, target (b, n) from `mask_tokens`, valid (b, n) bool the real tokens; spans
+    (b, a, 2) token spans, known (b, a) bool, chosen (b,) bool; a chosen sample without a
+    known span of at least one token is left as it is. Returns the new (inputs, target): the segment's tokens become `mask_id`
+    and are predicted, besides the positions `mask_tokens` chose.
+    """
+    known = known & (spans[..., 1] > spans[..., 0]) & chosen[:, None]
+    draw = torch.rand(known.shape, generator=generator, device=known.device)
+    pick = draw.masked_fill(~known, -1.0).argmax(1)  # (b,) a known slot where there is one
+    span = spans.gather(1, pick[:, None, None].expand(-1, 1, 2))[:, 0]  # (b, 2)
+    positions = torch.arange(inputs.shape[1], device=inputs.device)
+    inside = ((positions >= span[:, :1]) & (positions < span[:, 1:])
+              & known.any(1)[:, None] & valid)
+    return torch.where(inside, mask_id, inputs), target | inside
+
+
 def reversed_order(segment_mask: Tensor) -> Tensor:
     """(b, a) bool → (b, a) long permutation reversing each sample's valid segments.
 
@@ -126,6 +167,8 @@ class MaskTask(TransformerTask):
         segment_timing: Literal["none", "truth", "segmenter"] = "none",
         timing_drop_prob: float = 0.3,
         timing_weight: float = 0.1,
+        loss_weighting: Literal["token", "segment"] = "token",
+        segment_mask_prob: float = 0.0,
         **kwargs,
     ) -> None:
         """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
@@ -138,7 +181,14 @@ class MaskTask(TransformerTask):
         without them train without timing) or from `segmenter` ("segmenter", for data
         without ground truth); left out of a share `timing_drop_prob` of the samples, so the
         model also generates without them; the timing head learns each segment's share of
-        the motion at `timing_weight`. The other arguments (`**kwargs`) are
+        the motion at `timing_weight`. `loss_weighting`: "token" weighs every masked token
+        alike (MoMask); "segment" weighs each segment of a sample alike
+        (`segment_balanced_weights`), so a short action counts as much as a long one, with
+        the data's ground-truth spans where a sample has them and `segmenter`'s elsewhere.
+        `segment_mask_prob`: the share of samples in which every token of one of their
+        segments (drawn at random; spans as for `loss_weighting`) is masked besides the
+        random masking (`mask_whole_segment`), so the model learns to fill a segment from
+        its text between visible neighbours. The other arguments (`**kwargs`) are
         `TransformerTask`'s."""
         super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
         if temperature is not None:  # checkpoints of this run hold the new name only
@@ -152,9 +202,13 @@ class MaskTask(TransformerTask):
         if segment_timing not in ("none", "truth", "segmenter"):
             raise SegmoError(f"model.init_args.segment_timing={segment_timing!r}: one of "
                              "none, truth, segmenter")
-        if not 0.0 <= timing_drop_prob <= 1.0:
-            raise SegmoError(f"model.init_args.timing_drop_prob={timing_drop_prob}: a share "
-                             "in [0, 1]")
+        if loss_weighting not in ("token", "segment"):
+            raise SegmoError(f"model.init_args.loss_weighting={loss_weighting!r}: one of "
+                             "token, segment")
+        for name, share in (("timing_drop_prob", timing_drop_prob),
+                            ("segment_mask_prob", segment_mask_prob)):
+            if not 0.0 <= share <= 1.0:
+                raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
         self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
                                                            alignment=align,
                                                            sink_mask_t=sink_mask_t,
@@ -197,12 +251,26 @@ class MaskTask(TransformerTask):
                                        segment_mask.shape[1], min_segments=1)
         return spans.to(lengths.device), segment_mask & usable.to(lengths.device)[:, None]
 
+    def segment_spans(self, batch: dict, segment_mask: Tensor, num_segments: Tensor,
+                      motion_spans: Tensor) -> tuple[Tensor, Tensor]:
+        """The token spans (b, a, 2) that `loss_weighting: segment` balances and
+        `segment_mask_prob` masks, and which are known (b, a) bool: the ground truth where a
+        sample has it, else the segmenter's."""
+        truth, usable = gt_token_spans(batch.get("spans") or [None] * len(num_segments),
+                                       segment_mask.sum(1), batch["lengths"],
+                                       segment_mask.shape[1])
+        usable = usable.to(motion_spans.device)
+        spans = torch.where(usable[:, None, None], truth.to(motion_spans.device), motion_spans)
+        slots = torch.arange(segment_mask.shape[1], device=segment_mask.device)
+        return spans, segment_mask & (slots < num_segments[:, None])
+
     def step(self, batch: dict, generator: torch.Generator | None = None,
              drop: Tensor | None = None, unordered: Tensor | None = None,
-             timing_drop: Tensor | None = None) -> dict[str, Tensor]:
+             timing_drop: Tensor | None = None,
+             segment_masked: Tensor | None = None) -> dict[str, Tensor]:
         """Losses of one batch; `drop` (condition dropped), `unordered` (segments without
-        order) and `timing_drop` (segment timing left out) are drawn with their
-        probabilities unless given, (b,) bool."""
+        order), `timing_drop` (segment timing left out) and `segment_masked` (one whole
+        segment masked) are drawn with their probabilities unless given, (b,) bool."""
         base, valid, lengths = self.tokens(batch)
         sentence, segments, segment_mask = text_condition(batch)
         inputs, target = mask_tokens(base, valid, self.model.config.codebook_size, generator)
@@ -211,11 +279,22 @@ class MaskTask(TransformerTask):
             drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
         if unordered is None:
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
-        # The motion segmenter's spans, cut once for the alignment loss and segmenter timing.
+        # The motion segmenter's spans, cut once for the alignment loss, segmenter timing and
+        # the segment options (where a sample lacks ground truth).
         num_segments = torch.minimum(segment_mask.sum(1), lengths)
         motion_spans = None
-        if self.alignment_loss is not None or self.hparams.segment_timing == "segmenter":
+        segment_options = (self.hparams.loss_weighting == "segment"
+                           or self.hparams.segment_mask_prob > 0)
+        if (self.alignment_loss is not None or self.hparams.segment_timing == "segmenter"
+                or segment_options):
             motion_spans = self.spans(batch, num_segments, lengths).to(base.device)
+        if segment_options:
+            known_spans = self.segment_spans(batch, segment_mask, num_segments, motion_spans)
+        if self.hparams.segment_mask_prob > 0:
+            if segment_masked is None:
+                segment_masked = torch.rand(b, device=base.device) < self.hparams.segment_mask_prob
+            inputs, target = mask_whole_segment(inputs, target, valid, *known_spans, segment_masked,
+                                                self.model.config.codebook_size, generator)
         timing = self.timing(batch, segment_mask, lengths, motion_spans)
         spans, span_known = (None, None) if timing is None else timing
         if timing is not None:
@@ -231,6 +310,11 @@ class MaskTask(TransformerTask):
         terms = {"mask_loss": mask_loss,
                  "accuracy": correct.sum() / target.sum().clamp(min=1)}
         loss = mask_loss
+        if self.hparams.loss_weighting == "segment":
+            # mask_loss stays the plain mean, comparable across runs; training follows this.
+            weights = segment_balanced_weights(*known_spans, valid)
+            terms["mask_loss_balanced"] = masked_token_loss(out.logits, base, target, weights)
+            loss = terms["mask_loss_balanced"]
         if timing is not None:
             # The head learns from the text vectors without moving them: detached.
             log_shares = self.model.timing_head(out.segment_features.detach(), segment_mask)
@@ -263,7 +347,8 @@ class MaskTask(TransformerTask):
         # The same masking every epoch, so the accuracy of two runs is comparable.
         generator = torch.Generator(device=batch["motion"].device).manual_seed(batch_idx)
         never = torch.zeros(b, dtype=torch.bool, device=batch["motion"].device)
-        terms = self.step(batch, generator, drop=never, unordered=never, timing_drop=never)
+        terms = self.step(batch, generator, drop=never, unordered=never, timing_drop=never,
+                          segment_masked=never)
         self.log_dict({f"{prefix}/{k}": v for k, v in terms.items()}, batch_size=b,
                       sync_dist=True, prog_bar=False)
         if batch.get("spans") is not None:
