@@ -82,6 +82,19 @@ def non_negative_int(text: str) -> int:
     return _whole_number(text, 0)
 
 
+def parse_durations(text: str) -> list[float]:
+    """Segment durations written as "1,4" → [1.0, 4.0] (any unit: read as shares of the
+    motion); ValueError naming the text for anything else (the CLI and `segmo serve`)."""
+    try:
+        numbers = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        numbers = []
+    if not numbers or not all(math.isfinite(v) and v >= 0 for v in numbers) or sum(numbers) <= 0:
+        raise ValueError(f"{str(text)!r}: expected numbers >= 0 separated by commas, not all 0, "
+                         "e.g. 1,4")
+    return numbers
+
+
 def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.PathLike):
     """The numeric array of the .npy file an argument names, or the one-line error of
     `parser` naming the argument and the file (missing, a folder, a pickle, not numbers)."""

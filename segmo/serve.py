@@ -6,12 +6,15 @@ The page shows the caption's text segments, the generated motion as a GIF (each 
 labelled with its segment), the BVH and joints files to download, and where each segment
 happens in the motion (the similarity map of `SegMo.ground`, by the learned space or by
 attention). Everything the page does is also an HTTP API endpoint, ``/generate``
-(caption, seconds, seed, guidance, grounding method -> segments, GIF, BVH, joints, map),
-callable with `gradio_client`:
+(caption, seconds, seed, guidance, grounding method, segment durations -> segments, GIF,
+BVH, joints, map), callable with `gradio_client`:
 
     from gradio_client import Client
     Client("http://127.0.0.1:7860").predict("a person walks, then waves", 4.0, 0, 4.0,
-                                            "attention", api_name="/generate")
+                                            "attention", "3,1", api_name="/generate")
+
+The durations ("3,1": the walk three times as long as the wave; empty: the model's own
+timing head) steer a bundle trained with segment timing; they may be left out.
 """
 
 from __future__ import annotations
@@ -23,16 +26,17 @@ from typing import Any
 
 import torch
 
-from segmo.errors import ArgumentParser, SegmoError, positive_int
+from segmo.errors import ArgumentParser, SegmoError, parse_durations, positive_int
 
 GROUNDING_METHODS = ("attention", "similarity")
 MAX_SECONDS = 9.8  # 196 frames at 20 fps
 
 
 def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance: float,
-                   method: str, out: Path) -> dict[str, Any]:
+                   method: str, out: Path, durations: str = "") -> dict[str, Any]:
     """One generation written under `out`: {"segments", "gif", "bvh", "joints", "map"}.
-    seconds <= 0 lets the length estimator choose."""
+    seconds <= 0 lets the length estimator choose; durations ("1,4", one per text segment)
+    are given to a segment-timing model, empty lets it predict them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -45,12 +49,18 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
         raise SegmoError("type a caption first")
     if method not in GROUNDING_METHODS:
         raise SegmoError(f"grounding method must be one of {GROUNDING_METHODS}, got {method!r}")
+    timing = None
+    if durations and str(durations).strip():
+        try:
+            timing = [parse_durations(durations)]
+        except ValueError as error:
+            raise SegmoError(f"segment durations {error}") from None
     lengths = None
     if seconds and seconds > 0:
         frames = int(round(min(float(seconds), MAX_SECONDS) * model.fps / 4)) * 4
         lengths = [max(frames, 4)]
     result = model.generate([caption], lengths, guidance_scale=float(guidance),
-                            generator=torch.Generator().manual_seed(int(seed)))
+                            generator=torch.Generator().manual_seed(int(seed)), durations=timing)
     segments = result.segments[0]
     grounding = model.ground(caption, result.motion(0), segments=segments, method=method)
     out.mkdir(parents=True, exist_ok=True)
@@ -77,10 +87,11 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
     root = Path(workdir or tempfile.mkdtemp(prefix="segmo-serve-"))
     counter = iter(range(10**9))
 
-    def run(caption: str, seconds: float, seed: float, guidance: float, method: str):
+    def run(caption: str, seconds: float, seed: float, guidance: float, method: str,
+            durations: str = ""):
         try:
             found = generate_files(model, caption, seconds, int(seed), guidance, method,
-                                   root / f"{next(counter):06d}")
+                                   root / f"{next(counter):06d}", durations)
         except SegmoError as error:
             raise gr.Error(str(error)) from None
         lines = [f"{k + 1}. {text} — frames {s}–{e} ({s / model.fps:.1f}–{e / model.fps:.1f} s)"
@@ -103,13 +114,15 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
                                      label="guidance scale")
                 method = gr.Radio(list(GROUNDING_METHODS), value="attention",
                                   label="ground the segments by")
+                durations = gr.Textbox(value="", label="segment durations, e.g. 3,1 (models "
+                                       "trained with segment timing; empty: predicted)")
                 button = gr.Button("Generate", variant="primary")
             with gr.Column():
                 segments = gr.Markdown(label="text segments")
                 animation = gr.Image(label="motion", type="filepath")
                 files = gr.File(label="BVH and joints", file_count="multiple")
         grounding = gr.Image(label="where each segment happens", type="filepath")
-        button.click(run, [caption, seconds, seed, guidance, method],
+        button.click(run, [caption, seconds, seed, guidance, method, durations],
                      [segments, animation, files, grounding], api_name="generate")
     return app
 

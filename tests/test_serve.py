@@ -11,6 +11,7 @@ import pytest
 from conftest import hash_encoder
 from test_pipeline import TEXT_DIM, build_stages
 
+from segmo.errors import SegmoError
 from segmo.pipeline import SegMo
 
 gr = pytest.importorskip("gradio", reason="gradio (the serve extra) is not installed")
@@ -58,3 +59,34 @@ def test_a_caption_in_a_motion_file_out(served):
     assert np.array_equal(np.load(again_joints), np.load(paths["sample_00_joints.npy"]))
     with pytest.raises(Exception, match="type a caption first"):
         client.predict("   ", 2.4, 0, 4.0, "similarity", api_name="/generate")
+
+
+def test_segment_durations_through_the_api(served, tmp_path, tokenizer_dir):
+    """The page's durations reach a segment-timing bundle ("1,4" = "2, 8": shares); on a
+    bundle without timing, or written wrong, they are refused with the reason; a call that
+    leaves them out (the former five inputs) still works."""
+    from segmo.serve import generate_files
+
+    url, _ = served
+    client = gradio_client.Client(url, verbose=False)
+    caption = "a person walks forward, then waves"
+    with pytest.raises(Exception, match="durations need a mask transformer trained with segment timing"):
+        client.predict(caption, 2.4, 3, 4.0, "attention", "1,4", api_name="/generate")
+    with pytest.raises(Exception, match="segment durations '1,x': expected numbers >= 0"):
+        client.predict(caption, 2.4, 3, 4.0, "attention", "1,x", api_name="/generate")
+    assert "48 frames" in client.predict(caption, 2.4, 3, 4.0, "attention", "",
+                                         api_name="/generate")[0]
+
+    dirs = build_stages(tmp_path / "stages", tokenizer_dir["t2m"], segment_timing=True)
+    timed = SegMo.from_stages(dirs["tokenizer"], dirs["mask"], dirs["residual"],
+                              text_encoder=hash_encoder("hash", TEXT_DIM))
+
+    def joints(durations: str, name: str) -> np.ndarray:
+        found = generate_files(timed, caption, 2.4, 3, 4.0, "similarity", tmp_path / name, durations)
+        return np.load(found["joints"])
+
+    short_first = joints("1,4", "a")
+    assert np.array_equal(short_first, joints(" 2, 8", "b"))
+    assert not np.array_equal(short_first, joints("4,1", "c"))
+    with pytest.raises(SegmoError, match=r"durations\[0\] has 3 values, text 0 has 2 segments"):
+        joints("1,1,1", "d")

@@ -29,6 +29,7 @@ from segmo.errors import (
     finite_float,
     non_negative_int,
     npy_argument,
+    parse_durations,
     positive_float,
     positive_int,
 )
@@ -168,13 +169,9 @@ def generate_main(argv: list[str] | None = None) -> None:
 def _durations(parser: argparse.ArgumentParser, value: str) -> list[float]:
     """`--durations 1,4` → [1.0, 4.0]; one error line for anything else."""
     try:
-        numbers = [float(v) for v in value.split(",")]
-    except ValueError:
-        numbers = []
-    if not numbers or not all(math.isfinite(v) and v >= 0 for v in numbers) or sum(numbers) <= 0:
-        parser.error(f"--durations {value!r}: expected numbers >= 0 separated by commas, "
-                     "not all 0, e.g. 1,4")
-    return numbers
+        return parse_durations(value)
+    except ValueError as error:
+        parser.error(f"--durations {error}")
 
 
 def _weight(parser: argparse.ArgumentParser, value: str) -> tuple[str | int, float]:
