@@ -90,8 +90,8 @@ def parse_durations(text: str) -> list[float]:
     except ValueError:
         numbers = []
     if not numbers or not all(math.isfinite(v) and v >= 0 for v in numbers) or sum(numbers) <= 0:
-        raise ValueError(f"{str(text)!r}: expected numbers >= 0 separated by commas, not all 0, "
-                         "e.g. 1,4")
+        raise ValueError(f"{str(text)!r:.80}: expected numbers >= 0 separated by commas, not "
+                         "all 0, e.g. 1,4")
     return numbers
 
 
