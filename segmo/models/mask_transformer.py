@@ -272,10 +272,18 @@ def masked_token_loss(logits: torch.Tensor, targets: torch.Tensor,
     None (every position alike) → scalar. The residual task uses it too, with target_mask =
     token_mask (every valid token of layer j).
     """
+    if weights is None:
+        if not bool(target_mask.any()):
+            raise ValueError("masked_token_loss: target_mask selects no position")
+        return F.cross_entropy(logits[target_mask].float(), targets[target_mask])
+    w = weights[target_mask].float()
+    return (masked_token_losses(logits, targets, target_mask) * w).sum() / w.sum().clamp(min=1e-8)
+
+
+def masked_token_losses(logits: torch.Tensor, targets: torch.Tensor,
+                        target_mask: torch.Tensor) -> torch.Tensor:
+    """The cross-entropy at each position of `target_mask`, (m,) float32 in row-major order
+    of its True positions (as `tensor[target_mask]` orders them)."""
     if not bool(target_mask.any()):
         raise ValueError("masked_token_loss: target_mask selects no position")
-    if weights is None:
-        return F.cross_entropy(logits[target_mask].float(), targets[target_mask])
-    losses = F.cross_entropy(logits[target_mask].float(), targets[target_mask], reduction="none")
-    w = weights[target_mask].float()
-    return (losses * w).sum() / w.sum().clamp(min=1e-8)
+    return F.cross_entropy(logits[target_mask].float(), targets[target_mask], reduction="none")

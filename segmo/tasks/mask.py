@@ -29,6 +29,7 @@ from segmo.models.mask_transformer import (
     mask_ratio_time,
     mask_tokens,
     masked_token_loss,
+    masked_token_losses,
 )
 from segmo.models.segment_timing import timing_loss
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -109,8 +110,9 @@ def mask_whole_segment(inputs: Tensor, target: Tensor, valid: Tensor, spans: Ten
 
     inputs, target (b, n) from `mask_tokens`, valid (b, n) bool the real tokens; spans
     (b, a, 2) token spans, known (b, a) bool, chosen (b,) bool; a chosen sample without a
-    known span of at least one token is left as it is. Returns the new (inputs, target): the segment's tokens become `mask_id`
-    and are predicted, besides the positions `mask_tokens` chose.
+    known span of at least one token is left as it is. Returns the new (inputs, target):
+    the segment's tokens become `mask_id` and are predicted, besides the positions
+    `mask_tokens` chose.
     """
     known = known & (spans[..., 1] > spans[..., 0]) & chosen[:, None]
     draw = torch.rand(known.shape, generator=generator, device=known.device)
@@ -305,16 +307,21 @@ class MaskTask(TransformerTask):
         out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered,
                          **word_condition(batch, self.model), sink_rows=sink_rows,
                          keep_local=self.keep_local(drop), spans=spans, span_known=span_known)
-        mask_loss = masked_token_loss(out.logits, base, target)
+        if self.hparams.loss_weighting == "segment":
+            # mask_loss stays the plain mean, comparable across runs; training follows the
+            # balanced one. One cross-entropy pass serves both.
+            losses = masked_token_losses(out.logits, base, target)
+            weights = segment_balanced_weights(*known_spans, valid)[target]
+            mask_loss = losses.mean()
+            balanced = (losses * weights).sum() / weights.sum().clamp(min=1e-8)
+        else:
+            mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
         terms = {"mask_loss": mask_loss,
                  "accuracy": correct.sum() / target.sum().clamp(min=1)}
         loss = mask_loss
         if self.hparams.loss_weighting == "segment":
-            # mask_loss stays the plain mean, comparable across runs; training follows this.
-            weights = segment_balanced_weights(*known_spans, valid)
-            terms["mask_loss_balanced"] = masked_token_loss(out.logits, base, target, weights)
-            loss = terms["mask_loss_balanced"]
+            terms["mask_loss_balanced"] = loss = balanced
         if timing is not None:
             # The head learns from the text vectors without moving them: detached.
             log_shares = self.model.timing_head(out.segment_features.detach(), segment_mask)
