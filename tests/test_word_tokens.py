@@ -273,11 +273,11 @@ def test_a_residual_with_words_needs_a_mask_transformer_with_words(tmp_path, tok
 
 def test_reweighting_a_word_needs_word_keys():
     from segmo.errors import SegmoError
-    from segmo.pipeline import SegMo
+    from segmo.pipeline.editing import weight_labels
 
-    assert SegMo._weight_labels({"word 2": 2.0}, ["walks"], True) == {"word 2": 2.0}
+    assert weight_labels({"word 2": 2.0}, ["walks"], True) == {"word 2": 2.0}
     with pytest.raises(SegmoError, match="no word keys.*cross-attention"):
-        SegMo._weight_labels({"word 2": 2.0}, ["walks"], False)
+        weight_labels({"word 2": 2.0}, ["walks"], False)
 
 
 def test_word_keys_can_read_the_segments_in_execution_order(tmp_path, tokenizer_dir, monkeypatch):

@@ -39,6 +39,7 @@ from segmo.generation.sampling import SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
 from segmo.motion.bvh import ANIMATION_FPS
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
+from segmo.pipeline.compose import COMPOSE_TRANSITION
 from segmo.pipeline.grounding import (
     METHODS,
     MIN_TOKENS,
@@ -48,7 +49,7 @@ from segmo.pipeline.grounding import (
 )
 from segmo.pipeline.model_card import read_metrics
 from segmo.pipeline.outputs import FORMATS
-from segmo.pipeline.segmo import COMPOSE_TRANSITION, SegMo
+from segmo.pipeline.segmo import SegMo
 
 
 def _load(parser: argparse.ArgumentParser, directory: str):

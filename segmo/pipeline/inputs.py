@@ -103,3 +103,28 @@ def motion_array(motion: Any, feature_dim: int, max_frames: int, skeleton: str
         raise SegmoError(f"SegMo: a motion must have {FRAMES_PER_TOKEN}.."
                          f"{max_frames + FRAMES_PER_TOKEN - 1} frames, got {t}")
     return x, usable
+
+
+def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor:
+    """Per text, how long each of its segments lasts (any unit: shares of the motion) →
+    (b, a) float32, 0 in empty slots; SegmoError naming the text whose durations do not
+    fit its segments."""
+    if isinstance(durations, (str, bytes)) or not hasattr(durations, "__len__") \
+            or len(durations) != len(segments):
+        raise SegmoError(f"SegMo.generate: durations must be one list per text "
+                         f"({len(segments)}), got {durations!r:.80}")
+    out = torch.zeros(len(segments), max(len(s) for s in segments))
+    for i, (values, segs) in enumerate(zip(durations, segments)):
+        try:
+            values = [float(v) for v in values]
+        except (TypeError, ValueError):
+            raise SegmoError(f"SegMo.generate: durations[{i}] must be numbers, got "
+                             f"{values!r:.80}") from None
+        if len(values) != len(segs):
+            raise SegmoError(f"SegMo.generate: durations[{i}] has {len(values)} values, "
+                             f"text {i} has {len(segs)} segments {segs!r:.120}")
+        if not all(math.isfinite(v) and v >= 0 for v in values) or sum(values) <= 0:
+            raise SegmoError(f"SegMo.generate: durations[{i}] must be finite, ≥ 0 and not "
+                             f"all 0, got {values!r:.80}")
+        out[i, : len(values)] = torch.tensor(values)
+    return out

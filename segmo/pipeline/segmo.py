@@ -1,8 +1,9 @@
 """`SegMo`: the inference pipeline, text → tokens → motion → joints (plus grounding/retrieval).
 
 A `SegMo` holds the stages of a bundle directory (`segmo.pipeline.bundle` says what it
-holds); the checks of what users pass live in `segmo.pipeline.inputs`, grounding and
-retrieval in `segmo.pipeline.grounding` / `retrieval` over the segment space of
+holds); the checks of what users pass live in `segmo.pipeline.inputs`, the edits in
+`segmo.pipeline.editing`, long motions from parts in `segmo.pipeline.compose`, grounding
+and retrieval in `segmo.pipeline.grounding` / `retrieval` over the segment space of
 `segmo.pipeline.space`.
 
 Example:
@@ -17,8 +18,6 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,17 +28,7 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
-from segmo.generation.attention_edit import (
-    EDIT_MODES,
-    INJECT_UNTIL,
-    EditMode,
-    TextSide,
-    attended_span,
-    attention_edit_tokens,
-    segment_counterparts,
-    source_attention,
-)
-from segmo.generation.editing import edit_tokens, token_span
+from segmo.generation.attention_edit import INJECT_UNTIL, EditMode
 from segmo.generation.generate import Precision, check_models, decode_tokens, generate_tokens
 from segmo.generation.sampling import Sampler, SamplingOptions, check_word_text
 from segmo.models.attention_recorder import AttentionRecording, record_attention
@@ -51,7 +40,7 @@ from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
 from segmo.motion.checks import check_motion_values
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
-from segmo.pipeline import grounding, retrieval
+from segmo.pipeline import compose, editing, grounding, retrieval
 from segmo.pipeline.bundle import (
     KIT_GUIDANCE_SCALE,
     STAGES,
@@ -61,11 +50,13 @@ from segmo.pipeline.bundle import (
     sampling_fields,
     write_bundle,
 )
+from segmo.pipeline.compose import COMPOSE_TRANSITION
 from segmo.pipeline.inputs import (
     check_texts,
     frame_lengths,
     motion_array,
     resolve_device,
+    segment_durations,
     warn_truncated,
 )
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
@@ -73,11 +64,6 @@ from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segmen
 from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
 from segmo.text.extract import ordered_text
 from segmo.text.llm import get_text_segmenter
-
-# `SegMo.compose`: the frames drawn between two parts by default, and the cross-fade at the
-# edges of each transition between the part's own decoding and the transition window's.
-COMPOSE_TRANSITION = 20
-COMPOSE_BLEND = 8
 
 
 class SegMo:
@@ -473,24 +459,7 @@ class SegMo:
         if not self.mask.config.segment_timing:
             raise SegmoError("SegMo.generate: durations need a mask transformer trained with "
                              "segment timing (segment_timing: truth or segmenter); this one has none")
-        if isinstance(durations, (str, bytes)) or len(durations) != len(segments):
-            raise SegmoError(f"SegMo.generate: durations must be one list per text "
-                             f"({len(segments)}), got {durations!r:.80}")
-        out = torch.zeros(len(segments), max(len(s) for s in segments))
-        for i, (values, segs) in enumerate(zip(durations, segments)):
-            try:
-                values = [float(v) for v in values]
-            except (TypeError, ValueError):
-                raise SegmoError(f"SegMo.generate: durations[{i}] must be numbers, got "
-                                 f"{values!r:.80}") from None
-            if len(values) != len(segs):
-                raise SegmoError(f"SegMo.generate: durations[{i}] has {len(values)} values, "
-                                 f"text {i} has {len(segs)} segments {segs!r:.120}")
-            if not all(math.isfinite(v) and v >= 0 for v in values) or sum(values) <= 0:
-                raise SegmoError(f"SegMo.generate: durations[{i}] must be finite, ≥ 0 and not "
-                                 f"all 0, got {values!r:.80}")
-            out[i, : len(values)] = torch.tensor(values)
-        return out.to(self.device)
+        return segment_durations(durations, segments).to(self.device)
 
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
              segments: list[str] | None = None, sampling: SamplingOptions | None = None,
@@ -509,36 +478,13 @@ class SegMo:
         near the span may still change a little: the decoder is convolutional
         (`edit_drift` measures it).
         """
-        if isinstance(motion, GenerationOutput):
-            tokens, lengths = motion.tokens.to(self.device), motion.lengths.to(self.device)
-        else:
-            tokens = self.encode_motion(motion)
-            lengths = torch.tensor([tokens.shape[1] * FRAMES_PER_TOKEN], device=self.device)
-        q = self.residual.config.num_quantizers if self.residual is not None else 1
-        tokens = tokens[..., :q]
-        if not (isinstance(span, (tuple, list)) and len(span) == 2
-                and all(isinstance(v, numbers.Integral) and not isinstance(v, bool)
-                        for v in span)):
-            raise SegmoError(f"SegMo.edit: span must be (start, end) whole frames, got {span!r}")
-        start, end = int(span[0]), int(span[1])
-        if not 0 <= start < end <= int(lengths.min()):
-            raise SegmoError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
-                             f"{int(lengths.min())} frames, got {(start, end)}")
         options = self._sampling(
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
             residual_guided_layers=residual_guided_layers, guidance=guidance,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
-        b = tokens.shape[0]
-        texts = [text] * b
-        sentence, vectors, segment_mask, used = self.text_condition(
-            texts, None if segments is None else [segments] * b)
-        words, word_mask = self.word_condition(texts, used, options.word_text)
-        edited = edit_tokens(self.mask, self.residual, tokens, token_span((start, end)),
-                             sentence, vectors, segment_mask, options=options,
-                             generator=generator, precision=precision, words=words,
-                             word_mask=word_mask)
-        return self.decode(edited, lengths, texts, used, precision)
+        return editing.edit(self, motion, span, text, segments=segments, options=options,
+                            generator=generator, precision=precision)
 
     def edit_text(self, source: GenerationOutput, target_text: str | list[str] | None = None,
                   mode: EditMode = "swap", *, target_segments: list[list[str]] | None = None,
@@ -564,97 +510,10 @@ class SegMo:
         source (a span edit whose span comes from the attention). The same text with any
         `inject_until`, or factors of 1, gives the source's tokens bit for bit.
         """
-        if not isinstance(source, GenerationOutput) or source.generator_state is None \
-                or source.sampling is None:
-            raise SegmoError("SegMo.edit_text: source must be a GenerationOutput of "
-                             "SegMo.generate (it records the generator state to replay)")
-        if mode not in EDIT_MODES:
-            raise SegmoError(f"SegMo.edit_text: mode must be one of {', '.join(EDIT_MODES)}, "
-                             f"got {mode!r}")
-        if not (isinstance(inject_until, numbers.Real) and 0.0 <= inject_until <= 1.0):
-            raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
-                             f"{inject_until!r}")
-        b = len(source)
-        if target_text is None:
-            if mode != "reweight":
-                raise SegmoError(f"SegMo.edit_text: mode {mode!r} needs a target_text")
-            targets = list(source.texts)
-        else:
-            targets = [target_text] * b if isinstance(target_text, str) else list(target_text)
-        if len(targets) != b:
-            raise SegmoError(f"SegMo.edit_text: {len(targets)} target texts for {b} samples")
-        if target_segments is None and target_text is None:
-            target_segments = source.segments
-        device = self.device
-        lengths = source.lengths.to(device)
-        sides = []
-        for texts, segments in ((source.texts, source.segments), (targets, target_segments)):
-            sentence, vectors, segment_mask, used = self.text_condition(list(texts), segments)
-            words, word_mask = self.word_condition(list(texts), used, source.sampling.word_text)
-            sides.append((TextSide(sentence, vectors, segment_mask, words, word_mask), used))
-        (source_side, _), (target_side, used) = sides
-        segment_map = [segment_counterparts(s, t, mode) for s, t in zip(source.segments, used)]
-        reweight = None
-        if mode == "reweight":
-            if not weights:
-                raise SegmoError("SegMo.edit_text: mode 'reweight' needs weights, e.g. "
-                                 "{1: 2.0} or {'jumps': 2.0}")
-            reweight = [self._weight_labels(weights, segs, self.has_word_keys) for segs in used]
-        editable = None
-        if keep_outside:
-            changed = [sorted({int(label.split()[1]) for label in row if label.startswith("segment ")})
-                       for row in reweight] if reweight is not None else [
-                [segment_map[i][k] for k, text in enumerate(used[i], 1)
-                 if k in segment_map[i] and source.segments[i][segment_map[i][k] - 1] != text]
-                for i in range(b)]
-            if not all(changed):
-                raise SegmoError("SegMo.edit_text: keep_outside needs a changed segment with a "
-                                 "counterpart in the source (swap, refine, reweight of a segment)")
-            control = source_attention(self.mask, self.residual, source_side, lengths,
-                                       options=source.sampling, generator_state=source.generator_state,
-                                       precision=precision)
-            n = source.tokens.shape[1]
-            editable = torch.zeros(b, n, dtype=torch.bool, device=device)
-            for i, ks in enumerate(changed):
-                spans = [attended_span(control, i, k, int(lengths[i]) // FRAMES_PER_TOKEN)
-                         for k in ks]
-                editable[i, min(a for a, _ in spans):max(e for _, e in spans)] = True
-        tokens, _ = attention_edit_tokens(
-            self.mask, self.residual, source_side, target_side, lengths, mode=mode,
-            segment_map=segment_map, inject_until=float(inject_until), reweight=reweight,
-            editable=editable, source_tokens=None if editable is None else source.tokens.to(device),
-            options=source.sampling, generator_state=source.generator_state, precision=precision)
-        return self.decode(tokens, lengths, targets, used, precision)
-
-    @staticmethod
-    def _weight_labels(weights: dict[str | int, float], segments: list[str],
-                       words: bool) -> dict[str, float]:
-        """`edit_text`'s weights → {key label: factor} for one caption's segments."""
-        labels: dict[str, float] = {}
-        for key, factor in weights.items():
-            if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
-                    or not np.isfinite(factor):
-                raise SegmoError(f"SegMo.edit_text: weight of {key!r} must be a finite number, "
-                                 f"got {factor!r}")
-            if isinstance(key, numbers.Integral) and not isinstance(key, bool):
-                label = f"segment {int(key)}"
-            elif isinstance(key, str) and (key.startswith("segment ") or key.startswith("word ")):
-                label = key
-            elif isinstance(key, str) and key in segments:
-                label = f"segment {segments.index(key) + 1}"
-            elif isinstance(key, str) and [s for s in segments if key in s]:
-                label = f"segment {[i for i, s in enumerate(segments) if key in s][0] + 1}"
-            else:
-                raise SegmoError(f"SegMo.edit_text: weights key {key!r} names no segment of "
-                                 f"{segments!r} (give its number, its text, or 'segment k')")
-            if label.startswith("word ") and not words:
-                raise SegmoError(f"SegMo.edit_text: {label!r}: this model has no word keys "
-                                 "(text_tokens 'none', or words read by cross-attention)")
-            if label.startswith("segment ") and not 1 <= int(label.split()[1]) <= len(segments):
-                raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has "
-                                 f"{len(segments)} segments")
-            labels[label] = float(factor)
-        return labels
+        return editing.edit_text(self, source, target_text, mode,
+                                 target_segments=target_segments, weights=weights,
+                                 inject_until=inject_until, keep_outside=keep_outside,
+                                 precision=precision)
 
     def compose(self, parts: list[tuple[str, int]], transition: int = COMPOSE_TRANSITION, *,
                 generator: torch.Generator | None = None, precision: Precision = "auto"
@@ -674,82 +533,8 @@ class SegMo:
         segments the parts' texts and `spans` their frames; its tokens are the
         concatenated tokens of parts and transitions. One part is exactly `generate`.
         """
-        if not isinstance(parts, (list, tuple)) or not parts or not all(
-                isinstance(p, (list, tuple)) and len(p) == 2 for p in parts):
-            raise SegmoError(f"SegMo.compose: parts must be a list of (text, frames), got "
-                             f"{parts!r:.80}")
-        texts = check_texts([p[0] for p in parts], "part")
-        frames = [p[1] for p in parts]
-        if isinstance(transition, bool) or not isinstance(transition, numbers.Integral) \
-                or transition < FRAMES_PER_TOKEN or transition % FRAMES_PER_TOKEN:
-            raise SegmoError(f"SegMo.compose: transition must be a multiple of "
-                             f"{FRAMES_PER_TOKEN} frames >= {FRAMES_PER_TOKEN}, got {transition!r}")
-        blend = COMPOSE_BLEND
-        shortest = 2 * blend + FRAMES_PER_TOKEN
-        if len(parts) > 1 and any(isinstance(f, numbers.Integral) and f < shortest
-                                  for f in frames):
-            raise SegmoError(f"SegMo.compose: each part of a composition needs at least "
-                             f"{shortest} frames, got {frames}")
-        t = int(transition) // FRAMES_PER_TOKEN
-        max_tokens = self.mask.config.max_tokens
-        if t > max_tokens - 2:
-            raise SegmoError(f"SegMo.compose: transition {transition} frames leaves no room "
-                             f"for context in the model's {self.max_frames} frames")
-        out = self.generate(texts, frames, generator=generator, precision=precision)
-        if len(parts) == 1:
-            out.spans = [[(0, int(out.lengths[0]))]]
-            return out
-        tokens, lengths = out.tokens, out.lengths
-        counts = (lengths // FRAMES_PER_TOKEN).tolist()
-        contexts = [min(counts[i], counts[i + 1], (max_tokens - t) // 2)
-                    for i in range(len(parts) - 1)]
-        width = max(2 * c + t for c in contexts)
-        q = tokens.shape[2]
-        windows = tokens.new_full((len(contexts), width, q), -1)
-        spans = torch.zeros(len(contexts), 2, dtype=torch.long)
-        for i, c in enumerate(contexts):
-            windows[i, :c] = tokens[i, counts[i] - c:counts[i]]
-            windows[i, c:c + t] = 0  # placeholders, redrawn
-            windows[i, c + t:2 * c + t] = tokens[i + 1, :c]
-            spans[i] = torch.tensor([c, c + t])
-        pairs = [f"{texts[i].rstrip('. ')}, then {texts[i + 1]}" for i in range(len(contexts))]
-        segments = [[out.segments[i][-1], out.segments[i + 1][0]] for i in range(len(contexts))]
-        window_lengths = torch.tensor([(2 * c + t) * FRAMES_PER_TOKEN for c in contexts],
-                                      device=self.device)
-        sentence, vectors, segment_mask, _ = self.text_condition(pairs, segments)
-        words, word_mask = self.word_condition(pairs, segments, out.sampling.word_text)
-        filled = edit_tokens(self.mask, self.residual, windows.to(self.device),
-                             spans.to(self.device), sentence, vectors, segment_mask,
-                             options=out.sampling, generator=generator, precision=precision,
-                             words=words, word_mask=word_mask)
-        decoded = self.decode(filled, window_lengths, pairs, segments, precision).features
-        pieces, all_tokens, part_spans, at = [], [], [], 0
-        ramp = torch.linspace(0, 1, blend + 2, device=out.features.device)[1:-1, None]
-        for i in range(len(parts)):
-            part = out.features[i, :int(lengths[i])].clone()
-            if i > 0:  # fade in from the transition window's decoding of the same frames
-                c = contexts[i - 1] * FRAMES_PER_TOKEN + transition
-                part[:blend] = (1 - ramp) * decoded[i - 1, c:c + blend] + ramp * part[:blend]
-            if i < len(parts) - 1:
-                c = contexts[i] * FRAMES_PER_TOKEN
-                part[-blend:] = (1 - ramp) * part[-blend:] + ramp * decoded[i, c - blend:c]
-            part_spans.append((at, at + part.shape[0]))
-            pieces.append(part)
-            all_tokens.append(tokens[i, :counts[i]])
-            at += part.shape[0]
-            if i < len(parts) - 1:
-                c = contexts[i] * FRAMES_PER_TOKEN
-                pieces.append(decoded[i, c:c + transition])
-                all_tokens.append(filled[i, contexts[i]:contexts[i] + t].to(tokens.device))
-                at += transition
-        features = torch.cat(pieces)[None]
-        total = torch.tensor([features.shape[1]], device=features.device)
-        joints = features_to_joints(features, self.skeleton).float()
-        text = " Then ".join(x.rstrip(". ") for x in texts) + "."
-        return GenerationOutput(features=features.float(), joints=joints,
-                                tokens=torch.cat(all_tokens)[None], lengths=total.long(),
-                                texts=[text], segments=[list(texts)], skeleton=self.skeleton,
-                                fps=self.fps, spans=[part_spans])
+        return compose.compose(self, parts, transition, generator=generator,
+                               precision=precision)
 
     @contextmanager
     def record_attention(self) -> Iterator[AttentionRecording]:

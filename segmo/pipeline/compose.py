@@ -1,0 +1,111 @@
+"""`SegMo.compose`: one motion longer than the model's clips, from a list of (text,
+frames) parts. Each part is generated from its text (one batch); between two parts,
+`transition` new frames are drawn by masked inpainting (`segmo.generation.editing`) with
+the end of the one and the start of the next visible, conditioned on both texts as two
+ordered segments; parts and transitions are decoded window by window and joined with a
+cross-fade of `COMPOSE_BLEND` frames at the edges of each transition.
+
+    long = model.compose([("a man walks forward", 120), ("he jumps twice", 60)], transition=20)
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import torch
+
+from segmo.errors import SegmoError
+from segmo.generation.editing import edit_tokens
+from segmo.generation.generate import Precision
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
+from segmo.motion.features import features_to_joints
+from segmo.pipeline.editing import EditingModel
+from segmo.pipeline.inputs import check_texts
+from segmo.pipeline.outputs import GenerationOutput
+
+# The frames drawn between two parts by default, and the cross-fade at the edges of each
+# transition between the part's own decoding and the transition window's.
+COMPOSE_TRANSITION = 20
+COMPOSE_BLEND = 8
+
+
+def compose(model: EditingModel, parts: list[tuple[str, int]], transition: int = COMPOSE_TRANSITION,
+            *, generator: torch.Generator | None = None, precision: Precision = "auto"
+            ) -> GenerationOutput:
+    """`SegMo.compose` (its docstring says what comes back)."""
+    if not isinstance(parts, (list, tuple)) or not parts or not all(
+            isinstance(p, (list, tuple)) and len(p) == 2 for p in parts):
+        raise SegmoError(f"SegMo.compose: parts must be a list of (text, frames), got "
+                         f"{parts!r:.80}")
+    texts = check_texts([p[0] for p in parts], "part")
+    frames = [p[1] for p in parts]
+    if isinstance(transition, bool) or not isinstance(transition, numbers.Integral) \
+            or transition < FRAMES_PER_TOKEN or transition % FRAMES_PER_TOKEN:
+        raise SegmoError(f"SegMo.compose: transition must be a multiple of "
+                         f"{FRAMES_PER_TOKEN} frames >= {FRAMES_PER_TOKEN}, got {transition!r}")
+    blend = COMPOSE_BLEND
+    shortest = 2 * blend + FRAMES_PER_TOKEN
+    if len(parts) > 1 and any(isinstance(f, numbers.Integral) and f < shortest
+                              for f in frames):
+        raise SegmoError(f"SegMo.compose: each part of a composition needs at least "
+                         f"{shortest} frames, got {frames}")
+    t = int(transition) // FRAMES_PER_TOKEN
+    max_tokens = model.mask.config.max_tokens
+    if t > max_tokens - 2:
+        raise SegmoError(f"SegMo.compose: transition {transition} frames leaves no room "
+                         f"for context in the model's {model.max_frames} frames")
+    out = model.generate(texts, frames, generator=generator, precision=precision)
+    if len(parts) == 1:
+        out.spans = [[(0, int(out.lengths[0]))]]
+        return out
+    tokens, lengths = out.tokens, out.lengths
+    counts = (lengths // FRAMES_PER_TOKEN).tolist()
+    contexts = [min(counts[i], counts[i + 1], (max_tokens - t) // 2)
+                for i in range(len(parts) - 1)]
+    width = max(2 * c + t for c in contexts)
+    q = tokens.shape[2]
+    windows = tokens.new_full((len(contexts), width, q), -1)
+    spans = torch.zeros(len(contexts), 2, dtype=torch.long)
+    for i, c in enumerate(contexts):
+        windows[i, :c] = tokens[i, counts[i] - c:counts[i]]
+        windows[i, c:c + t] = 0  # placeholders, redrawn
+        windows[i, c + t:2 * c + t] = tokens[i + 1, :c]
+        spans[i] = torch.tensor([c, c + t])
+    pairs = [f"{texts[i].rstrip('. ')}, then {texts[i + 1]}" for i in range(len(contexts))]
+    segments = [[out.segments[i][-1], out.segments[i + 1][0]] for i in range(len(contexts))]
+    window_lengths = torch.tensor([(2 * c + t) * FRAMES_PER_TOKEN for c in contexts],
+                                  device=model.device)
+    sentence, vectors, segment_mask, _ = model.text_condition(pairs, segments)
+    words, word_mask = model.word_condition(pairs, segments, out.sampling.word_text)
+    filled = edit_tokens(model.mask, model.residual, windows.to(model.device),
+                         spans.to(model.device), sentence, vectors, segment_mask,
+                         options=out.sampling, generator=generator, precision=precision,
+                         words=words, word_mask=word_mask)
+    decoded = model.decode(filled, window_lengths, pairs, segments, precision).features
+    pieces, all_tokens, part_spans, at = [], [], [], 0
+    ramp = torch.linspace(0, 1, blend + 2, device=out.features.device)[1:-1, None]
+    for i in range(len(parts)):
+        part = out.features[i, :int(lengths[i])].clone()
+        if i > 0:  # fade in from the transition window's decoding of the same frames
+            c = contexts[i - 1] * FRAMES_PER_TOKEN + transition
+            part[:blend] = (1 - ramp) * decoded[i - 1, c:c + blend] + ramp * part[:blend]
+        if i < len(parts) - 1:
+            c = contexts[i] * FRAMES_PER_TOKEN
+            part[-blend:] = (1 - ramp) * part[-blend:] + ramp * decoded[i, c - blend:c]
+        part_spans.append((at, at + part.shape[0]))
+        pieces.append(part)
+        all_tokens.append(tokens[i, :counts[i]])
+        at += part.shape[0]
+        if i < len(parts) - 1:
+            c = contexts[i] * FRAMES_PER_TOKEN
+            pieces.append(decoded[i, c:c + transition])
+            all_tokens.append(filled[i, contexts[i]:contexts[i] + t].to(tokens.device))
+            at += transition
+    features = torch.cat(pieces)[None]
+    total = torch.tensor([features.shape[1]], device=features.device)
+    joints = features_to_joints(features, model.skeleton).float()
+    text = " Then ".join(x.rstrip(". ") for x in texts) + "."
+    return GenerationOutput(features=features.float(), joints=joints,
+                            tokens=torch.cat(all_tokens)[None], lengths=total.long(),
+                            texts=[text], segments=[list(texts)], skeleton=model.skeleton,
+                            fps=model.fps, spans=[part_spans])
