@@ -80,6 +80,9 @@ CLI_CASES = [
         "--durations", "two duration lists for one prompt"),
     Cli("generate-durations-untimed", GEN + " --text walk --durations 1", "segment timing",
         "durations for a model trained without segment timing"),
+    Cli("compose-durations-count", "compose --model {bundle} --out {tmp}/long --text walk "
+        "--length 40 --durations 1 --durations 1", "--durations",
+        "two duration lists for one part"),
     Cli("generate-device-cuda", GEN + " --text walk --device cuda:7", "--device",
         "a CUDA device on a machine without one"),
     Cli("generate-device-bogus", GEN + " --text walk --device toaster", "--device",
@@ -270,6 +273,8 @@ API_CASES = [
         "sampler", "an unknown sampler"),
     Api("api-durations-untimed", lambda m, w: m.generate(["walk"], [40], durations=[[1]]),
         SegmoError, "segment timing", "`generate(durations=...)` on a model without timing"),
+    Api("api-compose-part-shape", lambda m, w: m.compose([("walk", 40, [1], "run")]),
+        SegmoError, "(text, frames, durations)", "a part of four items"),
     Api("api-segments-shape", lambda m, w: m.generate(["walk", "run"], [40], segments=[["walk"]]),
         SegmoError, "segments", "one segment list for two prompts"),
     Api("api-edit-span-order", lambda m, w: m.edit(_motion(w), (40, 8), "run"), SegmoError,

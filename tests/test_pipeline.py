@@ -491,6 +491,25 @@ def test_segment_durations_steer_a_timing_model(tmp_path, tokenizer_dir, model):
         model.generate(PROMPTS, lengths, durations=[[1, 1], [1, 1]])
     with pytest.raises(SegmoError, match="segment_timing must be 'predicted' or 'none'"):
         SamplingOptions(segment_timing="truth")
+    # A text given None takes the head's durations, the others theirs (rows are independent).
+    mixed = tokens(durations=[[1, 5], None])
+    assert torch.equal(mixed[0], first[0]) and torch.equal(mixed[1], predicted[1])
+    assert torch.equal(tokens(durations=[None, None]), predicted)
+
+    # compose: a part may name its durations; the others are predicted.
+    def long(*parts):
+        return timed.compose(list(parts), 16, generator=seeded()).tokens
+
+    plain = long((PROMPTS[0], 64), (PROMPTS[1], 64))
+    assert torch.equal(plain, long((PROMPTS[0], 64, shares[0]), (PROMPTS[1], 64)))
+    assert not torch.equal(long((PROMPTS[0], 64, [1, 5]), (PROMPTS[1], 64)),
+                           long((PROMPTS[0], 64, [5, 1]), (PROMPTS[1], 64)))
+    with pytest.raises(SegmoError, match=r"durations\[1\] has 1 values, text 1 has 2"):
+        long((PROMPTS[0], 64), (PROMPTS[1], 64, [3]))
+    with pytest.raises(SegmoError, match=r"\(text, frames\) or \(text, frames, durations\)"):
+        long((PROMPTS[0], 64, [1, 5], "extra"))
+    with pytest.raises(SegmoError, match="trained with segment timing"):
+        model.compose([(PROMPTS[0], 64, [1, 5]), (PROMPTS[1], 64)])
 
 
 def test_grounding_accuracy_on_builtin_corpus(model, tmp_path_factory):
@@ -558,6 +577,18 @@ def test_cli_compose_writes_one_long_motion(bundle, tmp_path, hash_text_encoder,
     line = cli_failure(["compose", "--model", str(bundle), "--text", "walk", "--text", "jump",
                         "--length", "40", "--out", str(tmp_path / "bad")], capsys)
     assert "--length given 1 times for 2 --text" in line
+    two = ["compose", "--model", str(bundle), "--text", "walk", "--length", "40", "--text",
+           "jump", "--length", "40", "--out", str(tmp_path / "bad")]
+    assert "--durations given 1 times for 2 --text" in cli_failure(
+        [*two, "--durations", "1"], capsys)
+    assert "--durations '1,x': expected numbers" in cli_failure(
+        [*two, "--durations", "auto", "--durations", "1,x"], capsys)
+    # 'auto' everywhere is no durations at all: fine for a model without segment timing
+    compose_main([*two[1:-1], str(tmp_path / "auto"), "--durations", "auto", "--durations",
+                  "auto", "--formats", "npy"])
+    assert np.load(tmp_path / "auto" / "sample_00_features.npy").shape == (100, 263)
+    assert "trained with segment timing" in cli_failure(
+        [*two, "--durations", "auto", "--durations", "1"], capsys)
 
 
 def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, capsys):
@@ -589,6 +620,7 @@ def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, ca
     (["--durations", "1,x"], "--durations '1,x': expected numbers >= 0"),
     (["--durations", "0,0"], "not all 0"),
     (["--durations", "1,4"], "durations need a mask transformer trained with segment timing"),
+    (["--durations", "auto,1"], "--durations 'auto,1': expected numbers >= 0"),
 ])
 def test_cli_generate_errors(bundle, tmp_path, hash_text_encoder, capsys, argv, message):
     base = {"--model": str(bundle), "--text": "a person walks", "--out": str(tmp_path)}

@@ -82,7 +82,8 @@ def segment_spans(model: MaskTransformer, segments: torch.Tensor, segment_mask: 
     """The segments' token spans (b, a, 2) a mask transformer with segment timing is
     given: from `durations` (b, a) (any unit, read as shares of each motion) where given,
     else from the model's timing head (`timing` "predicted"); None for a model without
-    timing or with `timing` "none" (the model generates as trained without spans)."""
+    timing or with `timing` "none" (the model generates as trained without spans). A row
+    of `durations` that is all 0 is a sample without durations: the head's spans."""
     if not model.config.segment_timing:
         return None
     lengths = token_mask.sum(1)
@@ -91,7 +92,14 @@ def segment_spans(model: MaskTransformer, segments: torch.Tensor, segment_mask: 
         if durations.shape != segment_mask.shape:
             raise ValueError(f"durations must be (b, a) = {tuple(segment_mask.shape)}, one per "
                              f"segment slot, got {tuple(durations.shape)}")
-        return durations_to_spans(durations, segment_mask.bool(), lengths)
+        given = (durations * segment_mask).sum(1) > 0
+        if bool(given.all()):
+            return durations_to_spans(durations, segment_mask.bool(), lengths)
+        spans = model.predict_spans(segments, segment_mask, lengths)
+        if bool(given.any()):
+            spans[given] = durations_to_spans(durations[given], segment_mask[given].bool(),
+                                              lengths[given])
+        return spans
     if timing == "none":
         return None
     return model.predict_spans(segments, segment_mask, lengths)

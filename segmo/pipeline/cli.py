@@ -123,7 +123,8 @@ def generate_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--durations", action="append", default=None, metavar="D1,D2,...",
                         help="how long each text segment lasts, e.g. 1,4 (any unit, read as "
                              "shares of the motion), for a model trained with segment timing; "
-                             "once per --text; default: its timing head predicts them")
+                             "once per --text, 'auto' for a text whose durations its timing "
+                             "head predicts (the default for all)")
     parser.add_argument("--device", default="cpu")
     _output_arguments(parser)
     args = parser.parse_args(argv)
@@ -167,8 +168,11 @@ def generate_main(argv: list[str] | None = None) -> None:
         print(path)
 
 
-def _durations(parser: argparse.ArgumentParser, value: str) -> list[float]:
-    """`--durations 1,4` → [1.0, 4.0]; one error line for anything else."""
+def _durations(parser: argparse.ArgumentParser, value: str) -> list[float] | None:
+    """`--durations 1,4` → [1.0, 4.0], `--durations auto` → None (predicted); one error
+    line for anything else."""
+    if value.strip() == "auto":
+        return None
     try:
         return parse_durations(value)
     except ValueError as error:
@@ -247,6 +251,10 @@ def compose_main(argv: list[str] | None = None) -> None:
                         help="a part's frames (multiple of 4); once per --text")
     parser.add_argument("--transition", type=positive_int, default=COMPOSE_TRANSITION,
                         help=f"frames drawn between two parts (default {COMPOSE_TRANSITION})")
+    parser.add_argument("--durations", action="append", default=None, metavar="D1,D2,...",
+                        help="how long each segment of a part lasts, e.g. 1,4, for a model "
+                             "trained with segment timing; once per --text, 'auto' for a part "
+                             "whose durations its timing head predicts (the default for all)")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     _output_arguments(parser)
     args = parser.parse_args(argv)
@@ -254,10 +262,17 @@ def compose_main(argv: list[str] | None = None) -> None:
     if len(args.length) != len(args.text):
         parser.error(f"--length given {len(args.length)} times for {len(args.text)} --text; "
                      "give one per --text")
+    parts = list(zip(args.text, args.length))
+    if args.durations is not None:
+        if len(args.durations) != len(args.text):
+            parser.error(f"--durations given {len(args.durations)} times for {len(args.text)} "
+                         "--text; give it once per --text")
+        parts = [(text, length, _durations(parser, value))
+                 for (text, length), value in zip(parts, args.durations)]
     _check_output_dir(parser, "--out", args.out)
     model = _load(parser, args.model)
     keep_freed_memory()
-    out = model.compose(list(zip(args.text, args.length)), args.transition,
+    out = model.compose(parts, args.transition,
                         generator=torch.Generator().manual_seed(args.seed),
                         precision=args.precision)
     for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,

@@ -28,17 +28,21 @@ from segmo.pipeline.outputs import GenerationOutput
 COMPOSE_TRANSITION = 20
 COMPOSE_BLEND = 8
 
+# A part of a composition: (text, frames), or (text, frames, its segments' durations).
+Part = tuple[str, int] | tuple[str, int, list[float]]
 
-def compose(model: EditingModel, parts: list[tuple[str, int]], transition: int = COMPOSE_TRANSITION,
-            *, generator: torch.Generator | None = None, precision: Precision = "auto"
+
+def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TRANSITION, *,
+            generator: torch.Generator | None = None, precision: Precision = "auto"
             ) -> GenerationOutput:
     """`SegMo.compose` (its docstring says what comes back)."""
     if not isinstance(parts, (list, tuple)) or not parts or not all(
-            isinstance(p, (list, tuple)) and len(p) == 2 for p in parts):
-        raise SegmoError(f"SegMo.compose: parts must be a list of (text, frames), got "
-                         f"{parts!r:.80}")
+            isinstance(p, (list, tuple)) and len(p) in (2, 3) for p in parts):
+        raise SegmoError(f"SegMo.compose: parts must be a list of (text, frames) or (text, "
+                         f"frames, durations), got {parts!r:.80}")
     texts = check_texts([p[0] for p in parts], "part")
     frames = [p[1] for p in parts]
+    durations = [p[2] if len(p) == 3 else None for p in parts]
     if isinstance(transition, bool) or not isinstance(transition, numbers.Integral) \
             or transition < FRAMES_PER_TOKEN or transition % FRAMES_PER_TOKEN:
         raise SegmoError(f"SegMo.compose: transition must be a multiple of "
@@ -54,7 +58,9 @@ def compose(model: EditingModel, parts: list[tuple[str, int]], transition: int =
     if t > max_tokens - 2:
         raise SegmoError(f"SegMo.compose: transition {transition} frames leaves no room "
                          f"for context in the model's {model.max_frames} frames")
-    out = model.generate(texts, frames, generator=generator, precision=precision)
+    given = any(d is not None for d in durations)
+    out = model.generate(texts, frames, generator=generator, precision=precision,
+                         durations=durations if given else None)
     if len(parts) == 1:
         out.spans = [[(0, int(out.lengths[0]))]]
         return out

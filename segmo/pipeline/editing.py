@@ -61,8 +61,8 @@ class EditingModel(Protocol):
                segments: list[list[str]], precision: Precision = "auto") -> GenerationOutput: ...
 
     def generate(self, texts: list[str], lengths: Any = None, *,
-                 generator: torch.Generator | None = None, precision: Precision = "auto"
-                 ) -> GenerationOutput: ...
+                 generator: torch.Generator | None = None, precision: Precision = "auto",
+                 durations: list[list[float] | None] | None = None) -> GenerationOutput: ...
 
 
 def edit(model: EditingModel, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,

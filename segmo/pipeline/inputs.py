@@ -106,15 +106,18 @@ def motion_array(motion: Any, feature_dim: int, max_frames: int, skeleton: str
 
 
 def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor:
-    """Per text, how long each of its segments lasts (any unit: shares of the motion) →
-    (b, a) float32, 0 in empty slots; SegmoError naming the text whose durations do not
-    fit its segments."""
+    """Per text, how long each of its segments lasts (any unit: shares of the motion), or
+    None for a text whose durations the timing head predicts → (b, a) float32, 0 in empty
+    slots and in the rows of None; SegmoError naming the text whose durations do not fit
+    its segments."""
     if isinstance(durations, (str, bytes)) or not hasattr(durations, "__len__") \
             or len(durations) != len(segments):
         raise SegmoError(f"SegMo.generate: durations must be one list per text "
                          f"({len(segments)}), got {durations!r:.80}")
     out = torch.zeros(len(segments), max(len(s) for s in segments))
     for i, (values, segs) in enumerate(zip(durations, segments)):
+        if values is None:
+            continue
         try:
             values = [float(v) for v in values]
         except (TypeError, ValueError):

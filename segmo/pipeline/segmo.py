@@ -50,7 +50,7 @@ from segmo.pipeline.bundle import (
     sampling_fields,
     write_bundle,
 )
-from segmo.pipeline.compose import COMPOSE_TRANSITION
+from segmo.pipeline.compose import COMPOSE_TRANSITION, Part
 from segmo.pipeline.inputs import (
     check_texts,
     frame_lengths,
@@ -414,7 +414,7 @@ class SegMo:
                  guidance: str | None = None, temperature: float | None = None,
                  top_k_ratio: float | None = None, sampler: Sampler | None = None,
                  generator: torch.Generator | None = None, precision: Precision = "auto",
-                 durations: list[list[float]] | None = None) -> GenerationOutput:
+                 durations: list[list[float] | None] | None = None) -> GenerationOutput:
         """Text → motions. lengths: frames per text (multiples of 4 in [4, max_frames]), an
         int for all, or None to sample them from the length estimator. Tokens are drawn as
         `sampling` says (default `self.sampling`: the bundle's guidance scales), an option
@@ -422,7 +422,8 @@ class SegMo:
         seeded `generator`. durations: per text, how long each of its segments lasts (any
         unit, read as shares of the motion: [1, 3] = the second segment three times as
         long), for a mask transformer trained with segment timing; without them such a
-        model predicts them (`SamplingOptions.segment_timing`).
+        model predicts them (`SamplingOptions.segment_timing`), and so for a text whose
+        entry is None (durations=[[1, 4], None]).
 
             >>> model.generate(["a person jumps, then walks forward"], [120], durations=[[1, 4]])
         """
@@ -515,7 +516,7 @@ class SegMo:
                                  inject_until=inject_until, keep_outside=keep_outside,
                                  precision=precision)
 
-    def compose(self, parts: list[tuple[str, int]], transition: int = COMPOSE_TRANSITION, *,
+    def compose(self, parts: list[Part], transition: int = COMPOSE_TRANSITION, *,
                 generator: torch.Generator | None = None, precision: Precision = "auto"
                 ) -> GenerationOutput:
         """One motion longer than the model's clips from a list of (text, frames) parts:
@@ -532,6 +533,9 @@ class SegMo:
         velocities). → one sample of sum(frames) + (parts − 1)·transition frames, its
         segments the parts' texts and `spans` their frames; its tokens are the
         concatenated tokens of parts and transitions. One part is exactly `generate`.
+        A part may name its segments' durations, (text, frames, [1, 3]), for a mask
+        transformer trained with segment timing (`generate`'s durations; the parts without
+        them are predicted).
         """
         return compose.compose(self, parts, transition, generator=generator,
                                precision=precision)
