@@ -23,4 +23,4 @@ test: .venv/ready
 	$(PY) -m pytest -q -n $(JOBS) --dist loadgroup
 
 lint: .venv/ready
-	$(PY) -m ruff check segmo tests tools
+	$(PY) -m ruff check segmo tests tools notebooks
