@@ -96,7 +96,6 @@ def edit(model: EditingModel, motion: GenerationOutput | Any, span: tuple[int, i
     return model.decode(edited, lengths, texts, used, precision)
 
 
-
 def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | list[str] | None,
               mode: EditMode, *, target_segments: list[list[str]] | None,
               weights: dict[str | int, float] | None, inject_until: float,
@@ -164,7 +163,6 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         editable=editable, source_tokens=None if editable is None else source.tokens.to(device),
         options=source.sampling, generator_state=source.generator_state, precision=precision)
     return model.decode(tokens, lengths, targets, used, precision)
-
 
 
 def weight_labels(weights: dict[str | int, float], segments: list[str],
