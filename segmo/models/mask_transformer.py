@@ -276,8 +276,13 @@ def masked_token_loss(logits: torch.Tensor, targets: torch.Tensor,
         if not bool(target_mask.any()):
             raise ValueError("masked_token_loss: target_mask selects no position")
         return F.cross_entropy(logits[target_mask].float(), targets[target_mask])
-    w = weights[target_mask].float()
-    return (masked_token_losses(logits, targets, target_mask) * w).sum() / w.sum().clamp(min=1e-8)
+    return weighted_mean(masked_token_losses(logits, targets, target_mask),
+                         weights[target_mask].float())
+
+
+def weighted_mean(losses: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """sum(losses · weights) / sum(weights), for per-position losses and their weights."""
+    return (losses * weights).sum() / weights.sum().clamp(min=1e-8)
 
 
 def masked_token_losses(logits: torch.Tensor, targets: torch.Tensor,

@@ -30,6 +30,7 @@ from segmo.models.mask_transformer import (
     mask_tokens,
     masked_token_loss,
     masked_token_losses,
+    weighted_mean,
 )
 from segmo.models.segment_timing import timing_loss
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -313,7 +314,7 @@ class MaskTask(TransformerTask):
             losses = masked_token_losses(out.logits, base, target)
             weights = segment_balanced_weights(*known_spans, valid)[target]
             mask_loss = losses.mean()
-            balanced = (losses * weights).sum() / weights.sum().clamp(min=1e-8)
+            balanced = weighted_mean(losses, weights)
         else:
             mask_loss = masked_token_loss(out.logits, base, target)
         correct = (out.logits.argmax(-1) == base) & target
