@@ -129,12 +129,7 @@ def generate_main(argv: list[str] | None = None) -> None:
     _output_arguments(parser)
     args = parser.parse_args(argv)
     formats = _formats(parser, args.formats)
-    durations = None
-    if args.durations is not None:
-        if len(args.durations) != len(args.text):
-            parser.error(f"--durations given {len(args.durations)} times for {len(args.text)} "
-                         "--text; give it once per --text")
-        durations = [_durations(parser, value) for value in args.durations]
+    durations = _durations_per_text(parser, args.durations, len(args.text))
     lengths = args.length
     if lengths is not None and len(lengths) not in (1, len(args.text)):
         parser.error(f"--length given {len(lengths)} times for {len(args.text)} --text; "
@@ -166,6 +161,18 @@ def generate_main(argv: list[str] | None = None) -> None:
     for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,
                          spans=spans, progress=True):
         print(path)
+
+
+def _durations_per_text(parser: argparse.ArgumentParser, values: list[str] | None,
+                        texts: int) -> list[list[float] | None] | None:
+    """`--durations`, given once per --text or not at all → one entry per text (None:
+    predicted), or None when it is not given; one error line for a wrong count."""
+    if values is None:
+        return None
+    if len(values) != texts:
+        parser.error(f"--durations given {len(values)} times for {texts} --text; give it once "
+                     "per --text")
+    return [_durations(parser, value) for value in values]
 
 
 def _durations(parser: argparse.ArgumentParser, value: str) -> list[float] | None:
@@ -262,13 +269,8 @@ def compose_main(argv: list[str] | None = None) -> None:
     if len(args.length) != len(args.text):
         parser.error(f"--length given {len(args.length)} times for {len(args.text)} --text; "
                      "give one per --text")
-    parts = list(zip(args.text, args.length))
-    if args.durations is not None:
-        if len(args.durations) != len(args.text):
-            parser.error(f"--durations given {len(args.durations)} times for {len(args.text)} "
-                         "--text; give it once per --text")
-        parts = [(text, length, _durations(parser, value))
-                 for (text, length), value in zip(parts, args.durations)]
+    durations = _durations_per_text(parser, args.durations, len(args.text))
+    parts = list(zip(args.text, args.length, durations or [None] * len(args.text)))
     _check_output_dir(parser, "--out", args.out)
     model = _load(parser, args.model)
     keep_freed_memory()

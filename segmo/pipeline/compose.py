@@ -58,9 +58,8 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
     if t > max_tokens - 2:
         raise SegmoError(f"SegMo.compose: transition {transition} frames leaves no room "
                          f"for context in the model's {model.max_frames} frames")
-    given = any(d is not None for d in durations)
     out = model.generate(texts, frames, generator=generator, precision=precision,
-                         durations=durations if given else None)
+                         durations=durations)
     if len(parts) == 1:
         out.spans = [[(0, int(out.lengths[0]))]]
         return out

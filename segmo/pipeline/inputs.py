@@ -105,11 +105,11 @@ def motion_array(motion: Any, feature_dim: int, max_frames: int, skeleton: str
     return x, usable
 
 
-def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor:
+def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor | None:
     """Per text, how long each of its segments lasts (any unit: shares of the motion), or
     None for a text whose durations the timing head predicts → (b, a) float32, 0 in empty
-    slots and in the rows of None; SegmoError naming the text whose durations do not fit
-    its segments."""
+    slots and in the rows of None (None when no text has durations); SegmoError naming the
+    text whose durations do not fit its segments."""
     if isinstance(durations, (str, bytes)) or not hasattr(durations, "__len__") \
             or len(durations) != len(segments):
         raise SegmoError(f"SegMo.generate: durations must be one list per text "
@@ -130,4 +130,4 @@ def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor
             raise SegmoError(f"SegMo.generate: durations[{i}] must be finite, ≥ 0 and not "
                              f"all 0, got {values!r:.80}")
         out[i, : len(values)] = torch.tensor(values)
-    return out
+    return None if all(values is None for values in durations) else out

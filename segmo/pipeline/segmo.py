@@ -454,13 +454,16 @@ class SegMo:
         out.sampling, out.generator_state = options, state
         return out
 
-    def segment_durations(self, durations: Any, segments: list[list[str]]) -> torch.Tensor:
-        """Per text, its segments' durations → (b, a) float32, 0 in empty slots; one
-        SegmoError naming the text whose durations do not fit."""
-        if not self.mask.config.segment_timing:
+    def segment_durations(self, durations: Any, segments: list[list[str]]
+                          ) -> torch.Tensor | None:
+        """Per text, its segments' durations → (b, a) float32, 0 in empty slots, None when
+        no text has any; one SegmoError naming the text whose durations do not fit."""
+        none_given = isinstance(durations, (list, tuple)) and all(d is None for d in durations)
+        if not self.mask.config.segment_timing and not none_given:
             raise SegmoError("SegMo.generate: durations need a mask transformer trained with "
                              "segment timing (segment_timing: truth or segmenter); this one has none")
-        return segment_durations(durations, segments).to(self.device)
+        timing = segment_durations(durations, segments)
+        return None if timing is None else timing.to(self.device)
 
     def edit(self, motion: GenerationOutput | Any, span: tuple[int, int], text: str, *,
              segments: list[str] | None = None, sampling: SamplingOptions | None = None,
