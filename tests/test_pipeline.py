@@ -286,9 +286,18 @@ def test_from_stages_equals_bundle(stages, generated):
 def test_lengths_from_estimator_and_text_cache(model):
     out = model.generate(PROMPTS, generator=seeded(3))
     assert all(int(n) % 4 == 0 and 4 <= int(n) <= model.max_frames for n in out.lengths)
-    assert PROMPTS[0] in model._sentence_cache
-    assert torch.equal(model.encode_texts(PROMPTS[:1])[0],
-                       hash_encoder("hash", TEXT_DIM).encode(PROMPTS[:1]).sentence[0])
+    # Each text is encoded once, then read from the cache; another encoder starts afresh.
+    original, counting, seen = model.text_encoder, hash_encoder("hash", TEXT_DIM), []
+    plain = counting.encode
+    counting.encode = lambda texts, batch_size=64: seen.extend(texts) or plain(texts)
+    model.text_encoder = counting
+    try:
+        first = model.encode_texts(PROMPTS[:1])
+        assert torch.equal(model.encode_texts(PROMPTS), torch.cat([first, model.encode_texts(PROMPTS[1:])]))
+        assert seen == PROMPTS
+        assert torch.equal(first[0], hash_encoder("hash", TEXT_DIM).encode(PROMPTS[:1]).sentence[0])
+    finally:
+        model.text_encoder = original
 
 
 @pytest.mark.parametrize("lengths", [[30, 48], [0, 48], [48, 200], [48], [48, 48, 48]])

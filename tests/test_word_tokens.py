@@ -3,6 +3,7 @@ prefix keys; a model without them is exactly the model it was before."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -254,6 +255,15 @@ def test_a_bundle_with_words_generates_grounds_and_edits(residual_tokens, tmp_pa
     assert model.word_texts(texts)[0] == ["a", "person", "walks", "forward,", "then", "waves."]
     model.mask.config.max_words = 5
     assert model.word_texts(texts)[1] == ["one", "two", "three", "four", "five"]
+    # Word features are cached per text like sentences, and forgotten with the encoder.
+    before, _ = model.word_condition(texts[:1])
+    doubled = hash_encoder("hash", 8)
+    plain = doubled.encode
+    doubled.encode = lambda texts, batch_size=64: dataclasses.replace(
+        plain(texts), tokens=2 * plain(texts).tokens)
+    model.text_encoder = doubled
+    after, _ = model.word_condition(texts[:1])
+    assert torch.equal(after, 2 * before)
 
 
 def test_a_residual_with_words_needs_a_mask_transformer_with_words(tmp_path, tokenizer_dir):
@@ -291,6 +301,7 @@ def test_word_keys_can_read_the_segments_in_execution_order(tmp_path, tokenizer_
     from segmo.errors import SegmoError
     from segmo.models.tokenizer import RVQVAE
     from segmo.pipeline import SegMo
+    from segmo.pipeline.conditioning import TextConditioning
     from segmo.pipeline.segmo import SegMoConfig
     from segmo.text.extract import ordered_text
 
@@ -315,8 +326,9 @@ def test_word_keys_can_read_the_segments_in_execution_order(tmp_path, tokenizer_
 
     # generate, edit and the bundle's default pass the option on, with the segments used
     read: list[list[str]] = []
-    sources = SegMo.word_sources
-    monkeypatch.setattr(SegMo, "word_sources", lambda self, *a, **k: read.append(sources(self, *a, **k)) or read[-1])
+    sources = TextConditioning.word_sources
+    monkeypatch.setattr(TextConditioning, "word_sources",
+                        lambda self, *a, **k: read.append(sources(self, *a, **k)) or read[-1])
     options = replace(model.sampling, word_text="segments")
     out = model.generate([caption], 48, sampling=options, generator=torch.Generator().manual_seed(0))
     assert out.sampling.word_text == "segments" and read[-1] == ["a man walks forward, then a man jumps"]

@@ -30,7 +30,7 @@ import torch
 from segmo.errors import SegmoError
 from segmo.generation.attention_edit import INJECT_UNTIL, EditMode
 from segmo.generation.generate import Precision, check_models, decode_tokens, generate_tokens
-from segmo.generation.sampling import Sampler, SamplingOptions, check_word_text
+from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.attention_recorder import AttentionRecording, record_attention
 from segmo.models.cpu_inference import use_cpu_kernels
 from segmo.models.length_estimator import LengthEstimator
@@ -51,19 +51,15 @@ from segmo.pipeline.bundle import (
     write_bundle,
 )
 from segmo.pipeline.compose import COMPOSE_TRANSITION, Part
+from segmo.pipeline.conditioning import TextConditioning
 from segmo.pipeline.inputs import (
-    check_texts,
     frame_lengths,
     motion_array,
     resolve_device,
     segment_durations,
-    warn_truncated,
 )
 from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
 from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segments
-from segmo.text import encoders  # looked up on use, so that tests can swap the encoder
-from segmo.text.extract import ordered_text
-from segmo.text.llm import get_text_segmenter
 
 
 class SegMo:
@@ -117,10 +113,8 @@ class SegMo:
         if self.skeleton.feature_dim != tokenizer.config.feature_dim:
             raise SegmoError(f"SegMo: skeleton {config.skeleton!r} has {self.skeleton.feature_dim}"
                              f"-d features, the tokenizer {tokenizer.config.feature_dim}")
-        self._text_encoder = text_encoder
-        self._text_segmenter = text_segmenter
-        self._sentence_cache: dict[str, torch.Tensor] = {}
-        self._word_cache: dict[str, torch.Tensor] = {}
+        self.text = TextConditioning(mask.config, config, self.device, text_encoder=text_encoder,
+                                     text_segmenter=text_segmenter)
 
     # -- construction, saving --------------------------------------------------------------
 
@@ -170,6 +164,7 @@ class SegMo:
         device = resolve_device(device)
         for module in self.modules():
             module.to(device)
+        self.text.device = self.device
         return self
 
     @property
@@ -197,112 +192,57 @@ class SegMo:
         return (f"SegMo(stages=[{stages}], text_encoder={self.text_encoder_name!r}, "
                 f"skeleton={self.skeleton.name!r}, max_frames={self.max_frames})")
 
-    # -- text side ---------------------------------------------------------------------------
+    # -- text side (`segmo.pipeline.conditioning`) -------------------------------------------
 
     @property
     def text_encoder(self):
-        if self._text_encoder is None:
-            try:
-                self._text_encoder = encoders.get_text_encoder(self.text_encoder_name)
-            except (OSError, ValueError, ImportError) as error:
-                raise SegmoError(
-                    f"SegMo: cannot build text encoder {self.text_encoder_name!r} named in the "
-                    f"bundle ({error}); inject one with `model.text_encoder = encoder`") from error
-        return self._text_encoder
+        """The bundle's text encoder, built on first use; assign another to replace it."""
+        return self.text.encoder
 
     @text_encoder.setter
     def text_encoder(self, encoder) -> None:
-        self._text_encoder = encoder
-        self._sentence_cache.clear()
+        self.text.encoder = encoder
 
     @property
     def text_segmenter(self):
-        if self._text_segmenter is None:
-            self._text_segmenter = get_text_segmenter(self.config.text_segmenter,
-                                                      max_segments=self.max_segments)
-        return self._text_segmenter
+        """The bundle's text segmenter, built on first use; assign another to replace it."""
+        return self.text.segmenter
 
     @text_segmenter.setter
     def text_segmenter(self, segmenter) -> None:
-        self._text_segmenter = segmenter
+        self.text.segmenter = segmenter
+
+    @property
+    def uses_words(self) -> bool:
+        """Whether the transformers condition on the captions' words (text_tokens "words")."""
+        return self.text.uses_words
+
+    @property
+    def has_word_keys(self) -> bool:
+        """Whether the words are keys of the mask transformer's self-attention (prefix
+        words; `TextConditioning.has_word_keys`)."""
+        return self.text.has_word_keys
 
     def encode_texts(self, texts: list[str]) -> torch.Tensor:
         """texts → (n, text_dim) float32 sentence vectors on the model's device."""
-        if isinstance(texts, str):
-            raise TypeError("SegMo.encode_texts(texts): texts must be a list of strings")
-        missing = list(dict.fromkeys(t for t in texts if t not in self._sentence_cache))
-        if missing:
-            warn_truncated(self.text_encoder, missing)
-            sentence = self.text_encoder.encode(missing).sentence.float().cpu()
-            if sentence.shape[-1] != self.mask.config.text_dim:
-                raise SegmoError(f"SegMo: text encoder {self.text_encoder_name!r} gives "
-                                 f"{sentence.shape[-1]}-d vectors, the models take "
-                                 f"text_dim={self.mask.config.text_dim}")
-            self._sentence_cache.update(zip(missing, sentence))
-        if not texts:
-            return torch.zeros(0, self.mask.config.text_dim, device=self.device)
-        return torch.stack([self._sentence_cache[t] for t in texts]).to(self.device)
+        return self.text.encode(texts)
 
     def segment_texts(self, texts: list[str]) -> list[list[str]]:
         """Ordered text segments of each text (≤ max_segments), rule backend by default."""
-        if isinstance(texts, str):
-            raise TypeError("SegMo.segment_texts(texts): texts must be a list of strings")
-        return [list(s) for s in self.text_segmenter.segment(list(texts))]
+        return self.text.segment(texts)
 
     def text_condition(self, texts: list[str], segments: list[list[str]] | None = None
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[list[str]]]:
         """texts (b) [+ segments] → sentence (b, text_dim), segment vectors (b, a, text_dim),
         segment_mask (b, a) bool, and the segments used (a = most segments of the batch)."""
-        texts = check_texts(texts)
-        if segments is None:
-            segments = self.segment_texts(texts)
-        else:
-            if isinstance(segments, str) or len(segments) != len(texts):
-                raise SegmoError(f"SegMo: segments must be one list of strings per text "
-                                 f"({len(texts)}), got {segments!r:.80}")
-            segments = [check_texts(s, f"text {i}, segment") for i, s in enumerate(segments)]
-        for text, segs in zip(texts, segments):
-            if not 1 <= len(segs) <= self.max_segments:
-                raise SegmoError(f"SegMo: {text!r:.80} has {len(segs)} segments; the model "
-                                 f"takes 1..{self.max_segments}")
-        a = max(len(s) for s in segments)
-        flat = self.encode_texts([t for s in segments for t in s])
-        vectors = torch.zeros(len(texts), a, flat.shape[-1], device=self.device)
-        mask = torch.zeros(len(texts), a, dtype=torch.bool, device=self.device)
-        k = 0
-        for i, segs in enumerate(segments):
-            vectors[i, : len(segs)] = flat[k: k + len(segs)]
-            mask[i, : len(segs)] = True
-            k += len(segs)
-        return self.encode_texts(list(texts)), vectors, mask, segments
-
-    @property
-    def uses_words(self) -> bool:
-        """Whether the transformers condition on the captions' words (text_tokens "words")."""
-        return self.mask.config.text_tokens == "words"
-
-    @property
-    def has_word_keys(self) -> bool:
-        """Whether the words are keys of the mask transformer's self-attention (prefix
-        words): what an attention recording and a word reweighting see. Words read by
-        cross-attention (`word_attention: cross`) are not."""
-        return self.uses_words and self.mask.config.word_attention == "prefix"
+        return self.text.condition(texts, segments)
 
     def word_sources(self, texts: list[str], segments: list[list[str]] | None = None,
                      word_text: str | None = None) -> list[str]:
         """The text each row's word keys are read from (`SamplingOptions.word_text`; None:
         the bundle's): the text itself ("caption"), or its segments (default: the bundle's
         text segmenter's) joined in execution order ("segments", `ordered_text`)."""
-        texts = check_texts(texts)
-        word_text = self.sampling.word_text if word_text is None else word_text
-        check_word_text(word_text)
-        if word_text == "caption":
-            return texts
-        if segments is None:
-            segments = self.segment_texts(texts)
-        if len(segments) != len(texts):
-            raise SegmoError(f"SegMo: {len(segments)} segment lists for {len(texts)} texts")
-        return [ordered_text(list(s)) for s in segments]
+        return self.text.word_sources(texts, segments, self._word_text(word_text))
 
     def word_condition(self, texts: list[str], segments: list[list[str]] | None = None,
                        word_text: str | None = None
@@ -311,21 +251,7 @@ class SegMo:
         (`word_sources`: the text encoder's tokens, start and end tokens included, padded to
         the longest) and word_mask (b, l) bool, for transformers with word keys; (None,
         None) for the others. Cached in memory per text like the sentence vectors."""
-        if not self.uses_words:
-            return None, None
-        texts = self.word_sources(texts, segments, word_text)
-        missing = list(dict.fromkeys(t for t in texts if t not in self._word_cache))
-        if missing:
-            out = self.text_encoder.encode(missing)
-            for i, text in enumerate(missing):
-                self._word_cache[text] = out.tokens[i][out.token_mask[i].bool()].float().cpu()
-        rows = [self._word_cache[t][: self.mask.config.max_words] for t in texts]
-        length = max(len(r) for r in rows)
-        words = torch.zeros(len(texts), length, self.mask.config.text_dim, device=self.device)
-        mask = torch.zeros(len(texts), length, dtype=torch.bool, device=self.device)
-        for i, row in enumerate(rows):
-            words[i, : len(row)], mask[i, : len(row)] = row.to(self.device), True
-        return words, mask
+        return self.text.words(texts, segments, self._word_text(word_text))
 
     def word_texts(self, texts: list[str], segments: list[list[str]] | None = None,
                    word_text: str | None = None) -> list[list[str]]:
@@ -334,11 +260,10 @@ class SegMo:
         included, cut at the model's max_words), the labels "word 0", "word 1", … of a
         recording in that order (when they are prefix keys, `has_word_keys`); empty lists
         for transformers without words."""
-        texts = check_texts(texts)
-        if not self.uses_words:
-            return [[] for _ in texts]
-        sources = self.word_sources(texts, segments, word_text)
-        return [pieces[: self.mask.config.max_words] for pieces in self.text_encoder.token_texts(sources)]
+        return self.text.word_texts(texts, segments, self._word_text(word_text))
+
+    def _word_text(self, word_text: str | None) -> str:
+        return self.sampling.word_text if word_text is None else word_text
 
     # -- motion side -------------------------------------------------------------------------
 
