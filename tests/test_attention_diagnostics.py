@@ -18,7 +18,7 @@ from segmo.evaluation.attention import (
     sink_ratio,
 )
 from segmo.models.attention_recorder import AttentionMap, record_attention
-from segmo.models.transformer import prefix_labels
+from segmo.models.text_prefix import prefix_labels
 
 
 def make_map(prefix: list[float], n: int = 4, prefix_valid: list[bool] | None = None,

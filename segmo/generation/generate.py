@@ -27,8 +27,8 @@ from segmo.models.attention_recorder import is_recorded
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.segment_timing import durations_to_spans
+from segmo.models.text_prefix import Condition
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.models.transformer import Condition
 
 Precision = Literal["auto", "fp32", "bf16"]
 

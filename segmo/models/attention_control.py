@@ -27,7 +27,8 @@ from torch import nn
 
 from segmo.models.attention_recorder import observe
 from segmo.models.cpu_inference import attention_weights
-from segmo.models.transformer import Trunk, prefix_labels
+from segmo.models.text_prefix import prefix_labels
+from segmo.models.transformer import Trunk
 
 
 @dataclass

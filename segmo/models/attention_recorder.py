@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from segmo.models.transformer import SelfAttention, Trunk, prefix_labels
+from segmo.models.text_prefix import prefix_labels
+from segmo.models.transformer import SelfAttention, Trunk
 
 # The trunks inside an open recording.
 _RECORDED: weakref.WeakSet[nn.Module] = weakref.WeakSet()

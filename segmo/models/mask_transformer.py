@@ -24,17 +24,8 @@ from torch import nn
 from segmo.models.alignment import AlignmentConfig, AlignmentHead
 from segmo.models.pretrained import Pretrained
 from segmo.models.segment_timing import SegmentTiming, TimingHead, predicted_spans
-from segmo.models.transformer import (
-    Condition,
-    EncodedPrefix,
-    Linear,
-    PrefixKeys,
-    TextPrefix,
-    TokenHead,
-    TransformerConfig,
-    Trunk,
-    init_weights,
-)
+from segmo.models.text_prefix import Condition, EncodedPrefix, PrefixKeys, TextPrefix
+from segmo.models.transformer import Linear, TokenHead, TransformerConfig, Trunk, init_weights
 
 
 def cosine_schedule(t: torch.Tensor | float) -> torch.Tensor | float:

@@ -26,14 +26,8 @@ from torch import nn
 
 from segmo.models.mask_transformer import cosine_schedule
 from segmo.models.pretrained import Pretrained
-from segmo.models.transformer import (
-    Condition,
-    TextPrefix,
-    TokenHead,
-    TransformerConfig,
-    Trunk,
-    init_weights,
-)
+from segmo.models.text_prefix import Condition, TextPrefix
+from segmo.models.transformer import TokenHead, TransformerConfig, Trunk, init_weights
 
 
 @dataclass
