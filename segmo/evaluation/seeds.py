@@ -7,6 +7,8 @@ gives, for every figure they all hold, the mean over seeds and the half-width of
 95 % Student-t interval (n - 1 degrees of freedom: with three seeds the half-width is
 2.48 standard deviations of the mean's estimate, not 1.96). `differ` says whether two
 such intervals are apart; overlapping intervals are reported as "no difference".
+`paired` gives the interval of the per-seed differences of two variants trained with the
+same seeds (`tools/compare_seeds.py` prints both for chosen figures).
 
     in_sample = [json.loads(p.read_text()) for p in in_sample_paths]
     columns = ["generation/generated/top1", "generation/generated/fid"]
@@ -64,6 +66,34 @@ def summarise(runs: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
         mean, half = interval(values)
         out[key] = {"mean": mean, "interval": half, "seeds": float(len(values))}
     return out
+
+
+def paired(base: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, Any]]
+           ) -> dict[str, dict[str, float]]:
+    """{figure: {"mean", "interval", "seeds"}} of the per-seed differences new − base, run i
+    of one against run i of the other (the same training seed), for the figures every run
+    has. Pairing removes what a seed does to both (its data order, its initialisation), so
+    the interval is narrower than the two arms' intervals side by side whenever the seeds
+    move both arms alike; it is still "no difference" while it holds zero."""
+    if len(base) != len(new) or not base:
+        raise ValueError(f"paired: {len(base)} runs against {len(new)}; give the same seeds "
+                         "in the same order")
+    flat_base, flat_new = [figures(r) for r in base], [figures(r) for r in new]
+    common = set(flat_base[0]).intersection(*flat_base[1:], *flat_new)
+    out = {}
+    for key in sorted(common):
+        differences = [n[key] - b[key] for b, n in zip(flat_base, flat_new)]
+        if not all(math.isfinite(d) for d in differences):
+            continue
+        mean, half = interval(differences)
+        out[key] = {"mean": mean, "interval": half, "seeds": float(len(differences))}
+    return out
+
+
+def excludes_zero(entry: Mapping[str, float]) -> bool:
+    """Whether a {"mean", "interval"} summary's 95 % interval leaves out 0 (a paired
+    difference beyond the seeds' spread)."""
+    return not math.isnan(entry["interval"]) and abs(entry["mean"]) > entry["interval"]
 
 
 def differ(a: Mapping[str, float], b: Mapping[str, float]) -> bool:
