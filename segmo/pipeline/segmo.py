@@ -1,10 +1,11 @@
 """`SegMo`: the inference pipeline, text → tokens → motion → joints (plus grounding/retrieval).
 
 A `SegMo` holds the stages of a bundle directory (`segmo.pipeline.bundle` says what it
-holds); the checks of what users pass live in `segmo.pipeline.inputs`, the edits in
-`segmo.pipeline.editing`, long motions from parts in `segmo.pipeline.compose`, grounding
-and retrieval in `segmo.pipeline.grounding` / `retrieval` over the segment space of
-`segmo.pipeline.space`.
+holds) and its text side (`segmo.pipeline.conditioning`: text encoder, text segmenter,
+captions → condition tensors); the checks of what users pass live in
+`segmo.pipeline.inputs`, the edits in `segmo.pipeline.editing`, long motions from parts in
+`segmo.pipeline.compose`, grounding and retrieval in `segmo.pipeline.grounding` /
+`retrieval` over the segment space of `segmo.pipeline.space`.
 
 Example:
     >>> from segmo import SegMo
