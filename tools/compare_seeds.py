@@ -81,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--names", default="base,new", help="the two arms' names, comma-separated")
     parser.add_argument("--digits", type=int, default=3)
     args = parser.parse_args(argv)
+    if not 0 <= args.digits <= 12:
+        parser.error(f"--digits {args.digits}: expected a whole number from 0 to 12")
     names = tuple(n.strip() for n in args.names.split(","))
     if len(names) != 2 or not all(names):
         parser.error(f"--names {args.names!r}: expected two names separated by a comma")
