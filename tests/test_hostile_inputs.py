@@ -289,6 +289,19 @@ API_CASES = [
         "candidate", "`retrieve_texts` with no candidates"),
     Api("api-retrieve-top-k", lambda m, w: m.retrieve_texts(_motion(w), ["walk"], top_k=0),
         SegmoError, "top_k", "`retrieve_texts(top_k=0)`"),
+    Api("api-embed-length-negative",
+        lambda m, w: m.embed_segments(["walk"], _motion(w)[None], lengths=[-8]), SegmoError,
+        "lengths must be in [1, 48]", "`embed_segments` of a (b, t, d) tensor with a negative "
+        "length (was cut 8 frames short)"),
+    Api("api-embed-length-beyond",
+        lambda m, w: m.embed_segments(["walk"], _motion(w)[None], lengths=[400]), SegmoError,
+        "lengths must be in [1, 48]", "`embed_segments` with a length beyond the tensor's "
+        "frames (was the whole tensor)"),
+    Api("api-embed-one-motion", lambda m, w: m.embed_segments(["walk"], _motion(w)), SegmoError,
+        "wrap one motion in a list", "`embed_segments` of one (t, d) motion, not a list"),
+    Api("api-embed-text-string", lambda m, w: m.embed_segments("walk", [_motion(w)]),
+        SegmoError, "expected a list of strings", "`embed_segments` of a string, not a list "
+        "(was split into letters)"),
     Api("api-from-pretrained-missing", lambda m, w: SegMo.from_pretrained(w["tmp"] / "nope"),
         FileNotFoundError, "no such model folder", "`from_pretrained` of a missing folder"),
     Api("api-from-pretrained-newer-stage-format", lambda m, w: SegMo.from_pretrained(w["newer_stage"]),

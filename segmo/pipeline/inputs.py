@@ -61,19 +61,25 @@ def resolve_device(device: str | torch.device) -> torch.device:
     return device
 
 
-def frame_lengths(lengths: Any, b: int, max_frames: int, fps: float) -> torch.Tensor:
-    """User lengths (int, list or tensor of frames) for b texts → (b,) long on the CPU."""
+def whole_frames(lengths: Any, b: int, what: str = "SegMo") -> torch.Tensor:
+    """User lengths (a number for all b, or a list, array or tensor) → long tensor on the
+    CPU, or SegmoError: 40.7 frames is a mistake to report, not to round; so are True,
+    "40" and NaN."""
     if isinstance(lengths, (torch.Tensor, np.ndarray)):
         lengths = lengths.tolist()
     values = [lengths] * b if np.ndim(lengths) == 0 else np.ravel(
         np.asarray(lengths, dtype=object)).tolist()
-    # 40.7 frames is a mistake to report, not to round; so are True, "40" and NaN.
     whole = [not isinstance(v, bool) and (isinstance(v, numbers.Integral) or isinstance(
         v, numbers.Real) and math.isfinite(v) and float(v).is_integer()) for v in values]
     if not all(whole):
-        raise SegmoError(f"SegMo: lengths must be whole numbers of frames, got "
+        raise SegmoError(f"{what}: lengths must be whole numbers of frames, got "
                          f"{values[whole.index(False)]!r}")
-    out = torch.tensor([int(v) for v in values], dtype=torch.long)
+    return torch.tensor([int(v) for v in values], dtype=torch.long)
+
+
+def frame_lengths(lengths: Any, b: int, max_frames: int, fps: float) -> torch.Tensor:
+    """User lengths (int, list or tensor of frames) for b texts → (b,) long on the CPU."""
+    out = whole_frames(lengths, b)
     if out.numel() != b:
         raise SegmoError(f"SegMo: {out.numel()} lengths for {b} texts")
     unit = FRAMES_PER_TOKEN
@@ -103,6 +109,32 @@ def motion_array(motion: Any, feature_dim: int, max_frames: int, skeleton: str
         raise SegmoError(f"SegMo: a motion must have {FRAMES_PER_TOKEN}.."
                          f"{max_frames + FRAMES_PER_TOKEN - 1} frames, got {t}")
     return x, usable
+
+
+def motion_rows(motions: Any, lengths: Any, what: str) -> list[Any]:
+    """Motions as a list of (t_i, d) arrays/tensors, or as a (b, t, d) array/tensor whose
+    row i holds `lengths[i]` frames (default: all t) → one (t_i, d) motion per row;
+    SegmoError naming `what` for lengths that do not fit or an empty batch."""
+    if isinstance(motions, (torch.Tensor, np.ndarray)) and np.ndim(motions) == 3:
+        x = motions.float() if isinstance(motions, torch.Tensor) else torch.as_tensor(
+            np.asarray(motions, dtype=np.float32))
+        b, t = x.shape[:2]
+        frames = torch.full((b,), t) if lengths is None else whole_frames(lengths, b, what)
+        if frames.numel() != b:
+            raise SegmoError(f"{what}: {frames.numel()} lengths for {b} motions")
+        if bool(((frames < 1) | (frames > t)).any()):
+            raise SegmoError(f"{what}: lengths must be in [1, {t}] frames (the tensor's "
+                             f"time axis), got {frames.tolist()}")
+        motions = [x[i, : int(n)] for i, n in enumerate(frames)]
+    elif lengths is not None:
+        raise SegmoError(f"{what}: lengths are only used with a (b, t, d) motion tensor")
+    elif isinstance(motions, (torch.Tensor, np.ndarray)):
+        raise SegmoError(f"{what}: motions must be a list of (t, d) motions or one (b, t, d) "
+                         f"tensor, got shape {tuple(motions.shape)} (wrap one motion in a list)")
+    motions = list(motions)
+    if not motions:
+        raise SegmoError(f"{what}: no motion given")
+    return motions
 
 
 def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor | None:

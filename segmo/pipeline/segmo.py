@@ -25,7 +25,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from segmo.errors import SegmoError
@@ -54,8 +53,10 @@ from segmo.pipeline.bundle import (
 from segmo.pipeline.compose import COMPOSE_TRANSITION, Part
 from segmo.pipeline.conditioning import TextConditioning
 from segmo.pipeline.inputs import (
+    check_texts,
     frame_lengths,
     motion_array,
+    motion_rows,
     resolve_device,
     segment_durations,
 )
@@ -498,44 +499,25 @@ class SegMo:
         (default: the bundle's text segmenter).
         """
         alignment_head(self.mask)  # before any work: a model without one cannot do this
-        z, frames = self._batch_motions(motions, lengths, normalized)
-        texts = list(texts)
+        texts = check_texts(texts)
+        rows = [self._z_scored(m, normalized)
+                for m in motion_rows(motions, lengths, "SegMo.embed_segments")]
+        if len(texts) != len(rows):
+            raise SegmoError(f"SegMo.embed_segments: {len(texts)} texts for {len(rows)} motions")
+        frames = torch.tensor([len(r) for r in rows], device=self.device)
+        z = torch.nn.utils.rnn.pad_sequence(rows, batch_first=True)  # zeros past each end
         sentence, vectors, segment_mask, used = self.text_condition(texts, segments)
-        if len(texts) != z.shape[0]:
-            raise SegmoError(f"embed_pairs: {len(texts)} texts for {z.shape[0]} motions")
         words, word_mask = self.word_condition(texts, used)
         return embed_segments(self.tokenizer, self.mask, z, frames, sentence, vectors,
                               segment_mask, used, words, word_mask)
 
-    def _batch_motions(self, motions: Any, lengths: Any, normalized: bool
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Motions as `embed_segments` takes them → z-scored (b, t, d) padded with zeros,
-        and frames (b,) (multiples of 4)."""
-        if isinstance(motions, (torch.Tensor, np.ndarray)) and np.ndim(motions) == 3:
-            x = torch.as_tensor(np.asarray(motions, dtype=np.float32)) \
-                if not isinstance(motions, torch.Tensor) else motions.float()
-            frames = (torch.full((x.shape[0],), x.shape[1]) if lengths is None
-                      else torch.as_tensor(lengths).long().reshape(-1).cpu())
-            if len(frames) != x.shape[0]:
-                raise SegmoError(f"embed_pairs: {len(frames)} lengths for {x.shape[0]} motions")
-            motions = [x[i, : int(n)] for i, n in enumerate(frames)]
-        elif lengths is not None:
-            raise SegmoError("embed_pairs: lengths are only used with a (b, t, d) motion tensor")
-        rows = []
-        for motion in motions:
-            if normalized:
-                x, usable = motion_array(motion, self.tokenizer.config.feature_dim,
-                                         self.max_frames, self.skeleton.name)
-                rows.append(x[:usable].to(self.device))
-            else:
-                rows.append(self.normalize_motion(motion)[0][0])
-        if not rows:
-            raise SegmoError("embed_pairs: no motion given")
-        frames = torch.tensor([len(r) for r in rows], device=self.device)
-        z = torch.zeros(len(rows), int(frames.max()), rows[0].shape[1], device=self.device)
-        for i, r in enumerate(rows):
-            z[i, : len(r)] = r
-        return z, frames
+    def _z_scored(self, motion: Any, normalized: bool) -> torch.Tensor:
+        """One motion → z-scored (t', d) on the model's device, t' its usable frames."""
+        if not normalized:
+            return self.normalize_motion(motion)[0][0]
+        x, usable = motion_array(motion, self.tokenizer.config.feature_dim, self.max_frames,
+                                 self.skeleton.name)
+        return x[:usable].to(self.device)
 
     def ground(self, text: str, motion: Any, window: int | list[int] | None = None,
                stride: int = 1, segments: list[str] | None = None, search: str | None = None,
