@@ -486,3 +486,70 @@ def test_local_uncond_prob_keeps_the_segments_of_dropped_samples():
     assert TransformerTask.keep_local(Stub(), drop).tolist() == [True, False, True]
     Stub.hparams.local_uncond_prob = 0.0
     assert TransformerTask.keep_local(Stub(), drop) is None
+
+
+def test_remasking_by_segments_takes_each_segments_share():
+    # Scores of one step: position 2 (segment 0) and 9 (segment 1) already final.
+    groups = torch.tensor([[0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 2, 2]])
+    editable = torch.ones(1, 14, dtype=torch.bool)
+    editable[0, 13] = False  # fixed (an edit's kept token)
+    scores = torch.tensor([[0.9, 0.1, float("inf"), 0.5, 0.2, 0.3, 0.05, 0.6, 0.7,
+                            float("inf"), 0.8, 0.4, 0.35, float("inf")]])
+    t = 0.5  # γ = cos(π/4) ≈ 0.707
+    by_segment = generate_module.remasked(scores, editable, t, groups)
+    # ⌈0.707·m_j⌉ of m_j = 4, 8, 1 editable tokens: 3, 6, 1, the least confident of each
+    # (segment 0 keeps none of its predicted tokens, segment 1 its most confident, 0.8)
+    assert torch.nonzero(by_segment[0]).flatten().tolist() == [0, 1, 3, 4, 5, 6, 7, 8, 11, 12]
+    # ... which is not MoMask's ⌈0.707·13⌉ = 10 least confident of the motion: it keeps
+    # the motion's most confident, 0.9 in segment 0
+    whole = generate_module.remasked(scores, editable, t)
+    assert int(whole.sum()) == 10 and not bool(whole[0, 0]) and bool(whole[0, 10])
+    assert not bool((by_segment | whole)[0, [2, 9, 13]].any())  # final and fixed stay
+    # one group is the motion: MoMask's choice
+    one = generate_module.remasked(scores, editable, t, torch.zeros_like(groups))
+    assert torch.equal(one, whole)
+    spans = torch.tensor([[[0, 4], [4, 12], [12, 13]]])
+    assert generate_module.token_groups(spans, 15).tolist() == [
+        [0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 2, 3, 3]]  # past the spans: a group of its own
+
+
+def test_remasking_by_segments_counts_per_segment_at_every_step(monkeypatch):
+    torch.manual_seed(0)
+    timed = MaskTransformer(MaskTransformerConfig(**TINY, segment_timing=True))
+    with torch.no_grad():
+        timed.classifier.weight.mul_(50)
+    steps = []
+    real = generate_module.remasked
+
+    def spy(scores, editable, t, groups=None):
+        steps.append((t, groups, real(scores, editable, t, groups)))
+        return steps[-1][2]
+
+    monkeypatch.setattr(generate_module, "remasked", spy)
+    lengths, durations = torch.tensor([48, 40]), torch.tensor([[1.0, 6.0, 0.0], [3.0, 1.0, 1.0]])
+
+    def run(remasking):
+        steps.clear()
+        return generate_tokens(timed, None, *text(2), lengths, durations=durations,
+                               options=SamplingOptions(steps=5, remasking=remasking),
+                               generator=torch.Generator().manual_seed(0))
+
+    by_segment = run("segments")
+    assert len(steps) == 5
+    for t, groups, masked in steps:
+        assert groups[0, :2].tolist() == [0, 0] and groups[0, 2:12].eq(1).all()  # 1 : 6 of 12
+        for group in range(4):
+            inside = (groups == group) & (torch.arange(12) < lengths[:, None] // 4)
+            count = generate_module.masked_count(t, inside.sum(dim=1))
+            assert torch.equal((masked & inside).sum(dim=1), count)
+    confidence = run("confidence")
+    assert all(groups is None for _, groups, _ in steps)
+    assert not torch.equal(by_segment, confidence)
+    # without spans (a model without timing) there is nothing to count by
+    plain = MaskTransformer(MaskTransformerConfig(**TINY))
+    assert torch.equal(*(generate_tokens(plain, None, *text(2), lengths,
+                                         options=SamplingOptions(steps=5, remasking=r),
+                                         generator=torch.Generator().manual_seed(0))
+                         for r in ("segments", "confidence")))
+    with pytest.raises(Exception, match="remasking must be 'confidence' or 'segments'"):
+        SamplingOptions(remasking="random")

@@ -2,7 +2,8 @@
 
     python tools/order_by_template.py --model B --data data/synth \\
         --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
-        [--word-text caption|segments] [--segment-timing predicted|none|truth] [--reconstruction]
+        [--word-text caption|segments] [--segment-timing predicted|none|truth] \\
+        [--remasking confidence|segments] [--reconstruction]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -17,7 +18,8 @@ what a words model's word keys read (`SamplingOptions.word_text`; default: the b
 --segment-timing, for a mask transformer trained with segment timing: the spans its timing
 head predicts, none, or "truth": each segment's true duration from the corpus (the model's
 own text segments where it finds as many as the caption has actions, else the corpus'
-segment texts), the ceiling of what predicted timing can give. --reconstruction also reads
+segment texts), the ceiling of what predicted timing can give. --remasking: which tokens
+each decoding step masks again (`SamplingOptions.remasking`). --reconstruction also reads
 each motion's tokenizer reconstruction (real motion → the bundle's tokenizer → decoded) and
 splits the generated accuracy by it: `reconstruction` (the tokenizer's ceiling on the same
 captions), `generated_where_reconstructed` and `generated_where_not` (the generator on the
@@ -40,7 +42,7 @@ import torch
 from segmo.data.layout import first_captions, read_motion
 from segmo.errors import SegmoError
 from segmo.evaluation.metrics import segment_bucket
-from segmo.generation.sampling import SegmentTiming, WordText
+from segmo.generation.sampling import Remasking, SegmentTiming, WordText
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -147,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--segment-timing", choices=(*get_args(SegmentTiming), "truth"),
                         default=None, help="what a mask transformer with segment timing is "
                         "given (default: the bundle's); truth: the corpus' durations")
+    parser.add_argument("--remasking", choices=get_args(Remasking), default=None,
+                        help="which tokens each decoding step masks again: the least confident "
+                        "of the motion or of each segment (default: the bundle's)")
     parser.add_argument("--reconstruction", action="store_true", help="also read the tokenizer's "
                         "reconstructions and split the generated accuracy by them")
     args = parser.parse_args(argv)
@@ -156,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         model = SegMo.from_pretrained(args.model)
         if args.word_text is not None:
             model.config.word_text = args.word_text
+        if args.remasking is not None:
+            model.config.remasking = args.remasking
         if args.segment_timing in get_args(SegmentTiming):
             model.config.segment_timing = args.segment_timing
         if args.segment_timing == "truth" and not model.mask.config.segment_timing:
@@ -180,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         for bucket, value in result.get(name, {}).items():
             print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     timing = args.segment_timing or model.sampling.segment_timing
-    print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing}))
+    print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing,
+                      "remasking": model.sampling.remasking}))
     return 0
 
 

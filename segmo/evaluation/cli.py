@@ -76,7 +76,7 @@ from segmo.evaluation.sections import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
-from segmo.generation.sampling import SamplingOptions, SegmentTiming, WordText
+from segmo.generation.sampling import Remasking, SamplingOptions, SegmentTiming, WordText
 from segmo.models.hub import is_hub_id
 from segmo.models.pretrained import load_pretrained, read_json
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
@@ -95,7 +95,7 @@ class Generator:
         self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
         # The bundle's sampling (None), but for the options only a SamplingOptions carries.
         given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional", "word_text",
-                                                  "segment_timing")
+                                                  "segment_timing", "remasking")
                  if getattr(cfg, name) is not None}
         self.sampling = replace(model.sampling, **given) if given else None
         self.motions = 0
@@ -409,6 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--segment-timing", choices=get_args(SegmentTiming), default=None,
                    help="what a mask transformer trained with segment timing is given: the "
                         "spans its timing head predicts, or none (default: the bundle's)")
+    p.add_argument("--remasking", choices=get_args(Remasking), default=None,
+                   help="which tokens each decoding step masks again: the least confident of "
+                        "the motion, or of each segment (default: the bundle's)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

@@ -26,7 +26,7 @@ from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_t
 from segmo.models.attention_recorder import is_recorded
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
-from segmo.models.segment_timing import durations_to_spans
+from segmo.models.segment_timing import SegmentTiming, durations_to_spans
 from segmo.models.text_prefix import Condition
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 
@@ -220,6 +220,35 @@ def masked_count(t: float, counts: torch.Tensor) -> torch.Tensor:
     return torch.where(counts > 0, num, 0)
 
 
+def remasked(scores: torch.Tensor, editable: torch.Tensor, t: float,
+             groups: torch.Tensor | None = None) -> torch.Tensor:
+    """The tokens the decoding step at t masks again → (b, n) bool.
+
+    scores (b, n): confidence, +inf where a token is final or not editable; editable (b, n)
+    bool. Without groups, the ⌈γ(t)·m⌉ least confident of each row's m editable tokens
+    (`masked_count`, MoMask); groups (b, n) long, each position's group (`token_groups`):
+    the ⌈γ(t)·m_j⌉ least confident of each group's m_j (`SamplingOptions.remasking`
+    "segments"). A group's count falls with t, so its masked tokens are always among the
+    ones predicted at the step before."""
+    if groups is None:
+        ranks = scores.argsort(dim=1).argsort(dim=1)
+        return ranks < masked_count(t, editable.sum(dim=1))[:, None]
+    is_masked = torch.zeros_like(editable)
+    for group in range(int(groups.max()) + 1):
+        inside = editable & (groups == group)
+        ranks = scores.masked_fill(~inside, math.inf).argsort(dim=1).argsort(dim=1)
+        is_masked |= (ranks < masked_count(t, inside.sum(dim=1))[:, None]) & inside
+    return is_masked
+
+
+def token_groups(spans: torch.Tensor, n: int) -> torch.Tensor:
+    """spans (b, a, 2) token spans of the segments (`segment_spans`) → (b, n) long: each
+    position's segment slot, a (one group past the slots) where no span holds it."""
+    known = spans[..., 1] > spans[..., 0]
+    slots = SegmentTiming.token_segments(spans, known, n)
+    return torch.where(slots >= 0, slots, spans.shape[1])
+
+
 def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.Tensor,
                    condition: Condition, positions: torch.Tensor | None,
                    sink_rows: torch.Tensor | None = None) -> torch.Tensor:
@@ -247,23 +276,26 @@ def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.
 
 def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Tensor,
                   token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
-                  generator: torch.Generator | None = None) -> torch.Tensor:
+                  generator: torch.Generator | None = None,
+                  spans: torch.Tensor | None = None) -> torch.Tensor:
     """Iteratively fill the `editable` base tokens; the others stay fixed and visible.
 
     ids (b, n) long, editable (b, n) bool ⊆ token_mask (b, n) bool, condition from
     `guidance_condition` → ids (b, n). At step t ∈ linspace(0, 1, options.steps), the
     ⌈γ(t)·m⌉ (≥ 1) lowest-confidence editable tokens are (re-)masked and predicted with
     `options.guidance_scale`, m = editable count. A token kept at one step is final (MoMask):
-    its confidence becomes +inf.
+    its confidence becomes +inf. With `options.remasking` "segments" and the segments'
+    token spans (b, a, 2), the count is taken per segment (`remasked`).
 
     A step whose masked input equals the previous step's reuses that pass' logits and
     draws anew (exact: the model is a function of its input). With the cosine schedule
     this is the second step whenever m < 66 (⌈γ(1/9)·m⌉ = m, everything masked again): one
     pass of ten saved. Not while an attention recording is open, which wants every pass.
     """
-    counts = editable.sum(dim=1)
-    if not bool(counts.any()):
+    if not bool(editable.any()):
         return ids
+    groups = (token_groups(spans, ids.shape[1])
+              if options.remasking == "segments" and spans is not None else None)
     scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
     control = SinkControl(options, ids.shape, model.config.codebook_size, ids.device) \
@@ -271,9 +303,7 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     reuse = not is_recorded(model)
     previous: tuple[torch.Tensor, bool, torch.Tensor] | None = None  # (ids, sink, logits)
     for t in torch.linspace(0, 1, options.steps).tolist():
-        num = masked_count(t, counts)
-        ranks = scores.argsort(dim=1).argsort(dim=1)
-        is_masked = ranks < num[:, None]
+        is_masked = remasked(scores, editable, t, groups)
         ids = ids.masked_fill(is_masked, model.mask_id)
         positions, picked = _sampled_positions(is_masked)
         sink = model.config.sink_mask_t is not None and t > model.config.sink_mask_t
@@ -375,7 +405,8 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
         condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask,
                                        options.unconditional, spans)
         ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
-        base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator)
+        base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator,
+                             spans)
         out = indices.clone()
         out[..., 0] = torch.where(token_mask, base, -1)
         if residual_model is None:

@@ -16,14 +16,15 @@ import torch
 from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
-__all__ = ["Guidance", "Sampler", "SamplingOptions", "Unconditional", "WordText", "check_word_text",
-           "cosine_schedule", "sample_tokens", "top_k_count"]
+__all__ = ["Guidance", "Remasking", "Sampler", "SamplingOptions", "Unconditional", "WordText",
+           "check_word_text", "cosine_schedule", "sample_tokens", "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
 Guidance = Literal["cfg", "sink_ctrl"]
 Unconditional = Literal["none", "local"]
 WordText = Literal["caption", "segments"]
 SegmentTiming = Literal["predicted", "none"]
+Remasking = Literal["confidence", "segments"]
 
 
 def check_word_text(value: object) -> None:
@@ -65,7 +66,12 @@ class SamplingOptions:
     segment_timing: for a mask transformer trained with segment timing, "predicted" gives
         it the spans its timing head predicts from the segments, "none" none (as the share
         of training samples without timing); durations given to the generation win over
-        both. Models without timing ignore it.
+        both. Models without timing ignore it;
+    remasking: which tokens each decoding step masks again: "confidence" (MoMask: the
+        ⌈γ(t)·m⌉ least confident of the motion's m) or "segments" (the ⌈γ(t)·m_j⌉ least
+        confident of each segment's m_j, so that a short segment fixes its share of tokens
+        at every step as a long one does), for a mask transformer given segment spans
+        (`segment_timing`); generations without spans, and edits, remask by confidence.
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
@@ -88,6 +94,7 @@ class SamplingOptions:
     unconditional: Unconditional = "none"
     word_text: WordText = "caption"
     segment_timing: SegmentTiming = "predicted"
+    remasking: Remasking = "confidence"
 
     def __post_init__(self) -> None:
         for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio",
@@ -119,6 +126,9 @@ class SamplingOptions:
         if self.segment_timing not in get_args(SegmentTiming):
             raise SegmoError(f"SegMo: segment_timing must be 'predicted' or 'none', got "
                              f"{self.segment_timing!r}")
+        if self.remasking not in get_args(Remasking):
+            raise SegmoError(f"SegMo: remasking must be 'confidence' or 'segments', got "
+                             f"{self.remasking!r}")
         if self.sampler not in get_args(Sampler):
             raise SegmoError(f"SegMo: sampler must be 'categorical' or 'gumbel', got "
                              f"{self.sampler!r}")

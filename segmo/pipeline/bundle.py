@@ -60,6 +60,7 @@ class SegMoConfig:
     unconditional: str = SamplingOptions.unconditional
     word_text: str = SamplingOptions.word_text
     segment_timing: str = SamplingOptions.segment_timing
+    remasking: str = SamplingOptions.remasking
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -68,7 +69,7 @@ class SegMoConfig:
 SAMPLING_FIELDS: tuple[str, ...] = (
     "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
     "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional", "word_text",
-    "segment_timing")
+    "segment_timing", "remasking")
 
 
 def sampling_fields(config: SegMoConfig) -> dict:

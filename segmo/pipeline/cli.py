@@ -35,7 +35,7 @@ from segmo.errors import (
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
-from segmo.generation.sampling import SamplingOptions, WordText
+from segmo.generation.sampling import Remasking, SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
 from segmo.motion.bvh import ANIMATION_FPS
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
@@ -387,6 +387,10 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what the word keys of a words model read: the caption (default) or "
                              "its text segments joined in execution order")
+    parser.add_argument("--remasking", choices=get_args(Remasking), default=None,
+                        help="which tokens each decoding step masks again: the least confident "
+                             "of the motion (default, MoMask) or of each segment (models with "
+                             "segment timing)")
     parser.add_argument("--sink-ratio", type=finite_float, default=None,
                         help="the mask transformer's measured SinkRatio, for sink_ctrl "
                              "(tools/attention_report.py; default 0)")
@@ -422,7 +426,7 @@ def bundle_main(argv: list[str] | None = None) -> None:
                             ("residual_guided_layers", "residual_guided_layers"),
                             ("guidance", "guidance_mode"), ("sink_ratio", "sink_ratio"),
                             ("unconditional", "unconditional"), ("word_text", "word_text"),
-                            ("ctrl_lambda", "ctrl_lambda"),
+                            ("remasking", "remasking"), ("ctrl_lambda", "ctrl_lambda"),
                             ("ctrl_k_base", "ctrl_k_base"), ("ctrl_alpha", "ctrl_alpha")):
         if getattr(args, argument) is not None:
             setattr(model.config, field, getattr(args, argument))
