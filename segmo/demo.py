@@ -85,7 +85,7 @@ QUICK = Budget(num_motions=24, rvq_steps=2, mask_steps=2, residual_steps=2, leng
 
 def timed_budget(seconds: float) -> Budget:
     """The demo on a wall-clock budget: the synthetic recipes' step counts as caps."""
-    return Budget(num_motions=1000, rvq_steps=3000, mask_steps=6000, residual_steps=4000,
+    return Budget(num_motions=1000, rvq_steps=6000, mask_steps=6000, residual_steps=4000,
                   length_epochs=30, seconds=seconds)
 
 

@@ -305,7 +305,7 @@ HOSTILE = {
     "misspelt model key": (("width: 128", "widht: 128"), [],
                            "{yaml}:{line}: model.init_args.widht: segmo.tasks.tokenizer.RVQTask has no "
                            "argument 'widht' (did you mean 'width'?)"),
-    "misspelt trainer key": (("max_steps: 3000", "max_step: 3000"), [],
+    "misspelt trainer key": (("max_steps: 6000", "max_step: 6000"), [],
                              "{yaml}:{line}: trainer.max_step: the Trainer has no argument "
                              "'max_step' (did you mean 'max_steps'?)"),
     "misspelt top-level key": (("\ntrainer:\n  max_steps", "\ntrainr:\n  max_steps"), [],
