@@ -192,13 +192,23 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert (again / "action_classifier" / "config.json").is_file()
     assert repeat["action_order"]["real"]["motions"] == 10
 
-    # No alignment head: generation metrics only, the learned-space sections are skipped.
+    # No alignment head: the learned-space sections are skipped; grounding keeps what needs
+    # only the mask transformer (attention) and the text-free baselines, on the same queries.
     plain = tmp_path / "no_align"
     main(["--model", str(setup["no_align"]), "--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]),
           "--mm-prompts", "0", "--skip", "action_order", "--out", str(plain), *COMMON])
     plain_metrics = json.loads((plain / "metrics.json").read_text())
-    assert "isc" not in plain_metrics and "grounding" not in plain_metrics
+    assert "isc" not in plain_metrics
     assert set(plain_metrics["retrieval"]) == {"evaluator"}
+    attention_only = plain_metrics["grounding"]
+    assert attention_only["queries"] == grounding["queries"]
+    assert {"attention/R@1,IoU=0.5", "attention_spans/mIoU", "uniform/mIoU", "kmeans/mIoU"} <= set(attention_only)
+    assert not {"mIoU", "R@1,IoU=0.5", "spans/mIoU", "window/mIoU"} & set(attention_only)
+    assert attention_only["uniform/mIoU"] == grounding["uniform/mIoU"]  # text-free: the same spans
+    assert "no alignment head" in plain_metrics["notes"]["grounding"]
+    plain_report = (plain / "report.md").read_text()
+    assert "| attention, ordered spans |" in plain_report and "| ordered spans |" not in plain_report
+    assert not (plain / "similarity_maps").exists()
     _check_repeated(plain_metrics["generation"]["generated"], GENERATION)
 
     main(["--compare", str(out), str(plain / "metrics.json"), "--out", str(tmp_path / "cmp")])

@@ -229,16 +229,19 @@ def _windows(cfg: EvaluateConfig, n: int, a: int) -> int | list[int]:
     return [int(w) for w in str(cfg.grounding_window).split(",")]
 
 
-def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict], out: Path
-                      ) -> dict[str, float] | None:
+def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[dict], out: Path,
+                      similarity: bool = True) -> dict[str, float] | None:
     """Ground the true segments of every caption with ≥ 2 of them, with each search of
     `segmo.pipeline.grounding` on one pass per caption; R@1 at IoU and mIoU of the chosen
     span vs the true span. Keys: the default search ("ordered") plain, "spans/...",
     "window/..." (`--grounding-window`), "attention/..." and "attention_spans/..." (method
     "attention", searches "ordered" and "spans"), and "uniform/...", "cpd/...", "kmeans/..." for the
     text-free motion segmenters told the number of segments (baselines; cpd and kmeans on
-    the z-scored features pooled per token). The maps plotted are the ordered search's."""
-    pred: dict[str, list] = {search: [] for search in (*SEARCHES, *ATTENTION)}
+    the z-scored features pooled per token). The maps plotted are the ordered search's.
+    similarity False (a model without an alignment head, so no learned space): the attention
+    and baseline keys only, no plain keys and no maps."""
+    searches = SEARCHES if similarity else ()
+    pred: dict[str, list] = {search: [] for search in (*searches, *ATTENTION)}
     baselines: dict[str, list] = {name: [] for name in SEGMENTERS}
     gold, plotted = [], 0
     for b, r in tqdm(all_rows(batches), desc="grounding", disable=not cfg.progress):
@@ -249,10 +252,12 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
                 s["end"] <= s["start"] for s in truth):
             continue
         motion = raw_features(ds, b, r)
-        space = model.embed_segments([b["caption"][r]], [motion], segments=[[s["text"] for s in truth]])
-        found = {search: locate(space, b["caption"][r], len(motion), search,
-                                window=_windows(cfg, n, len(truth)) if search == "window" else None)
-                 for search in SEARCHES}
+        found = {}
+        if similarity:
+            space = model.embed_segments([b["caption"][r]], [motion], segments=[[s["text"] for s in truth]])
+            found = {search: locate(space, b["caption"][r], len(motion), search,
+                                    window=_windows(cfg, n, len(truth)) if search == "window" else None)
+                     for search in SEARCHES}
         for name, search in ATTENTION.items():
             found[name] = attention_locate(model, b["caption"][r], motion, search,
                                            segments=[s["text"] for s in truth])
@@ -263,7 +268,7 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
         for name, spans in baselines.items():
             spans += [(FRAMES_PER_TOKEN * s, FRAMES_PER_TOKEN * e)
                       for s, e in get_motion_segmenter(name)(tokens, len(truth), n)]
-        if plotted < cfg.similarity_maps:
+        if similarity and plotted < cfg.similarity_maps:
             plt = report._pyplot()
             (out / "similarity_maps").mkdir(parents=True, exist_ok=True)
             ax = plot_similarity_map(found["ordered"], truth=[(s["start"], s["end"]) for s in truth],
@@ -275,8 +280,10 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
             plotted += 1
     if not gold:
         return None
-    result = {**grounding_metrics(np.array(pred["ordered"]), np.array(gold)), "queries": float(len(gold))}
-    others = [(name, pred[name]) for name in ("spans", "window", *ATTENTION)]
+    result = {"queries": float(len(gold))}
+    if similarity:
+        result |= grounding_metrics(np.array(pred["ordered"]), np.array(gold))
+    others = [(name, pred[name]) for name in (*[s for s in searches if s != "ordered"], *ATTENTION)]
     for name, spans in (*others, *baselines.items()):
         result |= {f"{name}/{k}": v for k, v in grounding_metrics(np.array(spans), np.array(gold)).items()}
     return result
