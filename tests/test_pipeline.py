@@ -465,8 +465,13 @@ def test_no_alignment_head_is_a_clear_error(tmp_path, tokenizer_dir, generated):
     plain = SegMo.from_stages(dirs["tokenizer"], dirs["mask"],
                               text_encoder=hash_encoder("hash", TEXT_DIM))
     assert plain.generate(PROMPTS[:1], [16], generator=seeded()).tokens.shape == (1, 4, 1)
-    with pytest.raises(ValueError, match="without segment alignment"):
+    with pytest.raises(ValueError, match="without segment alignment.*method='attention'"):
         plain.ground(PROMPTS[0], generated.motion(0))
+    # Attention grounding needs only the mask transformer: one ordered span per segment.
+    motion = generated.motion(0)
+    found = plain.ground(PROMPTS[0], motion, method="attention", segments=["walks", "waves"])
+    spans = found.best_spans_frames
+    assert len(spans) == 2 and spans[0][0] == 0 and spans[0][1] == spans[1][0] and spans[1][1] <= len(motion)
 
 
 def test_segment_durations_steer_a_timing_model(tmp_path, tokenizer_dir, model):

@@ -78,8 +78,9 @@ def alignment_head(mask: MaskTransformer) -> AlignmentHead:
     """The mask transformer's alignment head, or SegmoError saying why there is none."""
     if mask.alignment is None:
         raise SegmoError("SegMo: this mask transformer was trained without segment alignment "
-                         "(alignment: none), so it has no shared text/motion space; grounding, "
-                         "retrieval and embed_pairs need a model trained with alignment")
+                         "(alignment: none), so it has no shared text/motion space; grounding by "
+                         "similarity, retrieval and embed_pairs need a model trained with alignment "
+                         "(ground(..., method='attention') needs none)")
     return mask.alignment
 
 
