@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from segmo.evaluation.grounding import IOU_THRESHOLDS
+
 # (metrics.json key, column title), in the paper's order.
 GENERATION_COLUMNS: tuple[tuple[str, str], ...] = (
     ("top1", "Top-1"), ("top2", "Top-2"), ("top3", "Top-3"), ("fid", "FID"),
@@ -149,8 +151,7 @@ def grounding_table(grounding: dict[str, Any]) -> str:
     model without the learned space), the other searches, attention grounding and the
     text-free baselines (keys "spans/...", "window/...", "attention/...",
     "attention_spans/...", "uniform/...", "cpd/...", "kmeans/...")."""
-    keys = list(dict.fromkeys(k.rsplit("/", 1)[-1] for k in grounding
-                              if k.rsplit("/", 1)[-1].startswith("R@1") or k.endswith("mIoU")))
+    keys = [*(f"R@1,IoU={t:g}" for t in IOU_THRESHOLDS), "mIoU"]
     rows = [["ordered spans"] + [cell(grounding[k]) for k in keys]] if all(k in grounding for k in keys) else []
     for prefix, name in (("spans", "best span"), ("window", "sliding window"),
                          ("attention", "attention, ordered spans"), ("attention_spans", "attention, best span"),
