@@ -29,6 +29,11 @@ GENERATION_COLUMNS: tuple[tuple[str, str], ...] = (
 )
 RETRIEVAL_KS: tuple[int, ...] = (1, 2, 3, 5, 10)
 # What each section measured, shown above its table.
+# The sentences the two grounding notes share: how a span is scored, and the baselines.
+_GROUNDING_SCORE = "R@1 = the chosen span's temporal IoU with the true span ≥ threshold. "
+_GROUNDING_BASELINES = ("Baselines that know only the number of segments: the uniform split, change "
+                        "points (cpd) and k-means on the motion features pooled per token.")
+
 NOTES: dict[str, str] = {
     "retrieval": (
         "evaluator: Euclidean distances of T2M embeddings, all captions vs all motions for "
@@ -41,18 +46,15 @@ NOTES: dict[str, str] = {
         "segment, in caption order (≥ 2 tokens each), maximising the summed similarity; "
         "spans: each segment's best span of any length ≥ 2 tokens; window: the paper's "
         "sliding windows {window} (tokens; auto = 0.5–2× the mean segment length), stride 1. "
-        "R@1 = the chosen span's temporal IoU with the true span ≥ threshold. attention: "
-        "the ordered and best-span searches over where the mask transformer's motion tokens "
-        "look (SegMo.ground(method=\"attention\")). Baselines that "
-        "know only the number of segments: the uniform split, change points (cpd) and "
-        "k-means on the motion features pooled per token."),
+        + _GROUNDING_SCORE + "attention: the ordered and best-span searches over where the mask "
+        "transformer's motion tokens look (SegMo.ground(method=\"attention\")). "
+        + _GROUNDING_BASELINES),
     "grounding_attention": (
         "Attention grounding only, as {reason} and so no learned space: each caption "
         "with ≥ 2 ground-truth segments, grounded in its real motion with those segments' "
         "texts by where the mask transformer's motion tokens look (SegMo.ground(method="
-        "\"attention\")), ordered spans and each segment's best span; R@1 = the chosen span's "
-        "temporal IoU with the true span ≥ threshold. Baselines that know only the number of "
-        "segments: the uniform split, change points (cpd) and k-means."),
+        "\"attention\")), ordered spans and each segment's best span. "
+        + _GROUNDING_SCORE + _GROUNDING_BASELINES),
     "isc": ("Mean cosine of the paired text/motion segments of every caption of the split "
             "(CV = std/mean), motion spans from each segmenter."),
     "reconstruction": (

@@ -281,11 +281,9 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
     if not gold:
         return None
     result = {"queries": float(len(gold))}
-    if similarity:
-        result |= grounding_metrics(np.array(pred["ordered"]), np.array(gold))
-    others = [(name, pred[name]) for name in (*[s for s in searches if s != "ordered"], *ATTENTION)]
-    for name, spans in (*others, *baselines.items()):
-        result |= {f"{name}/{k}": v for k, v in grounding_metrics(np.array(spans), np.array(gold)).items()}
+    for name, spans in (*pred.items(), *baselines.items()):
+        scores = grounding_metrics(np.array(spans), np.array(gold))
+        result |= scores if name == "ordered" else {f"{name}/{k}": v for k, v in scores.items()}
     return result
 
 
