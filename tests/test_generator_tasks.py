@@ -15,6 +15,7 @@ import yaml
 
 from segmo.models.mask_transformer import masked_token_loss
 from segmo.models.pretrained import load_pretrained
+from segmo.tasks.common import text_condition, token_lengths
 from segmo.tasks.mask import (
     MaskTask,
     gt_token_spans,
@@ -275,6 +276,54 @@ def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_datas
     assert model.config.segment_timing and model.meta["segment_timing"] == source
 
 
+@pytest.mark.parametrize("source", ["truth", "segmenter"])
+def test_alignment_spans_come_from_the_ground_truth_or_the_segmenter(source, text_dataset,
+                                                                     tokenizer_dir, tmp_path):
+    """`alignment_spans: truth` hands the loss the corpus' ground-truth spans where a sample
+    has usable ones and the segmenter's elsewhere; `segmenter` (the default) the segmenter's."""
+    from conftest import hash_encoder
+
+    from segmo.synth.corpus import build_corpus
+    from segmo.text.cache import update_cache
+    from segmo.text.extract import segment_folder
+    from segmo.text.rules import RuleSegmenter
+
+    root = build_corpus(tmp_path / "synth", 24, seed=1, progress=False)
+    segment_folder(root, RuleSegmenter(), "rule", progress=False)
+    update_cache(root, hash_encoder("minilm", 384), segments=["rule"], progress=False)
+    config = REPO / "configs/mask/synthetic.yaml"
+    args = [a for a in overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs")
+            if not a.startswith("--data.root")] + [f"--data.root={root}"]
+    cli = cli_main(["fit", "--config", str(config), *args,
+                    f"--model.init_args.alignment_spans={source}", "--model.init_args.segmenter=cpd",
+                    "--data.init_args.batch_size=16", "--trainer.fast_dev_run=true"])
+    assert torch.isfinite(cli.trainer.callback_metrics["train/align"])
+    task, batch = cli.model, next(iter(cli.datamodule.train_dataloader()))
+    handed = []
+    loss = task.alignment_loss
+
+    class Recorder:  # the loss as it is, remembering the spans it was handed
+        weight = loss.weight
+
+        def __call__(self, *args):
+            handed.append(args[5])
+            return loss(*args)
+
+    task.alignment_loss = Recorder()
+    task.eval()
+    with torch.no_grad():
+        task.step(batch)
+    _, segments, segment_mask = text_condition(batch)
+    lengths = token_lengths(batch["lengths"])
+    num_segments = torch.minimum(segment_mask.sum(1), lengths)
+    cut = task.spans(batch, num_segments, lengths)
+    truth, usable = gt_token_spans(batch["spans"], segment_mask.sum(1), batch["lengths"],
+                                   segment_mask.shape[1])
+    assert usable.any() and not torch.equal(truth[usable], cut[usable])  # the two sources differ
+    expected = torch.where(usable[:, None, None], truth, cut) if source == "truth" else cut
+    assert torch.equal(handed[0].cpu(), expected)
+
+
 def test_segment_balanced_weights_give_every_segment_the_same_total():
     """A 2-token segment beside an 8-token one: each holds half of the sample's weight; a
     sample with one known span, a token outside every span and padding are as documented."""
@@ -324,6 +373,9 @@ def test_the_segment_options_train_and_a_wrong_value_is_named(text_dataset, toke
         MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, loss_weighting="segments")
     with pytest.raises(SegmoError, match=r"model.init_args.segment_mask_prob=1.5: a share in \[0, 1\]"):
         MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, segment_mask_prob=1.5)
+    with pytest.raises(SegmoError, match="model.init_args.alignment_spans='gt': one of "
+                                         "segmenter, truth"):
+        MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, alignment_spans="gt")
 
 
 def test_mask_whole_segment_masks_one_known_segment_of_the_chosen_samples():

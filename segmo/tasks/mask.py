@@ -164,6 +164,7 @@ class MaskTask(TransformerTask):
         alignment_weight: float = 1.0,
         alignment_temperature: float = ALIGNMENT_TEMPERATURE,
         segmenter: SegmenterName = "uniform",
+        alignment_spans: Literal["segmenter", "truth"] = "segmenter",
         alignment_dim: int = 512,
         temperature: float | None = None,
         sink_mask_t: float | None = None,
@@ -175,7 +176,11 @@ class MaskTask(TransformerTask):
         **kwargs,
     ) -> None:
         """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
-        plain MoMask, without a head); `alignment_dim` the head's width. `temperature` is the
+        plain MoMask, without a head); `alignment_dim` the head's width. `alignment_spans`:
+        the motion spans the loss aggregates, from `segmenter` (SegMo) or, where a sample has
+        them, the data's ground-truth spans ("truth": an oracle segmenter on the built-in
+        corpus, which tells how much the loss is held back by its segmenter's spans; samples
+        without usable ground truth keep `segmenter`'s). `temperature` is the
         former name of `alignment_temperature` (configs and checkpoints written before hold
         it): it is read as that, with a warning. `sink_mask_t`: MLA-Gen's sink mask
         (`MaskTransformerConfig.sink_mask_t`), applied to the samples whose mask ratio's t
@@ -205,6 +210,9 @@ class MaskTask(TransformerTask):
         if segment_timing not in ("none", "truth", "segmenter"):
             raise SegmoError(f"model.init_args.segment_timing={segment_timing!r}: one of "
                              "none, truth, segmenter")
+        if alignment_spans not in ("segmenter", "truth"):
+            raise SegmoError(f"model.init_args.alignment_spans={alignment_spans!r}: one of "
+                             "segmenter, truth")
         if loss_weighting not in ("token", "segment"):
             raise SegmoError(f"model.init_args.loss_weighting={loss_weighting!r}: one of "
                              "token, segment")
@@ -288,10 +296,12 @@ class MaskTask(TransformerTask):
         motion_spans = None
         segment_options = (self.hparams.loss_weighting == "segment"
                            or self.hparams.segment_mask_prob > 0)
+        truth_aligned = (self.alignment_loss is not None
+                         and self.hparams.alignment_spans == "truth")
         if (self.alignment_loss is not None or self.hparams.segment_timing == "segmenter"
                 or segment_options):
             motion_spans = self.spans(batch, num_segments, lengths).to(base.device)
-        if segment_options:
+        if segment_options or truth_aligned:
             known_spans = self.segment_spans(batch, segment_mask, num_segments, motion_spans)
         if self.hparams.segment_mask_prob > 0:
             if segment_masked is None:
@@ -334,7 +344,8 @@ class MaskTask(TransformerTask):
                                    < num_segments[:, None])
             aligned = self.alignment_loss(
                 self.model.alignment, out.motion_features, lengths, out.segment_features,
-                keep & ~drop[:, None], motion_spans, out.sentence_features,
+                keep & ~drop[:, None], known_spans[0] if truth_aligned else motion_spans,
+                out.sentence_features,
             )
             terms["align"] = aligned.losses["align"]
             loss = loss + self.alignment_loss.weight * terms["align"]
