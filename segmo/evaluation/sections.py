@@ -41,8 +41,9 @@ from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline.grounding import (
     MIN_TOKENS,
     SEARCHES,
-    attention_locate,
+    attention_shares,
     locate,
+    locate_by_attention,
     plot_similarity_map,
 )
 from segmo.pipeline.retrieval import pair_scores
@@ -258,9 +259,10 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
             found = {search: locate(space, b["caption"][r], len(motion), search,
                                     window=_windows(cfg, n, len(truth)) if search == "window" else None)
                      for search in SEARCHES}
+        texts = [s["text"] for s in truth]
+        share = attention_shares(model, b["caption"][r], motion, texts)  # one pass, both searches
         for name, search in ATTENTION.items():
-            found[name] = attention_locate(model, b["caption"][r], motion, search,
-                                           segments=[s["text"] for s in truth])
+            found[name] = locate_by_attention(b["caption"][r], texts, share, len(motion), search)
         for search, g in found.items():
             pred[search] += [tuple(p) for p in g.best_spans_frames]
         gold += [(s["start"], s["end"]) for s in truth]

@@ -137,11 +137,25 @@ def attention_locate(model: Any, text: str, motion: Any, search: str,
                      min_tokens: int = MIN_TOKENS, segments: list[str] | None = None) -> GroundingOutput:
     """`ground` with method "attention" (module docstring)."""
     segments = model.segment_texts([text])[0] if segments is None else list(segments)
+    return locate_by_attention(text, segments, attention_shares(model, text, motion, segments),
+                               len(motion), search, window, stride, min_tokens)
+
+
+def attention_shares(model: Any, text: str, motion: Any, segments: list[str]) -> np.ndarray:
+    """(a, n): the share of each motion token's attention (last block, over the text
+    segments) that goes to each segment; one forward pass, which every search can reuse."""
     maps = motion_attention(model, [text], [segments], [motion])
     last = max(maps, key=lambda m: m.block)
     a, n = len(segments), len(motion) // FRAMES_PER_TOKEN
     profile = segment_profile(last, 0)[:a, :n].astype(np.float64)
-    share = profile / np.maximum(profile.sum(0, keepdims=True), 1e-30)  # (a, n)
+    return profile / np.maximum(profile.sum(0, keepdims=True), 1e-30)
+
+
+def locate_by_attention(text: str, segments: list[str], share: np.ndarray, num_frames: int,
+                        search: str, window: int | Sequence[int] | None = None, stride: int = 1,
+                        min_tokens: int = MIN_TOKENS) -> GroundingOutput:
+    """The spans that `search` chooses from the attention shares (a, n) of `attention_shares`."""
+    a, n = share.shape
     spans = candidate_spans(n, search, window, stride, min_tokens)
     cumulative = np.concatenate([np.zeros((a, 1)), share.cumsum(1)], axis=1)
     sums = cumulative[:, spans[:, 1]] - cumulative[:, spans[:, 0]]  # (a, k)
@@ -156,7 +170,7 @@ def attention_locate(model: Any, text: str, motion: Any, search: str,
         chosen = best_span(sums - 0.5 * lengths, spans)
     else:
         chosen = best_span(mean, spans)
-    return _output(text, segments, spans, torch.from_numpy(mean).float(), chosen, len(motion),
+    return _output(text, segments, spans, torch.from_numpy(mean).float(), chosen, num_frames,
                    search, "attention")
 
 
