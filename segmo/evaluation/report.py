@@ -28,12 +28,12 @@ GENERATION_COLUMNS: tuple[tuple[str, str], ...] = (
     ("matching", "MM-Dist"), ("diversity", "Diversity"), ("multimodality", "MModality"),
 )
 RETRIEVAL_KS: tuple[int, ...] = (1, 2, 3, 5, 10)
-# What each section measured, shown above its table.
 # The sentences the two grounding notes share: how a span is scored, and the baselines.
 _GROUNDING_SCORE = "R@1 = the chosen span's temporal IoU with the true span ≥ threshold. "
 _GROUNDING_BASELINES = ("Baselines that know only the number of segments: the uniform split, change "
                         "points (cpd) and k-means on the motion features pooled per token.")
 
+# What each section measured, shown above its table.
 NOTES: dict[str, str] = {
     "retrieval": (
         "evaluator: Euclidean distances of T2M embeddings, all captions vs all motions for "

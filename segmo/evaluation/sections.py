@@ -253,13 +253,13 @@ def grounding_section(cfg: EvaluateConfig, model: Any, ds: Any, batches: list[di
                 s["end"] <= s["start"] for s in truth):
             continue
         motion = raw_features(ds, b, r)
+        texts = [s["text"] for s in truth]
         found = {}
         if similarity:
-            space = model.embed_segments([b["caption"][r]], [motion], segments=[[s["text"] for s in truth]])
+            space = model.embed_segments([b["caption"][r]], [motion], segments=[texts])
             found = {search: locate(space, b["caption"][r], len(motion), search,
                                     window=_windows(cfg, n, len(truth)) if search == "window" else None)
                      for search in SEARCHES}
-        texts = [s["text"] for s in truth]
         share = attention_shares(model, b["caption"][r], motion, texts)  # one pass, both searches
         for name, search in ATTENTION.items():
             found[name] = locate_by_attention(b["caption"][r], texts, share, len(motion), search)
