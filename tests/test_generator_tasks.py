@@ -251,7 +251,7 @@ def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_datas
                                                               tokenizer_dir, tmp_path):
     """Timing from the corpus' ground-truth spans or from the motion segmenter: the head
     learns (a loss above 0 needs segments with a span of less than the whole motion) and
-    the exported model carries it."""
+    the exported model carries it; the truth case also trains `position_text`."""
     from conftest import hash_encoder
 
     from segmo.synth.corpus import build_corpus
@@ -268,12 +268,14 @@ def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_datas
         args = [a for a in args if not a.startswith("--data.root")] + [f"--data.root={root}"]
     cli = cli_main(["fit", "--config", str(config), *args,
                     f"--model.init_args.segment_timing={source}", "--model.init_args.segmenter=cpd",
+                    f"--model.init_args.position_text={source == 'truth'}",
                     "--data.init_args.batch_size=16", "--trainer.fast_dev_run=true"])
     metrics = cli.trainer.callback_metrics
     assert torch.isfinite(metrics["train/timing_loss"]) and float(metrics["train/timing_loss"]) > 0
     assert 0.0 <= float(metrics["val/timing_iou"]) <= 1.0
     model = cli.model.export_model()
     assert model.config.segment_timing and model.meta["segment_timing"] == source
+    assert model.config.position_text == (source == "truth")
 
 
 @pytest.mark.parametrize("source", ["truth", "segmenter"])
@@ -376,6 +378,9 @@ def test_the_segment_options_train_and_a_wrong_value_is_named(text_dataset, toke
     with pytest.raises(SegmoError, match="model.init_args.alignment_spans='gt': one of "
                                          "segmenter, truth"):
         MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, alignment_spans="gt")
+    with pytest.raises(SegmoError, match="model.init_args.position_text=true needs "
+                                         "segment_timing truth or segmenter"):
+        MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, position_text=True)
 
 
 def test_mask_whole_segment_masks_one_known_segment_of_the_chosen_samples():

@@ -99,3 +99,38 @@ def test_timing_survives_save_and_load(tmp_path):
     assert loaded.config.segment_timing
     assert torch.equal(loaded.predict_spans(segments, mask, torch.tensor([30])),
                        timed.predict_spans(segments, mask, torch.tensor([30])))
+
+
+def test_position_text_gives_each_position_its_own_segments_text(tmp_path):
+    """With `position_text`, what a position adds to its token embedding changes with its
+    own segment's text and with no other's; unknown positions add nothing; and the option
+    needs timing and survives save and load."""
+    from segmo.models.segment_timing import SegmentTiming
+
+    with pytest.raises(ValueError, match="position_text needs segment_timing"):
+        MaskTransformer(MaskTransformerConfig(**TINY, position_text=True))
+    torch.manual_seed(0)
+    timing = SegmentTiming(4, 3, text=True)
+    with pytest.raises(ValueError, match="needs segment_content"):
+        timing(torch.zeros(1, 2, dtype=torch.long))
+    token_segments = torch.tensor([[0, 0, 1, 1, 1, 2, -1]])
+    content = torch.randn(1, 3, 4)
+    changed = content.clone()
+    changed[0, 1] += 1.0  # the second segment says something else
+    before, after = timing(token_segments, content), timing(token_segments, changed)
+    moved = (before != after).any(-1)[0].tolist()
+    assert moved == [False, False, True, True, True, False, False]
+    assert (before[0, 6] == 0).all()  # unknown position
+    assert torch.allclose(before[0, 5], timing.index[2] + timing.text(content[0, 2]))
+    torch.manual_seed(0)
+    model = MaskTransformer(MaskTransformerConfig(**TINY, segment_timing=True,
+                                                  position_text=True)).eval()
+    loaded = MaskTransformer.from_pretrained(model.save_pretrained(tmp_path / "mask")).eval()
+    sentence, segments = torch.randn(1, 8), torch.randn(1, 5, 8)
+    mask = torch.tensor([[1, 1, 1, 0, 0]], dtype=torch.bool)
+    spans = model.predict_spans(segments, mask, torch.tensor([12]))
+    ids, valid = torch.full((1, 12), 16), torch.ones(1, 12, dtype=torch.bool)
+    assert loaded.config.position_text
+    assert torch.equal(loaded.forward_condition(ids, valid, loaded.condition(
+        sentence, segments, mask, spans=spans)).logits, model.forward_condition(
+        ids, valid, model.condition(sentence, segments, mask, spans=spans)).logits)

@@ -48,6 +48,9 @@ class MaskTransformerConfig(TransformerConfig):
     # number of the segment it belongs to, from spans given or predicted by a timing head.
     # False = the model without it.
     segment_timing: bool = False
+    # With segment timing, each motion position also gets its own segment's projected text
+    # vector (`SegmentTiming` with text), not only the segment's number. False = without.
+    position_text: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.alignment, dict):  # read back from config.json
@@ -100,8 +103,10 @@ class MaskTransformer(nn.Module, Pretrained):
         self.alignment = (AlignmentHead(config.dim, config.alignment)
                           if config.alignment is not None else None)
         # Absent without timing, so that such a model is exactly the one before it.
+        if config.position_text and not config.segment_timing:
+            raise ValueError("MaskTransformer: position_text needs segment_timing")
         if config.segment_timing:
-            self.timing = SegmentTiming(config.dim, config.max_segments)
+            self.timing = SegmentTiming(config.dim, config.max_segments, config.position_text)
             self.timing_head = TimingHead(config.dim)
             self.timing.apply(init_weights)
             self.timing_head.apply(init_weights)
@@ -168,7 +173,8 @@ class MaskTransformer(nn.Module, Pretrained):
             encoded = without_sentence(encoded, sink_rows)
         tokens = self.token_embedding(indices)
         if condition.token_segments is not None:
-            tokens = tokens + self.timing(condition.token_segments[:, :indices.shape[1]])
+            tokens = tokens + self.timing(condition.token_segments[:, :indices.shape[1]],
+                                          condition.content[:, 1:])
         motion = self.trunk.forward_motion(tokens, token_mask, encoded, positions)
         return MaskTransformerOutput(
             logits=self.classifier(self.head(motion)),

@@ -21,11 +21,15 @@ from torch import nn
 
 
 class SegmentTiming(nn.Module):
-    """The segment number of each motion position → a vector added to its token embedding."""
+    """The segment number of each motion position → a vector added to its token embedding;
+    with `text`, also that segment's projected text vector through a linear map, so that a
+    position reads what its own segment says without finding the slot by attention."""
 
-    def __init__(self, dim: int, max_segments: int) -> None:
+    def __init__(self, dim: int, max_segments: int, text: bool = False) -> None:
         super().__init__()
         self.index = nn.Parameter(torch.randn(max_segments, dim) * 0.02)
+        # Absent without `text`, so that such a model is exactly the one before it.
+        self.text = nn.Linear(dim, dim) if text else None
 
     @staticmethod
     def token_segments(spans: torch.Tensor, known: torch.Tensor, n: int) -> torch.Tensor:
@@ -36,10 +40,21 @@ class SegmentTiming(nn.Module):
         first = inside.float().argmax(dim=1)  # the first slot holding it (spans tile)
         return torch.where(inside.any(dim=1), first, -1)
 
-    def forward(self, token_segments: torch.Tensor) -> torch.Tensor:
-        """token_segments (b, n) long, −1 = unknown → (b, n, dim), zero where unknown."""
+    def forward(self, token_segments: torch.Tensor,
+                segment_content: torch.Tensor | None = None) -> torch.Tensor:
+        """token_segments (b, n) long, −1 = unknown → (b, n, dim), zero where unknown;
+        segment_content (b, a, dim): the projected segment vectors (`Condition.content`
+        without the sentence), read where the module has `text`."""
+        slot = token_segments.clamp(min=0)
+        added = self.index[slot]
+        if self.text is not None:
+            if segment_content is None:
+                raise ValueError("SegmentTiming: a module with text needs segment_content")
+            gathered = segment_content.gather(
+                1, slot[..., None].expand(-1, -1, segment_content.shape[-1]))
+            added = added + self.text(gathered)
         known = (token_segments >= 0)[..., None]
-        return self.index[token_segments.clamp(min=0)] * known.to(self.index.dtype)
+        return added * known.to(added.dtype)
 
 
 class TimingHead(nn.Module):

@@ -171,6 +171,7 @@ class MaskTask(TransformerTask):
         segment_timing: Literal["none", "truth", "segmenter"] = "none",
         timing_drop_prob: float = 0.3,
         timing_weight: float = 0.1,
+        position_text: bool = False,
         loss_weighting: Literal["token", "segment"] = "token",
         segment_mask_prob: float = 0.0,
         **kwargs,
@@ -189,7 +190,9 @@ class MaskTask(TransformerTask):
         without them train without timing) or from `segmenter` ("segmenter", for data
         without ground truth); left out of a share `timing_drop_prob` of the samples, so the
         model also generates without them; the timing head learns each segment's share of
-        the motion at `timing_weight`. `loss_weighting`: "token" weighs every masked token
+        the motion at `timing_weight`. `position_text`: with timing, each motion position
+        also gets its own segment's text vector (`SegmentTiming` with text), so that it need
+        not find its segment's slot by attention. `loss_weighting`: "token" weighs every masked token
         alike (MoMask); "segment" weighs each segment of a sample alike
         (`segment_balanced_weights`), so a short action counts as much as a long one, with
         the data's ground-truth spans where a sample has them and `segmenter`'s elsewhere.
@@ -216,6 +219,9 @@ class MaskTask(TransformerTask):
         if loss_weighting not in ("token", "segment"):
             raise SegmoError(f"model.init_args.loss_weighting={loss_weighting!r}: one of "
                              "token, segment")
+        if position_text and segment_timing == "none":
+            raise SegmoError("model.init_args.position_text=true needs segment_timing truth "
+                             "or segmenter (it reads each position's segment)")
         for name, share in (("timing_drop_prob", timing_drop_prob),
                             ("segment_mask_prob", segment_mask_prob)):
             if not 0.0 <= share <= 1.0:
@@ -223,7 +229,8 @@ class MaskTask(TransformerTask):
         self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
                                                            alignment=align,
                                                            sink_mask_t=sink_mask_t,
-                                                           segment_timing=segment_timing != "none"))
+                                                           segment_timing=segment_timing != "none",
+                                                           position_text=position_text))
 
     # -- one step ----------------------------------------------------------------------------
 
