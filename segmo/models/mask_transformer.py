@@ -102,9 +102,9 @@ class MaskTransformer(nn.Module, Pretrained):
         # alignment so that no parameter goes without gradient (DDP rejects that).
         self.alignment = (AlignmentHead(config.dim, config.alignment)
                           if config.alignment is not None else None)
-        # Absent without timing, so that such a model is exactly the one before it.
         if config.position_text and not config.segment_timing:
             raise ValueError("MaskTransformer: position_text needs segment_timing")
+        # Absent without timing, so that such a model is exactly the one before it.
         if config.segment_timing:
             self.timing = SegmentTiming(config.dim, config.max_segments, config.position_text)
             self.timing_head = TimingHead(config.dim)

@@ -192,8 +192,8 @@ class MaskTask(TransformerTask):
         model also generates without them; the timing head learns each segment's share of
         the motion at `timing_weight`. `position_text`: with timing, each motion position
         also gets its own segment's text vector (`SegmentTiming` with text), so that it need
-        not find its segment's slot by attention. `loss_weighting`: "token" weighs every masked token
-        alike (MoMask); "segment" weighs each segment of a sample alike
+        not find its segment's slot by attention. `loss_weighting`: "token" weighs every
+        masked token alike (MoMask); "segment" weighs each segment of a sample alike
         (`segment_balanced_weights`), so a short action counts as much as a long one, with
         the data's ground-truth spans where a sample has them and `segmenter`'s elsewhere.
         `segment_mask_prob`: the share of samples in which every token of one of their
