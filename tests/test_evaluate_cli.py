@@ -499,6 +499,36 @@ def test_order_by_template_gives_a_timing_model_the_true_durations(setup, hash_t
     assert "has no segment timing" in capsys.readouterr().err
 
 
+def test_order_by_template_composes_each_caption_segment_by_segment(setup, hash_text_encoder,
+                                                                     capsys, monkeypatch):
+    tool = load_tool("order_by_template")
+    common = ["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+              "--action-classifier", str(setup["classifier"]), "--repeats", "1"]
+    parts, real = [], SegMo.compose
+
+    def spy(self, given, transition, **options):
+        parts.append((given, transition))
+        return real(self, given, transition, **options)
+
+    monkeypatch.setattr(SegMo, "compose", spy)
+    assert tool.main([*common, "--compose", "8"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rows = tool.multi_segment_rows(setup["data"], "train", 196)
+    assert last["compose"] == 8 and last["all"]["motions"] == len(rows) == len(parts)
+    for row, (given, transition) in zip(rows, parts):
+        frames = [f for _, f in given]
+        assert transition == 8 and len(given) == row["num_actions"]
+        assert all(f % 4 == 0 and f >= tool.COMPOSE_MIN_PART for f in frames)
+        # each segment its true share of the frames beside the transitions, in whole tokens
+        left = row["frames"] - 8 * (len(given) - 1)
+        shares = [left * d / sum(row["durations"]) for d in row["durations"]]
+        assert all(abs(f - max(w, tool.COMPOSE_MIN_PART)) <= 2 for f, w in zip(frames, shares))
+    for bad in (["--compose", "6"], ["--compose", "8", "--segment-timing", "none"]):
+        with pytest.raises(SystemExit):
+            tool.main([*common, *bad])
+        assert "--compose" in capsys.readouterr().err
+
+
 def test_attention_report_refuses_data_without_ground_truth(setup, hash_text_encoder, tmp_path, capsys):
     tool = load_tool("attention_report")
     plain = tmp_path / "plain"

@@ -3,7 +3,7 @@
     python tools/order_by_template.py --model B --data data/synth \\
         --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
         [--word-text caption|segments] [--segment-timing predicted|none|truth] \\
-        [--remasking confidence|segments] [--reconstruction]
+        [--remasking confidence|segments] [--compose FRAMES] [--reconstruction]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -47,9 +47,12 @@ from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
+from segmo.pipeline.compose import COMPOSE_BLEND
 from segmo.synth.captions import HELD_OUT_TEMPLATES
 
 BATCH = 32
+# The shortest part `SegMo.compose` takes: a cross-fade at each end and one token.
+COMPOSE_MIN_PART = 2 * COMPOSE_BLEND + FRAMES_PER_TOKEN
 
 
 def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:
@@ -78,21 +81,41 @@ def true_timing(model: SegMo, chunk: list[dict]) -> dict:
     return {"segments": segments, "durations": [r["durations"] for r in chunk]}
 
 
+def composed_parts(row: dict, segments: list[str], transition: int) -> list[tuple[str, int]]:
+    """`SegMo.compose`'s parts for one row: each segment with its true share of the frames
+    left beside the transitions, in whole tokens, at least `COMPOSE_MIN_PART` frames."""
+    left = row["frames"] - (len(segments) - 1) * transition
+    total = sum(row["durations"])
+    return [(text, max(COMPOSE_MIN_PART, round(left * d / total / FRAMES_PER_TOKEN) * FRAMES_PER_TOKEN))
+            for text, d in zip(segments, row["durations"])]
+
+
 def order_by_template(model: SegMo, classifier, rows: list[dict], repeats: int, seed: int,
-                      truth: bool = False, reconstructed: np.ndarray | None = None) -> dict:
+                      truth: bool = False, reconstructed: np.ndarray | None = None,
+                      compose: int | None = None) -> dict:
     """Sequence accuracy of `repeats` generations of each row, by template, by number of
     actions and over the trained / held-out templates; with `reconstructed` (one bool per
-    row, `reconstructions_read_right`) also split by whether the tokenizer keeps the actions."""
+    row, `reconstructions_read_right`) also split by whether the tokenizer keeps the actions.
+    `compose`: each row generated segment by segment, transitions of that many frames."""
     hits = np.zeros((len(rows), repeats), dtype=bool)
-    for repeat in range(repeats):
-        for start in range(0, len(rows), BATCH):
-            chunk = rows[start:start + BATCH]
-            out = model.generate([r["text"] for r in chunk], [r["frames"] for r in chunk],
-                                 generator=torch.Generator().manual_seed(seed + 1000 * repeat + start),
-                                 **(true_timing(model, chunk) if truth else {}))
-            for k, row in enumerate(chunk):
-                features = out.features[k, : int(out.lengths[k])].float().cpu().numpy()
-                hits[start + k, repeat] = classifier.predict_sequence(features) == row["actions"]
+    if compose is not None:
+        segments = true_timing(model, rows)["segments"]
+        for repeat in range(repeats):
+            for i, row in enumerate(rows):
+                out = model.compose(composed_parts(row, segments[i], compose), compose,
+                                    generator=torch.Generator().manual_seed(seed + 1000 * repeat + i))
+                features = out.features[0, : int(out.lengths[0])].float().cpu().numpy()
+                hits[i, repeat] = classifier.predict_sequence(features) == row["actions"]
+    else:
+        for repeat in range(repeats):
+            for start in range(0, len(rows), BATCH):
+                chunk = rows[start:start + BATCH]
+                out = model.generate([r["text"] for r in chunk], [r["frames"] for r in chunk],
+                                     generator=torch.Generator().manual_seed(seed + 1000 * repeat + start),
+                                     **(true_timing(model, chunk) if truth else {}))
+                for k, row in enumerate(chunk):
+                    features = out.features[k, : int(out.lengths[k])].float().cpu().numpy()
+                    hits[start + k, repeat] = classifier.predict_sequence(features) == row["actions"]
 
     def entry(indices: list[int], of: np.ndarray = hits) -> dict:
         h = of[indices].reshape(len(indices), -1)
@@ -152,11 +175,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--remasking", choices=get_args(Remasking), default=None,
                         help="which tokens each decoding step masks again: the least confident "
                         "of the motion or of each segment (default: the bundle's)")
+    parser.add_argument("--compose", type=int, default=None, metavar="FRAMES",
+                        help="generate each caption segment by segment (SegMo.compose), "
+                        "parts at their true shares, transitions of FRAMES frames")
     parser.add_argument("--reconstruction", action="store_true", help="also read the tokenizer's "
                         "reconstructions and split the generated accuracy by them")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
+    if args.compose is not None and (args.compose < FRAMES_PER_TOKEN or args.compose % FRAMES_PER_TOKEN):
+        parser.error(f"--compose must be a multiple of {FRAMES_PER_TOKEN} frames ≥ {FRAMES_PER_TOKEN}, "
+                     f"got {args.compose}")
+    if args.compose is not None and args.segment_timing is not None:
+        parser.error("--compose generates each segment alone: give no --segment-timing")
     try:
         model = SegMo.from_pretrained(args.model)
         if args.word_text is not None:
@@ -177,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"order_by_template: {error}", file=sys.stderr)
         return 2
     result = order_by_template(model, classifier, rows, args.repeats, args.seed,
-                               truth=args.segment_timing == "truth", reconstructed=reconstructed)
+                               truth=args.segment_timing == "truth", reconstructed=reconstructed,
+                               compose=args.compose)
     for template, value in result["by_template"].items():
         print(f"{template:>12}: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     for bucket, value in result["by_num_actions"].items():
@@ -188,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     timing = args.segment_timing or model.sampling.segment_timing
     print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing,
-                      "remasking": model.sampling.remasking}))
+                      "remasking": model.sampling.remasking, "compose": args.compose}))
     return 0
 
 
