@@ -4,11 +4,13 @@ val and test unchanged."""
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import load_tool
 
 from segmo.data.layout import read_split
 from segmo.synth import build_corpus
+from segmo.synth.captions import HELD_OUT_TEMPLATES
 
 
 def test_grown_corpus_keeps_val_and_test_and_adds_only_train_motions(tmp_path: Path, capsys):
@@ -55,3 +57,61 @@ def test_grow_train_refuses_corpora_that_do_not_match(tmp_path: Path, capsys):
         tool.main(["--data", str(small), "--add", str(big), "--out", str(small)])
     assert f"--out {small}: exists" in str(stop.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big", "fewer", "other", "small"]
+
+
+def test_segment_crops_cut_runs_of_actions_from_the_train_motions(tmp_path: Path, capsys):
+    tool = load_tool("grow_train")
+    data = build_corpus(tmp_path / "data", 30, seed=0, progress=False)
+    out = tmp_path / "crops"
+    tool.main(["--data", str(data), "--segment-crops", "--out", str(out)])
+    result = json.loads(capsys.readouterr().out.splitlines()[-1])
+    train = read_split(data, "train")
+    crops = read_split(out, "train")[len(train):]
+    assert read_split(out, "train")[:len(train)] == train and result["added"] == len(crops) > 0
+    for split in ("val", "test"):
+        assert read_split(out, split) == read_split(data, split)
+    expected = set()
+    for mid in train:
+        actions = json.loads((data / "segments" / f"{mid}.json").read_text())["actions"]
+        for first in range(len(actions)):
+            for last in range(first + 1, len(actions) + 1):
+                frames = actions[last - 1]["end"] - actions[first]["start"]
+                if last - first < len(actions) and frames >= tool.MIN_FRAMES:
+                    expected.add(f"{mid}_{first}_{last}")
+    assert set(crops) == expected
+    for crop in crops:
+        mid, first, last = crop.split("_")
+        source = json.loads((data / "segments" / f"{mid}.json").read_text())
+        truth = json.loads((out / "segments" / f"{crop}.json").read_text())
+        taken = source["actions"][int(first):int(last)]
+        start = taken[0]["start"]
+        # the crop's frames are the source's between its true action boundaries
+        features = np.load(out / "new_joint_vecs" / f"{crop}.npy")
+        assert np.array_equal(features, np.load(data / "new_joint_vecs" / f"{mid}.npy")[start:taken[-1]["end"]])
+        assert np.load(out / "new_joints" / f"{crop}.npy").shape == (len(features), 22, 3)
+        assert [(a["action"], a["params"], a["start"] + start, a["end"] + start) for a in truth["actions"]] \
+            == [(a["action"], a["params"], a["start"], a["end"]) for a in taken]
+        lines = (out / "texts" / f"{crop}.txt").read_text().splitlines()
+        assert [line.split("#")[0] for line in lines] == [c["text"] for c in truth["captions"]]
+        for caption in truth["captions"]:  # worded as train captions are, one segment per action
+            assert caption["template"] not in HELD_OUT_TEMPLATES
+            assert [s["action"] for s in caption["segments"]] == [a["action"] for a in taken]
+    # the corpus' own motions are its own, byte for byte
+    assert (out / "new_joint_vecs" / f"{train[0]}.npy").read_bytes() == \
+        (data / "new_joint_vecs" / f"{train[0]}.npy").read_bytes()
+    assert json.loads((out / "corpus.json").read_text())["segment_crops"] is True
+
+
+def test_segment_crops_leave_nothing_behind_on_a_broken_motion(tmp_path: Path, capsys):
+    tool = load_tool("grow_train")
+    data = build_corpus(tmp_path / "data", 12, seed=0, progress=False)
+    broken = read_split(data, "train")[-1]
+    (data / "segments" / f"{broken}.json").write_text("{not json")
+    out = tmp_path / "crops"
+    with pytest.raises(SystemExit) as stop:
+        tool.main(["--data", str(data), "--segment-crops", "--out", str(out)])
+    assert f"motion {broken}" in str(stop.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    with pytest.raises(SystemExit):  # one source only
+        tool.main(["--data", str(data), "--segment-crops", "--add", str(data), "--out", str(out)])
+    assert "not allowed with" in capsys.readouterr().err

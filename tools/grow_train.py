@@ -1,4 +1,5 @@
-"""More training motions for a built-in corpus, its val and test splits unchanged.
+"""More training motions for a built-in corpus, its val and test splits unchanged: from a
+bigger corpus of the same seed (--add), or cut from its own train motions (--segment-crops).
 
 Motion i of `segmo synth` depends only on the seed, the corpus version and i, so a corpus
 of more motions (same seed and version) holds the smaller one's motions and more. This
@@ -16,6 +17,20 @@ other's. Text segments and features are not copied: run `segmo segment-texts` an
     segmo segment-texts --data data/v3x --backend rule
     segmo encode-texts --data data/v3x --encoder minilm --segments rule
 
+--segment-crops adds no new motion of the corpus' generator: each train motion of two or
+more actions also gives every run of consecutive actions but the whole (a 4-action motion
+gives 3 + 2 + 2 + 1 + 1 + 1 + 1 + 1 + 1 = 9 minus the ones too short) as a motion of its own,
+its frames cut from the motion's features at the true action boundaries (the features are
+root-relative, so a cut is a motion that starts at the origin), at least `MIN_FRAMES`
+frames long, worded by the corpus' own captions of the trained templates
+(`segmo.synth.captions.make_captions` on the actions and their parameters, seeded by the
+crop's id). So a short action also lies at the end, at the start and alone in the data, and
+2- and 3-action sequences come from every part of the longer motions, while every frame
+stays one of the 1,600 train motions'. The crop of motion 000123's actions 1 and 2 (from 0)
+is 000123_1_3.
+
+    python tools/grow_train.py --data data/v3 --segment-crops --out data/v3c
+
 The last line printed is JSON: the train motions of DATA, the ones added, and OUT.
 """
 
@@ -26,7 +41,10 @@ import json
 import os
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from segmo.data.layout import (
     SPLITS,
@@ -38,6 +56,9 @@ from segmo.data.layout import (
     split_file,
 )
 from segmo.errors import SegmoError
+from segmo.motion.features import features_to_joints
+from segmo.synth.captions import make_captions, pos_tag
+from segmo.synth.sequence import MIN_FRAMES, Segment
 from segmo.text.captions import texts_file
 
 # What one motion of a corpus is: its features, joints, captions and ground truth.
@@ -80,23 +101,94 @@ def grow_train(data: Path, add: Path, out: Path) -> dict:
     probe = train[0]  # the same motion in both, byte for byte, or they are not one sequence
     if motion_file(data, probe).read_bytes() != motion_file(add, probe).read_bytes():
         raise SegmoError(f"--add {add}: motion {probe} differs from --data's; not the same corpus")
+
+    def write_added(tmp: Path) -> list[str]:
+        for mid in added:
+            for path_of in MOTION_FILES:
+                target = path_of(tmp, mid)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                link(path_of(add, mid), target)
+        return added
+
+    info = {"train_added": {"from": str(add), "num_motions": bigger["num_motions"],
+                            "motions": len(added)}}
+    return write_grown(data, out, write_added, info)
+
+
+def segment_crops(data: Path, out: Path) -> dict:
+    """Write OUT = DATA and the segment crops of its train motions (module docstring)."""
+    corpus_info(data, "--data")
+    if out.exists():
+        raise SegmoError(f"--out {out}: exists; choose a new folder")
+
+    def write_crops(tmp: Path) -> list[str]:
+        added = []
+        for mid in read_split(data, "train"):
+            path = ground_truth_file(data, mid)
+            try:
+                truth = json.loads(path.read_text(encoding="utf-8"))
+                actions = truth["actions"]
+                features = np.load(motion_file(data, mid))
+            except (OSError, ValueError, KeyError) as error:
+                raise SegmoError(f"--data {data}: motion {mid}: {error}") from None
+            for first in range(len(actions)):
+                for last in range(first + 1, len(actions) + 1):
+                    if last - first == len(actions):
+                        continue
+                    start, end = actions[first]["start"], actions[last - 1]["end"]
+                    if end - start < MIN_FRAMES:
+                        continue
+                    added.append(write_crop(tmp, f"{mid}_{first}_{last}",
+                                            features[start:end], actions[first:last], start))
+        return added
+
+    return write_grown(data, out, write_crops, {"segment_crops": True})
+
+
+def write_crop(root: Path, mid: str, features: np.ndarray, actions: list[dict], offset: int) -> str:
+    """One crop as a corpus motion: features, joints, captions, ground truth; → its id."""
+    features = np.ascontiguousarray(features, dtype=np.float32)
+    shifted = [dict(a, start=a["start"] - offset, end=a["end"] - offset) for a in actions]
+    segments = [Segment(a["action"], a["params"],
+                        (a["with"]["action"], a["with"]["params"]) if "with" in a else None)
+                for a in shifted]
+    captions = make_captions(segments, np.random.default_rng(list(mid.encode())), held_out=False)
+    for path_of in MOTION_FILES:
+        path_of(root, mid).parent.mkdir(parents=True, exist_ok=True)
+    np.save(motion_file(root, mid), features)
+    np.save(joints_file(root, mid), features_to_joints(features, "t2m").astype(np.float32))
+    texts_file(root, mid).write_text("".join(f"{c.text}#{pos_tag(c.text)}#0.0#0.0\n"
+                                             for c in captions))
+    truth = {"id": mid, "fps": 20.0, "num_frames": len(features), "actions": shifted,
+             "captions": [{"text": c.text, "template": c.template, "segments": [
+                 {"text": text, "action": a["action"], "start": a["start"], "end": a["end"]}
+                 for text, a in zip(c.segments, shifted)]} for c in captions]}
+    ground_truth_file(root, mid).write_text(json.dumps(truth, indent=1) + "\n")
+    return mid
+
+
+def write_grown(data: Path, out: Path, write_added: Callable[[Path], list[str]],
+                info: dict) -> dict:
+    """OUT = DATA's motions (linked), its statistics, val and test, and the train motions
+    `write_added(folder)` writes; built in a temporary folder renamed at the end, so a
+    failure leaves no OUT."""
+    train = read_split(data, "train")
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        for source, ids in ((data, [i for s in SPLITS for i in read_split(data, s)]), (add, added)):
-            for mid in ids:
-                for path_of in MOTION_FILES:
-                    target = path_of(tmp, mid)
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    link(path_of(source, mid), target)
+        for mid in (i for s in SPLITS for i in read_split(data, s)):
+            for path_of in MOTION_FILES:
+                target = path_of(tmp, mid)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                link(path_of(data, mid), target)
+        added = write_added(tmp)
         for name in STATISTICS:
             shutil.copy2(data / name, tmp / name)
         for split in SPLITS:
             ids = train + added if split == "train" else read_split(data, split)
             split_file(tmp, split).write_text("".join(f"{i}\n" for i in ids))
-        info = dict(base, train_added={"from": str(add), "num_motions": bigger["num_motions"],
-                                       "motions": len(added)})
-        (tmp / "corpus.json").write_text(json.dumps(info, indent=1) + "\n")
+        (tmp / "corpus.json").write_text(json.dumps(dict(corpus_info(data, "--data"), **info),
+                                                    indent=1) + "\n")
         tmp.rename(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -107,15 +199,19 @@ def grow_train(data: Path, add: Path, out: Path) -> dict:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="the corpus to grow")
-    parser.add_argument("--add", type=Path, required=True,
-                        help="a bigger corpus of the same seed and version")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--add", type=Path, help="a bigger corpus of the same seed and version")
+    source.add_argument("--segment-crops", action="store_true",
+                        help="add the runs of consecutive actions of DATA's own train motions")
     parser.add_argument("--out", type=Path, required=True, help="a new folder")
     args = parser.parse_args(argv)
     try:
-        result = grow_train(args.data, args.add, args.out)
+        result = (segment_crops(args.data, args.out) if args.segment_crops
+                  else grow_train(args.data, args.add, args.out))
     except SegmoError as error:
         sys.exit(f"grow_train: {error}")
-    print(f"{result['train']} train motions of {args.data} + {result['added']} of {args.add} "
+    source = "segment crops" if args.segment_crops else f"of {args.add}"
+    print(f"{result['train']} train motions of {args.data} + {result['added']} {source} "
           f"-> {args.out}")
     print(json.dumps(result))
 
