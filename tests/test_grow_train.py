@@ -112,6 +112,17 @@ def test_segment_crops_leave_nothing_behind_on_a_broken_motion(tmp_path: Path, c
         tool.main(["--data", str(data), "--segment-crops", "--out", str(out)])
     assert f"motion {broken}" in str(stop.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    # spans past the motion's frames: named with the file, nothing written either
+    other = read_split(data, "train")[0]
+    path = data / "segments" / f"{other}.json"
+    truth = json.loads(path.read_text())
+    truth["actions"][-1]["end"] += 50
+    path.write_text(json.dumps(truth))
+    (data / "segments" / f"{broken}.json").write_text(json.dumps(truth))
+    with pytest.raises(SystemExit) as stop:
+        tool.main(["--data", str(data), "--segment-crops", "--out", str(out)])
+    assert str(path) in str(stop.value) and "do not lie in" in str(stop.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     with pytest.raises(SystemExit):  # one source only
         tool.main(["--data", str(data), "--segment-crops", "--add", str(data), "--out", str(out)])
     assert "not allowed with" in capsys.readouterr().err

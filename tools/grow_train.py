@@ -126,16 +126,19 @@ def segment_crops(data: Path, out: Path) -> dict:
         for mid in read_split(data, "train"):
             path = ground_truth_file(data, mid)
             try:
-                truth = json.loads(path.read_text(encoding="utf-8"))
-                actions = truth["actions"]
+                actions = json.loads(path.read_text(encoding="utf-8"))["actions"]
+                spans = [(int(a["start"]), int(a["end"])) for a in actions]
                 features = np.load(motion_file(data, mid))
-            except (OSError, ValueError, KeyError) as error:
-                raise SegmoError(f"--data {data}: motion {mid}: {error}") from None
+            except (OSError, ValueError, KeyError, TypeError) as error:
+                raise SegmoError(f"--data {data}: motion {mid}: {error!r}") from None
+            if any(not 0 <= s < e <= len(features) for s, e in spans):
+                raise SegmoError(f"{path}: action spans {spans} do not lie in the motion's "
+                                 f"{len(features)} frames")
             for first in range(len(actions)):
                 for last in range(first + 1, len(actions) + 1):
                     if last - first == len(actions):
                         continue
-                    start, end = actions[first]["start"], actions[last - 1]["end"]
+                    start, end = spans[first][0], spans[last - 1][1]
                     if end - start < MIN_FRAMES:
                         continue
                     added.append(write_crop(tmp, f"{mid}_{first}_{last}",

@@ -47,12 +47,10 @@ from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
-from segmo.pipeline.compose import COMPOSE_BLEND
+from segmo.pipeline.compose import COMPOSE_MIN_PART
 from segmo.synth.captions import HELD_OUT_TEMPLATES
 
 BATCH = 32
-# The shortest part `SegMo.compose` takes: a cross-fade at each end and one token.
-COMPOSE_MIN_PART = 2 * COMPOSE_BLEND + FRAMES_PER_TOKEN
 
 
 def multi_segment_rows(data: Path, split: str, max_frames: int) -> list[dict]:

@@ -27,6 +27,8 @@ from segmo.pipeline.outputs import GenerationOutput
 # transition between the part's own decoding and the transition window's.
 COMPOSE_TRANSITION = 20
 COMPOSE_BLEND = 8
+# The shortest part of a composition of two or more: a cross-fade at each end and a token.
+COMPOSE_MIN_PART = 2 * COMPOSE_BLEND + FRAMES_PER_TOKEN
 
 # A part of a composition: (text, frames), or (text, frames, its segments' durations).
 Part = tuple[str, int] | tuple[str, int, list[float]]
@@ -47,8 +49,7 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
             or transition < FRAMES_PER_TOKEN or transition % FRAMES_PER_TOKEN:
         raise SegmoError(f"SegMo.compose: transition must be a multiple of "
                          f"{FRAMES_PER_TOKEN} frames >= {FRAMES_PER_TOKEN}, got {transition!r}")
-    blend = COMPOSE_BLEND
-    shortest = 2 * blend + FRAMES_PER_TOKEN
+    blend, shortest = COMPOSE_BLEND, COMPOSE_MIN_PART
     if len(parts) > 1 and any(isinstance(f, numbers.Integral) and f < shortest
                               for f in frames):
         raise SegmoError(f"SegMo.compose: each part of a composition needs at least "
