@@ -56,8 +56,8 @@ from segmo.data.layout import (
     split_file,
 )
 from segmo.errors import SegmoError
-from segmo.motion.features import features_to_joints
-from segmo.synth.captions import make_captions, pos_tag
+from segmo.synth.captions import make_captions
+from segmo.synth.corpus import write_motion
 from segmo.synth.sequence import MIN_FRAMES, Segment
 from segmo.text.captions import texts_file
 
@@ -149,24 +149,14 @@ def segment_crops(data: Path, out: Path) -> dict:
 
 
 def write_crop(root: Path, mid: str, features: np.ndarray, actions: list[dict], offset: int) -> str:
-    """One crop as a corpus motion: features, joints, captions, ground truth; → its id."""
-    features = np.ascontiguousarray(features, dtype=np.float32)
-    shifted = [dict(a, start=a["start"] - offset, end=a["end"] - offset) for a in actions]
+    """One crop as a corpus motion (`segmo.synth.corpus.write_motion`); → its id."""
     segments = [Segment(a["action"], a["params"],
-                        (a["with"]["action"], a["with"]["params"]) if "with" in a else None)
-                for a in shifted]
+                        (a["with"]["action"], a["with"]["params"]) if "with" in a else None,
+                        a["start"] - offset, a["end"] - offset) for a in actions]
     captions = make_captions(segments, np.random.default_rng(list(mid.encode())), held_out=False)
     for path_of in MOTION_FILES:
         path_of(root, mid).parent.mkdir(parents=True, exist_ok=True)
-    np.save(motion_file(root, mid), features)
-    np.save(joints_file(root, mid), features_to_joints(features, "t2m").astype(np.float32))
-    texts_file(root, mid).write_text("".join(f"{c.text}#{pos_tag(c.text)}#0.0#0.0\n"
-                                             for c in captions))
-    truth = {"id": mid, "fps": 20.0, "num_frames": len(features), "actions": shifted,
-             "captions": [{"text": c.text, "template": c.template, "segments": [
-                 {"text": text, "action": a["action"], "start": a["start"], "end": a["end"]}
-                 for text, a in zip(c.segments, shifted)]} for c in captions]}
-    ground_truth_file(root, mid).write_text(json.dumps(truth, indent=1) + "\n")
+    write_motion(root, mid, np.ascontiguousarray(features, dtype=np.float32), segments, captions)
     return mid
 
 
@@ -213,8 +203,8 @@ def main(argv: list[str] | None = None) -> None:
                   else grow_train(args.data, args.add, args.out))
     except SegmoError as error:
         sys.exit(f"grow_train: {error}")
-    source = "segment crops" if args.segment_crops else f"of {args.add}"
-    print(f"{result['train']} train motions of {args.data} + {result['added']} {source} "
+    added = "segment crops" if args.segment_crops else f"of {args.add}"
+    print(f"{result['train']} train motions of {args.data} + {result['added']} {added} "
           f"-> {args.out}")
     print(json.dumps(result))
 

@@ -46,8 +46,8 @@ from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_
 from segmo.files import LOCK_FILE, FolderLock
 from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.synth.actions import ACTIONS
-from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions, pos_tag
-from segmo.synth.sequence import VERSION, VERSIONS, sample_motion
+from segmo.synth.captions import HELD_OUT_TEMPLATES, Caption, make_captions, pos_tag
+from segmo.synth.sequence import VERSION, VERSIONS, Segment, sample_motion
 from segmo.text.captions import TEXTS
 
 SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
@@ -83,29 +83,34 @@ def _build_one(job: tuple[str, int, int, str, int]) -> dict:
     rng = np.random.default_rng([seed, index])
     motion = sample_motion(rng, version)
     features = joints_to_features(motion.joints.astype(np.float32), "t2m").astype(np.float32)
-    joints = features_to_joints(features, "t2m").astype(np.float32)
-    mid = motion_id(index)
-    np.save(motion_file(root, mid), features)
-    np.save(joints_file(root, mid), joints)
     captions = make_captions(motion.segments, rng, held_out=split != "train")
-    lines = [f"{c.text}#{pos_tag(c.text)}#0.0#0.0" for c in captions]
-    texts_file(root, mid).write_text("\n".join(lines) + "\n")
-    actions = [{"action": s.action, "params": s.params, "start": s.start, "end": s.end}
-               | ({"with": {"action": s.overlay[0], "params": s.overlay[1]}} if s.overlay else {})
-               for s in motion.segments]
-    truth = {
-        "id": mid, "fps": 20.0, "num_frames": int(len(features)), "actions": actions,
-        "captions": [{"text": c.text, "template": c.template, "segments": [
-            {"text": text, "action": s.action, "start": s.start, "end": s.end}
-            for text, s in zip(c.segments, motion.segments)]} for c in captions],
-    }
-    ground_truth_file(root, mid).write_text(json.dumps(truth, indent=1) + "\n")
+    write_motion(root, motion_id(index), features, motion.segments, captions)
     stats = {"split": split, "frames": len(features), "segments": len(motion.segments),
              "actions": [s.action for s in motion.segments]}
     if split == "train":
         x = features.astype(np.float64)
         stats["mean"], stats["m2"] = x.mean(0), ((x - x.mean(0)) ** 2).sum(0)
     return stats
+
+
+def write_motion(root: Path, mid: str, features: np.ndarray, segments: list[Segment],
+                 captions: list[Caption]) -> None:
+    """One motion of a corpus: its features (t, 263) float32, the joints recovered from
+    them, its caption lines and its ground truth (actions and each caption's segments)."""
+    np.save(motion_file(root, mid), features)
+    np.save(joints_file(root, mid), features_to_joints(features, "t2m").astype(np.float32))
+    lines = [f"{c.text}#{pos_tag(c.text)}#0.0#0.0" for c in captions]
+    texts_file(root, mid).write_text("\n".join(lines) + "\n")
+    actions = [{"action": s.action, "params": s.params, "start": s.start, "end": s.end}
+               | ({"with": {"action": s.overlay[0], "params": s.overlay[1]}} if s.overlay else {})
+               for s in segments]
+    truth = {
+        "id": mid, "fps": 20.0, "num_frames": int(len(features)), "actions": actions,
+        "captions": [{"text": c.text, "template": c.template, "segments": [
+            {"text": text, "action": s.action, "start": s.start, "end": s.end}
+            for text, s in zip(c.segments, segments)]} for c in captions],
+    }
+    ground_truth_file(root, mid).write_text(json.dumps(truth, indent=1) + "\n")
 
 
 def _init_worker() -> None:
