@@ -55,3 +55,20 @@ class SaveRankState(L.Callback):
         torch.save({"state": state, "ids": self.ids, "step": trainer.global_step,
                     "world_size": trainer.world_size},
                    Path(self.directory) / f"rank{trainer.global_rank}.pt")
+
+
+class SaveStepWeights(L.Callback):
+    """After every optimizer step, keeps the task's trainable weights; at the end of
+    training, saves them to ``DIRECTORY/steps.pt`` as {global step: state}."""
+
+    def __init__(self, directory: str) -> None:
+        self.directory = directory
+        self.steps: dict[int, dict[str, torch.Tensor]] = {}
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.steps[trainer.global_step] = {name: p.detach().cpu().clone()
+                                           for name, p in pl_module.named_parameters() if p.requires_grad}
+
+    def on_train_end(self, trainer, pl_module):
+        Path(self.directory).mkdir(parents=True, exist_ok=True)
+        torch.save(self.steps, Path(self.directory) / "steps.pt")

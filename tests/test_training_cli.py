@@ -338,6 +338,8 @@ HOSTILE = {
                            "--ckpt_path {tmp}/none.ckpt: no such checkpoint file"),
     "not a checkpoint": (None, ["--ckpt_path={tmp}/junk.ckpt"],
                          "--ckpt_path {tmp}/junk.ckpt: not a readable checkpoint"),
+    "EMA decay": (None, ["--trainer.callbacks+=segmo.training.ema.EMA", "--trainer.callbacks.decay=1.5"],
+                  "EMA: decay must lie strictly between 0 and 1, got 1.5"),
     "default_root_dir": (None, ["--trainer.default_root_dir={tmp}/elsewhere"],
                          "--trainer.default_root_dir is not used by segmo: the run directory is "
                          "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead"),
