@@ -10,22 +10,18 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import REPO
+from test_training_resume import TINY_MASK
 
 from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
 from segmo.training.cli import main as cli_main
 
-TESTS = Path(__file__).resolve().parent
-TINY_MASK = ["--model.init_args.dim=32", "--model.init_args.depth=1", "--model.init_args.heads=2",
-             "--model.init_args.ff_dim=32", "--model.init_args.alignment_dim=16"]
 DECAY = 0.5  # a short average, so that six steps leave it far from the last weights
 EMA = ["--trainer.callbacks+=segmo.training.ema.EMA", f"--trainer.callbacks.decay={DECAY}"]
 
 
 @pytest.fixture()
-def fit(text_dataset, tokenizer_dir, tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(TESTS))  # fit_helpers' callbacks, by class path
-
+def fit(text_dataset, tokenizer_dir, tmp_path):
     def run(name: str, *extra: str) -> Path:
         cli_main(["fit", "--config", str(REPO / "configs/mask/synthetic.yaml"),
                   f"--data.root={text_dataset['t2m']}", f"--model.init_args.tokenizer={tokenizer_dir['t2m']}",
