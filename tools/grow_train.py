@@ -75,11 +75,16 @@ def corpus_info(root: Path, flag: str) -> dict:
         raise SegmoError(f"{flag} {root}/corpus.json: unreadable ({error})") from None
 
 
-def link(source: Path, target: Path) -> None:
-    try:
-        os.link(source, target)
-    except OSError:  # another file system, or one without hard links
-        shutil.copy2(source, target)
+def link_motion(source: Path, root: Path, mid: str) -> None:
+    """Motion `mid`'s files of corpus `source` into `root`: hard links, or copies where the
+    file system has none."""
+    for path_of in MOTION_FILES:
+        target = path_of(root, mid)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(path_of(source, mid), target)
+        except OSError:  # another file system, or one without hard links
+            shutil.copy2(path_of(source, mid), target)
 
 
 def grow_train(data: Path, add: Path, out: Path) -> dict:
@@ -104,10 +109,7 @@ def grow_train(data: Path, add: Path, out: Path) -> dict:
 
     def write_added(tmp: Path) -> list[str]:
         for mid in added:
-            for path_of in MOTION_FILES:
-                target = path_of(tmp, mid)
-                target.parent.mkdir(parents=True, exist_ok=True)
-                link(path_of(add, mid), target)
+            link_motion(add, tmp, mid)
         return added
 
     info = {"train_added": {"from": str(add), "num_motions": bigger["num_motions"],
@@ -170,10 +172,7 @@ def write_grown(data: Path, out: Path, write_added: Callable[[Path], list[str]],
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         for mid in (i for s in SPLITS for i in read_split(data, s)):
-            for path_of in MOTION_FILES:
-                target = path_of(tmp, mid)
-                target.parent.mkdir(parents=True, exist_ok=True)
-                link(path_of(data, mid), target)
+            link_motion(data, tmp, mid)
         added = write_added(tmp)
         for name in STATISTICS:
             shutil.copy2(data / name, tmp / name)

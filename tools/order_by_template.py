@@ -47,7 +47,7 @@ from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
-from segmo.pipeline.compose import COMPOSE_MIN_PART
+from segmo.pipeline.compose import COMPOSE_MIN_PART, valid_transition
 from segmo.synth.captions import HELD_OUT_TEMPLATES
 
 BATCH = 32
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
-    if args.compose is not None and (args.compose < FRAMES_PER_TOKEN or args.compose % FRAMES_PER_TOKEN):
+    if args.compose is not None and not valid_transition(args.compose):
         parser.error(f"--compose must be a multiple of {FRAMES_PER_TOKEN} frames ≥ {FRAMES_PER_TOKEN}, "
                      f"got {args.compose}")
     if args.compose is not None and args.segment_timing is not None:

@@ -30,6 +30,13 @@ COMPOSE_BLEND = 8
 # The shortest part of a composition of two or more: a cross-fade at each end and a token.
 COMPOSE_MIN_PART = 2 * COMPOSE_BLEND + FRAMES_PER_TOKEN
 
+
+def valid_transition(frames: object) -> bool:
+    """Whether `frames` can be a transition of `compose`: whole tokens, at least one."""
+    return (isinstance(frames, numbers.Integral) and not isinstance(frames, bool)
+            and frames >= FRAMES_PER_TOKEN and frames % FRAMES_PER_TOKEN == 0)
+
+
 # A part of a composition: (text, frames), or (text, frames, its segments' durations).
 Part = tuple[str, int] | tuple[str, int, list[float]]
 
@@ -45,8 +52,7 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
     texts = check_texts([p[0] for p in parts], "part")
     frames = [p[1] for p in parts]
     durations = [p[2] if len(p) == 3 else None for p in parts]
-    if isinstance(transition, bool) or not isinstance(transition, numbers.Integral) \
-            or transition < FRAMES_PER_TOKEN or transition % FRAMES_PER_TOKEN:
+    if not valid_transition(transition):
         raise SegmoError(f"SegMo.compose: transition must be a multiple of "
                          f"{FRAMES_PER_TOKEN} frames >= {FRAMES_PER_TOKEN}, got {transition!r}")
     blend, shortest = COMPOSE_BLEND, COMPOSE_MIN_PART
