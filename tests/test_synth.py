@@ -18,7 +18,14 @@ from segmo.synth import ACTIONS, build_corpus, sample_motion
 from segmo.synth.actions import SAMPLE_V2
 from segmo.synth.captions import HELD_OUT_TEMPLATES, make_captions
 from segmo.synth.corpus import main, split_assignment
-from segmo.synth.sequence import LONG_V3, MAX_RATIO, motion_from_actions
+from segmo.synth.sequence import (
+    LONG_V3,
+    MAX_FRAMES,
+    MAX_RATIO,
+    RESAMPLE_KEEPS,
+    motion_from_actions,
+    resample_motion,
+)
 
 NUM = 30
 FEET = [7, 8, 10, 11]
@@ -261,6 +268,36 @@ def test_library_has_twenty_actions_that_return_to_neutral():
         assert j[:, FEET, 1].min() > -0.02, name
         # Ends at rest: the last frames of every action are (nearly) still.
         assert np.abs(j[-1] - j[-2]).max() < 0.02, name
+
+
+def test_resample_motion_keeps_the_actions_and_what_it_is_told_to():
+    """A corpus motion made again: the same actions in the same order; all its parameters
+    (a length within a transition's worth of the original), those a caption can name
+    (the others drawn again), or none; always a new realization that fits."""
+    changed = {keep: 0 for keep in RESAMPLE_KEEPS}
+    for index in range(8):
+        motion = sample_motion(np.random.default_rng([0, index]), 3)
+        actions = [{"action": s.action, "params": s.params}
+                   | ({"with": {"action": s.overlay[0], "params": s.overlay[1]}} if s.overlay else {})
+                   for s in motion.segments]
+        for keep in RESAMPLE_KEEPS:
+            again = resample_motion(np.random.default_rng([1, index]), actions, 3, keep=keep)
+            assert [s.action for s in again.segments] == [s.action for s in motion.segments]
+            assert [s.overlay is None for s in again.segments] == [s.overlay is None for s in motion.segments]
+            assert len(again.joints) <= MAX_FRAMES + 2
+            changed[keep] += [s.params for s in again.segments] != [s.params for s in motion.segments]
+            if keep == "all":
+                assert abs(len(again.joints) - len(motion.joints)) <= 6 * len(actions)
+                assert not np.array_equal(again.joints[:len(motion.joints)], motion.joints[:len(again.joints)])
+            if keep == "stated":
+                for old, new in zip(motion.segments, again.segments):
+                    named = [k for k in ("direction", "side", "hand", "foot", "count") if k in old.params]
+                    assert {k: new.params[k] for k in named} == {k: old.params[k] for k in named}
+                    if old.overlay:
+                        assert new.overlay[1].get("side") == old.overlay[1].get("side")
+    assert changed == {"all": 0, "stated": 8, "none": 8}
+    with pytest.raises(ValueError, match="keep must be one of"):
+        resample_motion(np.random.default_rng(0), actions, 3, keep="some")
 
 
 def test_body_state_is_consistent():

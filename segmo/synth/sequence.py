@@ -140,8 +140,7 @@ def _sample_v2(rng: np.random.Generator, version: int) -> SynthMotion:
     while True:
         for attempt in range(FIT_ATTEMPTS):
             frames = [len(track.root) for _, _, track in plan]
-            # What `_hold` and `_blend` make of these clips (see `_sample_v1`).
-            total = sum(frames) + sum(o // 3 + (o + 1) // 2 - o for o in overlaps[1:len(plan)])
+            total = _blended_frames(frames, overlaps)
             # Version 3 asks for the spread where a long action could be placed.
             spread = (not contrast or len(plan) < 2 or not any(n in LONG_V3 for n in names[:len(plan)])
                       or max(frames) >= MIN_RATIO_V3[len(plan)] * min(frames))
@@ -160,6 +159,73 @@ def _sample_v2(rng: np.random.Generator, version: int) -> SynthMotion:
         if len(plan) == 1:  # cannot happen with the library's lengths; keep the loop finite
             raise RuntimeError(f"sample_motion: {names[0]} never fits in {MAX_FRAMES} frames")
         plan.pop()  # these actions do not fit together: drop the last one (keeps body states)
+
+
+def _blended_frames(frames: list[int], overlaps: list[int]) -> int:
+    """Frames of clips of `frames` blended over `overlaps` (`overlaps[0]` is 0): what `_hold`
+    and `_blend` make of them (see `_sample_v1`)."""
+    return sum(frames) + sum(o // 3 + (o + 1) // 2 - o for o in overlaps[1:len(frames)])
+
+
+# What a caption can name of an action's parameters (segmo.synth.captions): sides,
+# directions, counts and a turn's angle. Speeds, step counts, heights, holds and tempo it
+# names at most by a word ("slowly", "deeply"), durations not at all.
+STATED = ("direction", "side", "hand", "foot", "count")
+RESAMPLE_KEEPS = ("all", "stated", "none")
+
+
+def _stated(name: str, params: dict) -> dict:
+    keys = (*STATED, "angle") if name == "turn" else STATED
+    return {k: params[k] for k in keys if k in params}
+
+
+def resample_motion(rng: np.random.Generator, actions: list[dict], version: int = VERSION,
+                    keep: str = "all") -> SynthMotion:
+    """A new realization of a corpus motion's action sequence (its ground truth's `actions`:
+    {"action", "params", optional "with": {"action", "params"}}): the same actions in the
+    same order, with new transitions, rests and idiosyncrasy, and of their parameters
+    (`keep`) all the given ones, only those a caption can name (`STATED`; the others drawn
+    anew, as corpus `version` draws them, among the draws that agree with the given ones),
+    or none. Unless all are kept, the longest action is drawn again (up to FIT_ATTEMPTS
+    times) while the motion is longer than MAX_FRAMES. What a generator that gets a
+    caption's actions right could make of it (tools/fid_floor.py)."""
+    if keep not in RESAMPLE_KEEPS:
+        raise ValueError(f"resample_motion: keep must be one of {RESAMPLE_KEEPS}, got {keep!r}")
+    names = [a["action"] for a in actions]
+    seated, sitting = [], False
+    for name in names:
+        seated.append(sitting)
+        sitting = {"sitting": True, "standing": False}.get(ACTIONS[name].ends, sitting)
+
+    def like(name: str, given: dict, sample) -> dict:
+        if keep == "all":
+            return given
+        if keep == "none":
+            return sample(rng)
+        want = _stated(name, given)
+        for _ in range(1000):  # a few dozen at most for the rarest combination (wave: hand × count)
+            params = sample(rng)
+            if _stated(name, params) == want:
+                return params
+        return params | want  # given values this version never draws: the last draw with them
+
+    def draw(i: int) -> tuple[dict, tuple[str, dict] | None, object]:
+        given, over = actions[i], None
+        if "with" in given:
+            upper = given["with"]["action"]
+            over = upper, like(upper, given["with"]["params"], OVERLAYS[upper])
+        params = like(names[i], given["params"], lambda r: sample_params(names[i], r, version))
+        return params, over, build_action(names[i], params, rng, seated[i], over)
+
+    overlaps = [0] + [int(rng.integers(5, 16)) for _ in names[1:]]
+    plan = [draw(i) for i in range(len(names))]
+    for _ in range(0 if keep == "all" else FIT_ATTEMPTS):
+        frames = [len(track.root) for _, _, track in plan]
+        if _blended_frames(frames, overlaps) <= MAX_FRAMES + 1:
+            break
+        i = int(np.argmax(frames))
+        plan[i] = draw(i)
+    return _assemble(rng, names, plan, overlaps, rigid=version >= 4)
 
 
 def _only_long(names: list[str], i: int) -> bool:
