@@ -560,3 +560,47 @@ def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_tex
             seen[1].segment_timing, seen[1].remasking) == (0.25, "local", "segments", "none",
                                                            "segments")
     assert seen[1].guidance_scale == model.sampling.guidance_scale
+
+
+def test_fid_floor_rows_follow_the_draws() -> None:
+    """Two draws of the whole split are the same set (FID 0); other motions of the same
+    distribution lie apart by a bias that shrinks with N; a shifted distribution lies far;
+    a resampled row pairs each motion with its own remake."""
+    import numpy as np
+
+    tool = load_tool("fid_floor")
+    rng = np.random.default_rng(0)
+    split, same = rng.normal(size=(64, 4)), rng.normal(size=(2000, 4))
+    remade = {"same parameters": [split + 0.01 * rng.normal(size=split.shape) for _ in range(3)]}
+    rows = tool.floor(split, same, n=64, sizes=[16, 512], repeats=5, seed=0, resampled=remade)
+    assert list(rows) == ["itself", "other", "disjoint 16", "disjoint 512", "resampled, same parameters"]
+    assert abs(rows["itself"]["mean"]) < 1e-6 and rows["itself"]["motions"] == 64
+    assert rows["disjoint 16"]["mean"] > 5 * rows["disjoint 512"]["mean"] > 0
+    # paired with its own remake, a motion is nearly itself: far below unrelated motions
+    assert 0 < rows["resampled, same parameters"]["mean"] < 0.01 * rows["other"]["mean"]
+    shifted = tool.floor(split, same + 3.0, n=64, sizes=[], repeats=5, seed=0)
+    assert shifted["other"]["mean"] > 30 > 3 * rows["other"]["mean"]  # 4 dims × 3² = 36 apart
+    text = tool.table(rows, "test", "train")
+    assert "| test against as many train motions | 64 |" in text
+    assert "| test against itself made again, same parameters | 64 |" in text
+
+
+def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> None:
+    tool = load_tool("fid_floor")
+    common = ["--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]), "--batch-size", "2"]
+    out = tmp_path / "floor.json"
+    assert tool.main([*common, "--repeats", "2", "--sizes", "4", "--resample", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert list(rows) == ["itself", "other", "disjoint 4", "resampled, same parameters",
+                          "resampled, the caption's parameters", "resampled, new parameters"]
+    assert rows["disjoint 4"]["motions"] == 4
+    assert all(r["mean"] == r["mean"] and r["interval"] >= 0 for r in rows.values())  # no NaN
+    assert "| train against train, disjoint | 4 |" in capsys.readouterr().out
+    plain = tmp_path / "plain"
+    for argv, names in ((["--sizes", "4,x"], "--sizes"), (["--other", "test"], "--other"),
+                        (["--sizes", "50"], "--other train"), (["--split", "nope"], "nope"),
+                        (["--resample", "--data", str(plain)], "corpus.json")):
+        assert tool.main([*common, *argv]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and names in err[0], err
+

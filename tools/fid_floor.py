@@ -1,0 +1,195 @@
+"""What a generated FID can be read against on a split of this size: the split's real motions
+against other motions in the evaluator's space of `segmo evaluate`, with nothing generated.
+
+    python tools/fid_floor.py --data data/v3 --evaluator models/evaluator [--split test] \\
+        [--other train] [--repeats 10] [--sizes 96,288,800] [--resample] [--out floor.json]
+
+`segmo evaluate`'s real row compares the split with itself (two draws of its motions) and
+its reconstruction row every real motion with its own round trip: both pair each motion
+with itself. A generator makes new motions of the same captions. Rows (mean ± 95 %
+interval over --repeats draws; N motions a side):
+
+- `itself`: two draws of N of the split's motions (like `segmo evaluate`'s real row);
+- `other`: N of the split's motions against N motions of --other: real motions, but of
+  other captions;
+- `disjoint N`: two disjoint draws of N motions of --other, for each N of --sizes: FID's
+  finite-sample bias, which shrinks about as 1/N;
+- with --resample (the built-in corpus only: it needs `segments/<id>.json` and the
+  corpus' generator): every motion of the split made again by the corpus' generator from
+  its ground-truth actions (`segmo.synth.sequence.resample_motion`), a new realization
+  for every repeat, against the split's motions, paired as a generator's are.
+  `same parameters`: the same actions with their durations, tempo, sides and counts, new
+  transitions, rests and idiosyncrasy (the closest a remake comes, as a reconstruction);
+  `the caption's parameters`: the same actions with the sides, directions, counts and
+  turn angles a caption can name, speeds, durations, heights and tempo drawn anew (what a
+  generator that gets everything its caption says right, and draws the rest as the
+  corpus does, would score); `new parameters`: the same actions in the same order and
+  nothing else.
+
+N is the split's motions rounded down to whole batches of --batch-size, as `segmo
+evaluate` draws them. Each motion is embedded once (its whole clip, as `segmo evaluate`
+reads real motions); the draws pick among the embeddings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn.utils.rnn import pad_sequence
+
+from segmo.data.layout import read_ground_truth
+from segmo.errors import ArgumentParser, SegmoError, positive_int
+from segmo.evaluation.metrics import fid, mean_and_interval, t2m_embedders
+from segmo.evaluation.sections import EvaluateConfig, first_rows, load_batches
+from segmo.files import write_atomic
+from segmo.models.pretrained import load_pretrained
+from segmo.motion.features import joints_to_features
+from segmo.synth.sequence import RESAMPLE_KEEPS, resample_motion
+
+RESAMPLED = {"same parameters": "all", "the caption's parameters": "stated", "new parameters": "none"}  # row → keep
+
+
+class Split:
+    """The motions of one split, one per id in file order, and the evaluator's embedder."""
+
+    def __init__(self, evaluator: Any, data: Path, split: str) -> None:
+        self.skeleton = "kit" if evaluator.config.feature_dim == 251 else "t2m"
+        ds, batches = load_batches(EvaluateConfig(data=str(data), evaluator="", out="", split=split),
+                                   self.skeleton)
+        self.mean, self.std = ds.mean, ds.std
+        _, self.embed_motion = t2m_embedders(evaluator, data, ds.mean, ds.std)
+        rows = first_rows(batches)
+        self.ids = [b["id"][r] for b, r in rows]
+        self.embeddings = self.embed([b["motion"][r, :int(b["lengths"][r])] for b, r in rows])
+
+    def embed(self, motions: list[torch.Tensor]) -> np.ndarray:
+        """(len(motions), embed_dim) of z-scored (t, d) motions, 32 at a time."""
+        out = []
+        with torch.no_grad():
+            for start in range(0, len(motions), 32):
+                chunk = motions[start:start + 32]
+                lengths = torch.tensor([len(m) for m in chunk])
+                out.append(self.embed_motion(pad_sequence(chunk, batch_first=True), lengths))
+        return np.concatenate(out)
+
+    def resampled(self, data: Path, version: int, keep: str, seed: int, repeat: int) -> np.ndarray:
+        """Embeddings of every motion made again from its ground-truth actions (module docstring)."""
+        motions = []
+        for k, mid in enumerate(self.ids):
+            rng = np.random.default_rng([seed, repeat, k, RESAMPLE_KEEPS.index(keep)])
+            joints = resample_motion(rng, read_ground_truth(data, mid)["actions"], version, keep).joints
+            features = joints_to_features(joints.astype(np.float32), self.skeleton)
+            motions.append(torch.from_numpy(((features - self.mean) / self.std).astype(np.float32)))
+        return self.embed(motions)
+
+
+def corpus_version(data: Path) -> int:
+    """The built-in corpus version of `data` (its corpus.json), for --resample."""
+    try:
+        return int(json.loads((data / "corpus.json").read_text())["version"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise SegmoError(f"--resample: {data / 'corpus.json'} is missing or has no version; only the "
+                         "built-in corpus (segmo synth) can be made again") from None
+
+
+def floor(split_emb: np.ndarray, other_emb: np.ndarray, n: int, sizes: list[int], repeats: int,
+          seed: int, resampled: dict[str, list[np.ndarray]] | None = None) -> dict[str, dict[str, float]]:
+    """The table's rows: {name: {"mean", "interval", "motions"}}. `resampled`: row name →
+    one (len(split_emb), embed_dim) array per repeat, row i made from motion i."""
+    rng = np.random.default_rng(seed)
+
+    def draw(emb: np.ndarray, k: int) -> np.ndarray:
+        return emb[rng.choice(len(emb), k, replace=False)]
+
+    def row(values: list[float], motions: int) -> dict[str, float]:
+        mean, interval = mean_and_interval(values)
+        return {"mean": mean, "interval": interval, "motions": motions}
+
+    rows = {"itself": row([fid(draw(split_emb, n), draw(split_emb, n)) for _ in range(repeats)], n),
+            "other": row([fid(draw(split_emb, n), draw(other_emb, n)) for _ in range(repeats)], n)}
+    for k in sizes:
+        values = []
+        for _ in range(repeats):
+            order = rng.permutation(len(other_emb))
+            values.append(fid(other_emb[order[:k]], other_emb[order[k:2 * k]]))
+        rows[f"disjoint {k}"] = row(values, k)
+    for name, per_repeat in (resampled or {}).items():
+        values = []
+        for emb in per_repeat:
+            pick = rng.choice(len(split_emb), n, replace=False)  # the same motions on both sides
+            values.append(fid(split_emb[pick], emb[pick]))
+        rows[f"resampled, {name}"] = row(values, n)
+    return rows
+
+
+def table(rows: dict[str, dict[str, float]], split: str, other: str) -> str:
+    what = {"itself": f"{split} against itself (two draws, like `segmo evaluate`'s real row)",
+            "other": f"{split} against as many {other} motions"}
+    what |= {f"resampled, {name}": f"{split} against itself made again, {name}" for name in RESAMPLED}
+    lines = ["| real motions compared | motions a side | FID |", "| --- | --- | --- |"]
+    for name, r in rows.items():
+        label = what.get(name, f"{other} against {other}, disjoint")
+        lines.append(f"| {label} | {r['motions']} | {r['mean']:.3f} ± {r['interval']:.3f} |")
+    return "\n".join(lines)
+
+
+def sizes_argument(text: str) -> list[int]:
+    """`--sizes`: whole numbers of at least 2, comma-separated."""
+    parts = [s.strip() for s in text.split(",") if s.strip()]
+    if not all(p.isdigit() and int(p) >= 2 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected whole numbers of at least 2, separated by commas")
+    return [int(p) for p in parts]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = ArgumentParser(prog="fid_floor.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", required=True, type=Path, help="a dataset folder (HumanML3D layout)")
+    parser.add_argument("--evaluator", required=True, type=Path, help="a T2M evaluator (segmo export)")
+    parser.add_argument("--split", default="test", help="the split a generator is evaluated on")
+    parser.add_argument("--other", default="train", help="the split the other real motions come from")
+    parser.add_argument("--repeats", type=positive_int, default=10)
+    parser.add_argument("--batch-size", type=positive_int, default=32, help="as segmo evaluate's")
+    parser.add_argument("--sizes", type=sizes_argument, default=[],
+                        help="comma-separated N for the disjoint rows, e.g. 96,288,800")
+    parser.add_argument("--resample", action="store_true",
+                        help="also the split made again by the built-in corpus' generator")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
+    try:  # the project's parser raises SegmoError: every failure is one line
+        args = parser.parse_args(argv)
+        if args.split == args.other:
+            parser.error(f"--other {args.other}: the same split as --split; the other motions must be other ones")
+        version = corpus_version(args.data) if args.resample else None
+        evaluator = load_pretrained(args.evaluator).eval()
+        if getattr(evaluator, "kind", None) != "evaluator":
+            raise SegmoError(f"--evaluator {args.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
+                             "model, not a T2M evaluator")
+        split, other = Split(evaluator, args.data, args.split), Split(evaluator, args.data, args.other)
+        n = len(split.ids) // args.batch_size * args.batch_size
+        if n < 2:
+            raise SegmoError(f"--split {args.split}: {len(split.ids)} motions, fewer than two in whole "
+                             f"batches of --batch-size {args.batch_size}")
+        if n > len(other.ids) or 2 * max(args.sizes, default=0) > len(other.ids):
+            raise SegmoError(f"--other {args.other}: {len(other.ids)} motions, too few for {n} a side "
+                             f"and two disjoint draws of {max(args.sizes, default=0)}")
+        resampled = {name: [split.resampled(args.data, version, keep, args.seed, r) for r in range(args.repeats)]
+                     for name, keep in RESAMPLED.items()} if args.resample else None
+    except (SegmoError, OSError) as error:
+        print(f"fid_floor: {error}", file=sys.stderr)
+        return 2
+    rows = floor(split.embeddings, other.embeddings, n, args.sizes, args.repeats, args.seed, resampled)
+    print(table(rows, args.split, args.other))
+    if args.out:
+        write_atomic(args.out, json.dumps({"split": args.split, "other": args.other, "rows": rows},
+                                          indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
