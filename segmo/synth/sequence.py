@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from segmo.data.attributes import attribute_labels
 from segmo.motion.kinematics import forward_kinematics
 from segmo.motion.skeleton import T2M
 from segmo.synth.actions import ACTIONS, OVERLAYS, build_action, sample_params
@@ -167,16 +168,16 @@ def _blended_frames(frames: list[int], overlaps: list[int]) -> int:
     return sum(frames) + sum(o // 3 + (o + 1) // 2 - o for o in overlaps[1:len(frames)])
 
 
-# What a caption can name of an action's parameters (segmo.synth.captions): sides,
-# directions, counts and a turn's angle. Speeds, step counts, heights, holds and tempo it
-# names at most by a word ("slowly", "deeply"), durations not at all.
-STATED = ("direction", "side", "hand", "foot", "count")
-RESAMPLE_KEEPS = ("all", "stated", "none")
+RESAMPLE_KEEPS = ("all", "named", "none")
 
 
-def _stated(name: str, params: dict) -> dict:
-    keys = (*STATED, "angle") if name == "turn" else STATED
-    return {k: params[k] for k in keys if k in params}
+def _named(name: str, params: dict) -> tuple:
+    """What a caption can say of an action's parameters (`segmo.synth.captions`): its side,
+    count and speed class (`attribute_labels`, the attribute metric's classes), a turn's
+    angle ("turns around") and whether a bow is deep."""
+    shape = (params.get("angle") if name == "turn" else
+             params.get("angle", 0) > 55 if name == "bow" else None)
+    return attribute_labels(name, params), shape
 
 
 def resample_motion(rng: np.random.Generator, actions: list[dict], version: int = VERSION,
@@ -184,9 +185,9 @@ def resample_motion(rng: np.random.Generator, actions: list[dict], version: int 
     """A new realization of a corpus motion's action sequence (its ground truth's `actions`:
     {"action", "params", optional "with": {"action", "params"}}): the same actions in the
     same order, with new transitions, rests and idiosyncrasy, and of their parameters
-    (`keep`) all the given ones, only those a caption can name (`STATED`; the others drawn
-    anew, as corpus `version` draws them, among the draws that agree with the given ones),
-    or none. Unless all are kept, the longest action is drawn again (up to FIT_ATTEMPTS
+    (`keep`) all the given ones, what a caption can name of them (`_named`: the parameters
+    drawn anew, as corpus `version` draws them, until they agree with the given ones on
+    it), or none. Unless all are kept, the longest action is drawn again (up to FIT_ATTEMPTS
     times) while the motion is longer than MAX_FRAMES. What a generator that gets a
     caption's actions right could make of it (tools/fid_floor.py)."""
     if keep not in RESAMPLE_KEEPS:
@@ -202,12 +203,12 @@ def resample_motion(rng: np.random.Generator, actions: list[dict], version: int 
             return given
         if keep == "none":
             return sample(rng)
-        want = _stated(name, given)
+        want = _named(name, given)
         for _ in range(1000):  # a few dozen at most for the rarest combination (wave: hand × count)
             params = sample(rng)
-            if _stated(name, params) == want:
+            if _named(name, params) == want:
                 return params
-        return params | want  # given values this version never draws: the last draw with them
+        raise ValueError(f"resample_motion: {name} {given} names what corpus version {version} never draws")
 
     def draw(i: int) -> tuple[dict, tuple[str, dict] | None, object]:
         given, over = actions[i], None
