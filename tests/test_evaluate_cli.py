@@ -565,24 +565,30 @@ def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_tex
 def test_fid_floor_rows_follow_the_draws() -> None:
     """Two draws of the whole split are the same set (FID 0); other motions of the same
     distribution lie apart by a bias that shrinks with N; a shifted distribution lies far;
-    a resampled row pairs each motion with its own remake."""
+    a remade row pairs each motion with its remake and its caption (R-precision)."""
     import numpy as np
 
     tool = load_tool("fid_floor")
     rng = np.random.default_rng(0)
     split, same = rng.normal(size=(64, 4)), rng.normal(size=(2000, 4))
+    text = [np.stack([m + 0.1 * rng.normal(size=4) for _ in range(3)]) for m in split]  # 3 captions beside each
     remade = {"same parameters": [split + 0.01 * rng.normal(size=split.shape) for _ in range(3)]}
-    rows = tool.floor(split, same, n=64, sizes=[16, 512], repeats=5, seed=0, resampled=remade)
+    rows = tool.floor(split, text, same, n=64, sizes=[16, 512], repeats=5, seed=0, resampled=remade)
     assert list(rows) == ["itself", "other", "disjoint 16", "disjoint 512", "resampled, same parameters"]
-    assert abs(rows["itself"]["mean"]) < 1e-6 and rows["itself"]["motions"] == 64
-    assert rows["disjoint 16"]["mean"] > 5 * rows["disjoint 512"]["mean"] > 0
-    # paired with its own remake, a motion is nearly itself: far below unrelated motions
-    assert 0 < rows["resampled, same parameters"]["mean"] < 0.01 * rows["other"]["mean"]
-    shifted = tool.floor(split, same + 3.0, n=64, sizes=[], repeats=5, seed=0)
-    assert shifted["other"]["mean"] > 30 > 3 * rows["other"]["mean"]  # 4 dims × 3² = 36 apart
-    text = tool.table(rows, "test", "train")
-    assert "| test against as many train motions | 64 |" in text
-    assert "| test against itself made again, same parameters | 64 |" in text
+    assert abs(rows["itself"]["fid"]["mean"]) < 1e-6 and rows["itself"]["motions"] == 64
+    assert rows["disjoint 16"]["fid"]["mean"] > 5 * rows["disjoint 512"]["fid"]["mean"] > 0
+    assert set(rows["other"]) == {"motions", "fid"}
+    remake = rows["resampled, same parameters"]
+    assert set(remake) == {"motions", "top1", "matching", "fid", "diversity"}
+    assert remake["top1"]["mean"] > 0.9 and rows["itself"]["top1"]["mean"] > 0.9
+    assert 0 < remake["fid"]["mean"] < 0.01 * rows["other"]["fid"]["mean"]
+    shuffled = tool.floor(split, text[::-1], same, n=64, sizes=[], repeats=5, seed=0, resampled=remade)
+    assert shuffled["resampled, same parameters"]["top1"]["mean"] < 0.5  # captions of other motions
+    shifted = tool.floor(split, text, same + 3.0, n=64, sizes=[], repeats=5, seed=0)
+    assert shifted["other"]["fid"]["mean"] > 30 > 3 * rows["other"]["fid"]["mean"]  # 4 dims × 3² apart
+    table = tool.table(rows, "test", "train")
+    assert "| test against as many train motions | 64 | – | – |" in table
+    assert "| test made again, same parameters | 64 |" in table
 
 
 def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> None:
@@ -593,8 +599,9 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     rows = json.loads(out.read_text())["rows"]
     assert list(rows) == ["itself", "other", "disjoint 4", "resampled, same parameters",
                           "resampled, the caption's parameters", "resampled, new parameters"]
-    assert rows["disjoint 4"]["motions"] == 4
-    assert all(r["mean"] == r["mean"] and r["interval"] >= 0 for r in rows.values())  # no NaN
+    assert rows["disjoint 4"]["motions"] == 4 and "top1" in rows["resampled, new parameters"]
+    assert all(m["mean"] == m["mean"] and m["interval"] >= 0 for r in rows.values()
+               for k, m in r.items() if k != "motions")  # no NaN
     assert "| train against train, disjoint | 4 |" in capsys.readouterr().out
     plain = tmp_path / "plain"
     for argv, names in ((["--sizes", "4,x"], "--sizes"), (["--other", "test"], "--other"),
@@ -603,4 +610,18 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err
+    # a ground truth the corpus' generator cannot make again is named, in one line
+    import shutil
+
+    from segmo.data.layout import ground_truth_file
+
+    broken = tmp_path / "broken"
+    shutil.copytree(setup["data"], broken)
+    truth_file = ground_truth_file(broken, (broken / "test.txt").read_text().split()[0])
+    truth = json.loads(truth_file.read_text())
+    truth["actions"][0]["action"] = "levitate"
+    truth_file.write_text(json.dumps(truth))
+    assert tool.main([*common, "--data", str(broken), "--resample", "--repeats", "1"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and str(truth_file) in err[0] and "levitate" in err[0], err
 

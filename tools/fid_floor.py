@@ -7,7 +7,8 @@ against other motions in the evaluator's space of `segmo evaluate`, with nothing
 `segmo evaluate`'s real row compares the split with itself (two draws of its motions) and
 its reconstruction row every real motion with its own round trip: both pair each motion
 with itself. A generator makes new motions of the same captions. Rows (mean ± 95 %
-interval over --repeats draws; N motions a side):
+interval over --repeats draws; N motions a side; Top-1, MM-Dist, FID and Diversity where
+the motions pair with the split's captions, one drawn per motion, FID alone where not):
 
 - `itself`: two draws of N of the split's motions (like `segmo evaluate`'s real row);
 - `other`: N of the split's motions against N motions of --other: real motions, but of
@@ -20,10 +21,10 @@ interval over --repeats draws; N motions a side):
   for every repeat, against the split's motions, paired as a generator's are.
   `same parameters`: the same actions with their durations, tempo, sides and counts, new
   transitions, rests and idiosyncrasy (the closest a remake comes, as a reconstruction);
-  `the caption's parameters`: the same actions with the sides, directions, counts and
-  turn angles a caption can name, speeds, durations, heights and tempo drawn anew (what a
-  generator that gets everything its caption says right, and draws the rest as the
-  corpus does, would score); `new parameters`: the same actions in the same order and
+  `the caption's parameters`: the same actions agreeing on what a caption can name (side,
+  count and speed class, a turn's angle, a deep bow), every parameter drawn anew until it
+  does (what a generator that gets everything its caption says right, and draws the rest
+  as the corpus does, would score); `new parameters`: the same actions in the same order and
   nothing else.
 
 N is the split's motions rounded down to whole batches of --batch-size, as `segmo
@@ -43,30 +44,41 @@ import numpy as np
 import torch
 from torch.nn.utils.rnn import pad_sequence
 
-from segmo.data.layout import read_ground_truth
+from segmo.data.layout import ground_truth_file, read_ground_truth
 from segmo.errors import ArgumentParser, SegmoError, positive_int
-from segmo.evaluation.metrics import fid, mean_and_interval, t2m_embedders
-from segmo.evaluation.sections import EvaluateConfig, first_rows, load_batches
+from segmo.evaluation.metrics import fid, mean_and_interval, row_metrics, t2m_embedders
+from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load_batches
 from segmo.files import write_atomic
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import joints_to_features
 from segmo.synth.sequence import RESAMPLE_KEEPS, resample_motion
 
-RESAMPLED = {"same parameters": "all", "the caption's parameters": "stated", "new parameters": "none"}  # row → keep
+RESAMPLED = {"same parameters": "all", "the caption's parameters": "named", "new parameters": "none"}  # row → keep
 
 
 class Split:
-    """The motions of one split, one per id in file order, and the evaluator's embedder."""
+    """The motions of one split, one per id in file order, and the evaluator's embeddings of
+    them and of their captions."""
 
     def __init__(self, evaluator: Any, data: Path, split: str) -> None:
         self.skeleton = "kit" if evaluator.config.feature_dim == 251 else "t2m"
         ds, batches = load_batches(EvaluateConfig(data=str(data), evaluator="", out="", split=split),
                                    self.skeleton)
         self.mean, self.std = ds.mean, ds.std
-        _, self.embed_motion = t2m_embedders(evaluator, data, ds.mean, ds.std)
+        embed_text, self.embed_motion = t2m_embedders(evaluator, data, ds.mean, ds.std)
         rows = first_rows(batches)
         self.ids = [b["id"][r] for b, r in rows]
         self.embeddings = self.embed([b["motion"][r, :int(b["lengths"][r])] for b, r in rows])
+        captions = all_rows(batches)
+        with torch.no_grad():
+            text = embed_text([b["caption"][r] for b, r in captions], captions)
+        # every caption of each motion: a paired row draws one per motion, as `segmo evaluate`
+        # does (the test split's first captions are mostly held-out templates)
+        where = {mid: i for i, mid in enumerate(self.ids)}
+        self.texts = [[] for _ in self.ids]
+        for (b, r), vector in zip(captions, text, strict=True):
+            self.texts[where[b["id"][r]]].append(vector)
+        self.texts = [np.stack(v) for v in self.texts]
 
     def embed(self, motions: list[torch.Tensor]) -> np.ndarray:
         """(len(motions), embed_dim) of z-scored (t, d) motions, 32 at a time."""
@@ -83,7 +95,10 @@ class Split:
         motions = []
         for k, mid in enumerate(self.ids):
             rng = np.random.default_rng([seed, repeat, k, RESAMPLE_KEEPS.index(keep)])
-            joints = resample_motion(rng, read_ground_truth(data, mid)["actions"], version, keep).joints
+            try:
+                joints = resample_motion(rng, read_ground_truth(data, mid)["actions"], version, keep).joints
+            except (ValueError, KeyError, TypeError) as error:  # a ground truth the corpus cannot make
+                raise SegmoError(f"{ground_truth_file(data, mid)}: cannot be made again ({error!r})") from None
             features = joints_to_features(joints.astype(np.float32), self.skeleton)
             motions.append(torch.from_numpy(((features - self.mean) / self.std).astype(np.float32)))
         return self.embed(motions)
@@ -98,44 +113,62 @@ def corpus_version(data: Path) -> int:
                          "built-in corpus (segmo synth) can be made again") from None
 
 
-def floor(split_emb: np.ndarray, other_emb: np.ndarray, n: int, sizes: list[int], repeats: int,
-          seed: int, resampled: dict[str, list[np.ndarray]] | None = None) -> dict[str, dict[str, float]]:
-    """The table's rows: {name: {"mean", "interval", "motions"}}. `resampled`: row name →
-    one (len(split_emb), embed_dim) array per repeat, row i made from motion i."""
+PAIRED = ("top1", "matching", "fid", "diversity")  # the metrics of a row whose motions pair with captions
+
+
+def floor(split_emb: np.ndarray, texts: list[np.ndarray], other_emb: np.ndarray, n: int, sizes: list[int],
+          repeats: int, seed: int, resampled: dict[str, list[np.ndarray]] | None = None,
+          batch_size: int = 32) -> dict[str, dict[str, Any]]:
+    """The table's rows: {name: {"motions": N, metric: {"mean", "interval"}}}; rows whose
+    motions pair with the split's captions (`texts[i]`: (captions, embed_dim) of motion i,
+    one drawn per motion and draw) have `PAIRED`, the others FID only. `resampled`: row
+    name → one (len(split_emb), embed_dim) array per repeat, row i made from motion i."""
     rng = np.random.default_rng(seed)
 
-    def draw(emb: np.ndarray, k: int) -> np.ndarray:
-        return emb[rng.choice(len(emb), k, replace=False)]
+    def pick(k: int, among: int) -> np.ndarray:
+        return rng.choice(among, k, replace=False)
 
-    def row(values: list[float], motions: int) -> dict[str, float]:
-        mean, interval = mean_and_interval(values)
-        return {"mean": mean, "interval": interval, "motions": motions}
+    def row(per_repeat: list[dict[str, float]], motions: int) -> dict[str, Any]:
+        out: dict[str, Any] = {"motions": motions}
+        for metric in per_repeat[0]:
+            mean, interval = mean_and_interval([r[metric] for r in per_repeat])
+            out[metric] = {"mean": mean, "interval": interval}
+        return out
 
-    rows = {"itself": row([fid(draw(split_emb, n), draw(split_emb, n)) for _ in range(repeats)], n),
-            "other": row([fid(draw(split_emb, n), draw(other_emb, n)) for _ in range(repeats)], n)}
+    def paired(emb: np.ndarray, rows: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+        text = np.stack([texts[i][rng.integers(len(texts[i]))] for i in rows])
+        metrics = row_metrics(text, emb[rows], reference, rng, batch_size=batch_size)
+        return {k: metrics[k] for k in PAIRED if k in metrics}
+
+    out = {"itself": row([paired(split_emb, pick(n, len(split_emb)), split_emb[pick(n, len(split_emb))])
+                          for _ in range(repeats)], n),
+           "other": row([{"fid": fid(split_emb[pick(n, len(split_emb))], other_emb[pick(n, len(other_emb))])}
+                         for _ in range(repeats)], n)}
     for k in sizes:
-        values = []
+        draws = []
         for _ in range(repeats):
             order = rng.permutation(len(other_emb))
-            values.append(fid(other_emb[order[:k]], other_emb[order[k:2 * k]]))
-        rows[f"disjoint {k}"] = row(values, k)
+            draws.append({"fid": fid(other_emb[order[:k]], other_emb[order[k:2 * k]])})
+        out[f"disjoint {k}"] = row(draws, k)
     for name, per_repeat in (resampled or {}).items():
-        values = []
+        draws = []
         for emb in per_repeat:
-            pick = rng.choice(len(split_emb), n, replace=False)  # the same motions on both sides
-            values.append(fid(split_emb[pick], emb[pick]))
-        rows[f"resampled, {name}"] = row(values, n)
-    return rows
+            rows = pick(n, len(split_emb))  # the same motions on both sides
+            draws.append(paired(emb, rows, split_emb[rows]))
+        out[f"resampled, {name}"] = row(draws, n)
+    return out
 
 
-def table(rows: dict[str, dict[str, float]], split: str, other: str) -> str:
+def table(rows: dict[str, dict[str, Any]], split: str, other: str) -> str:
     what = {"itself": f"{split} against itself (two draws, like `segmo evaluate`'s real row)",
             "other": f"{split} against as many {other} motions"}
-    what |= {f"resampled, {name}": f"{split} against itself made again, {name}" for name in RESAMPLED}
-    lines = ["| real motions compared | motions a side | FID |", "| --- | --- | --- |"]
+    what |= {f"resampled, {name}": f"{split} made again, {name}" for name in RESAMPLED}
+    lines = ["| real motions compared | motions a side | Top-1 | MM-Dist | FID | Diversity |",
+             "| --- | --- | --- | --- | --- | --- |"]
     for name, r in rows.items():
-        label = what.get(name, f"{other} against {other}, disjoint")
-        lines.append(f"| {label} | {r['motions']} | {r['mean']:.3f} ± {r['interval']:.3f} |")
+        cells = [f"{r[m]['mean']:.3f} ± {r[m]['interval']:.3f}" if m in r else "–" for m in PAIRED]
+        lines.append(f"| {what.get(name, f'{other} against {other}, disjoint')} | {r['motions']} | "
+                     + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -183,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     except (SegmoError, OSError) as error:
         print(f"fid_floor: {error}", file=sys.stderr)
         return 2
-    rows = floor(split.embeddings, other.embeddings, n, args.sizes, args.repeats, args.seed, resampled)
+    rows = floor(split.embeddings, split.texts, other.embeddings, n, args.sizes, args.repeats, args.seed,
+                 resampled, args.batch_size)
     print(table(rows, args.split, args.other))
     if args.out:
         write_atomic(args.out, json.dumps({"split": args.split, "other": args.other, "rows": rows},
