@@ -591,14 +591,33 @@ def test_fid_floor_rows_follow_the_draws() -> None:
     assert "| test made again, same parameters | 64 |" in table
 
 
+def test_fid_floor_mistakes_leave_out_short_actions_or_draw_parameters_anew() -> None:
+    import numpy as np
+
+    tool = load_tool("fid_floor")
+    actions = [{"action": "walk_forward", "params": {"speed": 1.1, "steps": 8}},
+               {"action": "clap", "params": {"count": 3, "tempo": 1.9}},
+               {"action": "sit_down", "params": {"duration": 1.3}}]
+    rng = np.random.default_rng(0)
+    assert [a["action"] for a in tool.with_mistake(actions, "left out", 1.0, rng, 3)] == ["walk_forward", "sit_down"]
+    assert tool.with_mistake(actions[1:2], "left out", 1.0, rng, 3) == actions[1:2]  # never the last one
+    assert tool.with_mistake(actions, "left out", 1e-9, rng, 3) == actions
+    misnamed = tool.with_mistake(actions, "misnamed", 1.0, rng, 3)
+    assert [a["action"] for a in misnamed] == [a["action"] for a in actions]
+    assert all(new["params"] != old["params"] for new, old in zip(misnamed, actions))
+
+
 def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> None:
     tool = load_tool("fid_floor")
     common = ["--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]), "--batch-size", "2"]
     out = tmp_path / "floor.json"
-    assert tool.main([*common, "--repeats", "2", "--sizes", "4", "--resample", "--out", str(out)]) == 0
+    assert tool.main([*common, "--repeats", "2", "--sizes", "4", "--resample", "--mistakes", "0.5",
+                      "--out", str(out)]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert list(rows) == ["itself", "other", "disjoint 4", "resampled, same parameters",
-                          "resampled, the caption's parameters", "resampled, new parameters"]
+                          "resampled, the caption's parameters", "resampled, new parameters",
+                          "resampled, the caption's parameters, 50% of the short actions left out",
+                          "resampled, the caption's parameters, 50% of the actions misnamed"]
     assert rows["disjoint 4"]["motions"] == 4 and "top1" in rows["resampled, new parameters"]
     assert all(m["mean"] == m["mean"] and m["interval"] >= 0 for r in rows.values()
                for k, m in r.items() if k != "motions")  # no NaN
@@ -606,7 +625,8 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     plain = tmp_path / "plain"
     for argv, names in ((["--sizes", "4,x"], "--sizes"), (["--other", "test"], "--other"),
                         (["--sizes", "50"], "--other train"), (["--split", "nope"], "nope"),
-                        (["--resample", "--data", str(plain)], "corpus.json")):
+                        (["--resample", "--data", str(plain)], "corpus.json"),
+                        (["--mistakes", "0.5"], "--resample"), (["--resample", "--mistakes", "0,2"], "--mistakes")):
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err

@@ -2,7 +2,8 @@
 against other motions in the evaluator's space of `segmo evaluate`, with nothing generated.
 
     python tools/fid_floor.py --data data/v3 --evaluator models/evaluator [--split test] \\
-        [--other train] [--repeats 10] [--sizes 96,288,800] [--resample] [--out floor.json]
+        [--other train] [--repeats 10] [--sizes 96,288,800] [--resample [--mistakes 0.1,0.3]] \\
+        [--out floor.json]
 
 `segmo evaluate`'s real row compares the split with itself (two draws of its motions) and
 its reconstruction row every real motion with its own round trip: both pair each motion
@@ -25,7 +26,10 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
   count and speed class, a turn's angle, a deep bow), every parameter drawn anew until it
   does (what a generator that gets everything its caption says right, and draws the rest
   as the corpus does, would score); `new parameters`: the same actions in the same order and
-  nothing else.
+  nothing else;
+- with --mistakes R1,R2 also the caption's parameters with a generator's errors made in
+  each action at each rate (`with_mistake`): a short action left out, or its parameters
+  drawn anew (misnamed): what each kind of error costs.
 
 N is the split's motions rounded down to whole batches of --batch-size, as `segmo
 evaluate` draws them. Each motion is embedded once (its whole clip, as `segmo evaluate`
@@ -51,9 +55,11 @@ from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load
 from segmo.files import write_atomic
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import joints_to_features
-from segmo.synth.sequence import RESAMPLE_KEEPS, resample_motion
+from segmo.synth.actions import ACTIONS, sample_params
+from segmo.synth.sequence import RESAMPLE_KEEPS, SHORT_V2, resample_motion
 
 RESAMPLED = {"same parameters": "all", "the caption's parameters": "named", "new parameters": "none"}  # row → keep
+MISTAKES = {"left out": "short actions left out", "misnamed": "actions misnamed"}  # `with_mistake` → row
 
 
 class Split:
@@ -90,18 +96,40 @@ class Split:
                 out.append(self.embed_motion(pad_sequence(chunk, batch_first=True), lengths))
         return np.concatenate(out)
 
-    def resampled(self, data: Path, version: int, keep: str, seed: int, repeat: int) -> np.ndarray:
-        """Embeddings of every motion made again from its ground-truth actions (module docstring)."""
+    def resampled(self, data: Path, version: int, keep: str, seed: int, repeat: int,
+                  mistake: tuple[str, float] | None = None) -> np.ndarray:
+        """Embeddings of every motion made again from its ground-truth actions (module
+        docstring), with `mistake` (kind, rate) made first (`with_mistake`)."""
         motions = []
         for k, mid in enumerate(self.ids):
             rng = np.random.default_rng([seed, repeat, k, RESAMPLE_KEEPS.index(keep)])
             try:
-                joints = resample_motion(rng, read_ground_truth(data, mid)["actions"], version, keep).joints
+                actions = read_ground_truth(data, mid)["actions"]
+                if mistake:
+                    actions = with_mistake(actions, *mistake, rng, version)
+                joints = resample_motion(rng, actions, version, keep).joints
             except (ValueError, KeyError, TypeError) as error:  # a ground truth the corpus cannot make
                 raise SegmoError(f"{ground_truth_file(data, mid)}: cannot be made again ({error!r})") from None
             features = joints_to_features(joints.astype(np.float32), self.skeleton)
             motions.append(torch.from_numpy(((features - self.mean) / self.std).astype(np.float32)))
         return self.embed(motions)
+
+
+def with_mistake(actions: list[dict], kind: str, rate: float, rng: np.random.Generator,
+                 version: int) -> list[dict]:
+    """A generator's kind of error, made in each action at `rate`: `left out` a short action
+    that leaves the body as it is (never the last one left), `misnamed` its parameters
+    drawn anew (side, count, speed class and the rest: they may come out the same)."""
+    out = []
+    for k, action in enumerate(actions):
+        last = not out and k == len(actions) - 1
+        if (kind == "left out" and not last and action["action"] in SHORT_V2
+                and ACTIONS[action["action"]].ends is None and rng.random() < rate):
+            continue
+        if kind == "misnamed" and rng.random() < rate:
+            action = action | {"params": sample_params(action["action"], rng, version)}
+        out.append(action)
+    return out
 
 
 def corpus_version(data: Path) -> int:
@@ -162,7 +190,8 @@ def floor(split_emb: np.ndarray, texts: list[np.ndarray], other_emb: np.ndarray,
 def table(rows: dict[str, dict[str, Any]], split: str, other: str) -> str:
     what = {"itself": f"{split} against itself (two draws, like `segmo evaluate`'s real row)",
             "other": f"{split} against as many {other} motions"}
-    what |= {f"resampled, {name}": f"{split} made again, {name}" for name in RESAMPLED}
+    what |= {name: f"{split} made again, {name.removeprefix('resampled, ')}" for name in rows
+             if name.startswith("resampled, ")}
     lines = ["| real motions compared | motions a side | Top-1 | MM-Dist | FID | Diversity |",
              "| --- | --- | --- | --- | --- | --- |"]
     for name, r in rows.items():
@@ -180,6 +209,17 @@ def sizes_argument(text: str) -> list[int]:
     return [int(p) for p in parts]
 
 
+def rates_argument(text: str) -> list[float]:
+    """`--mistakes`: rates above 0 and at most 1, comma-separated."""
+    try:
+        rates = [float(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        rates = [-1.0]
+    if not all(0 < r <= 1 for r in rates):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected rates above 0 and at most 1, separated by commas")
+    return rates
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="fid_floor.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True, type=Path, help="a dataset folder (HumanML3D layout)")
@@ -192,10 +232,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="comma-separated N for the disjoint rows, e.g. 96,288,800")
     parser.add_argument("--resample", action="store_true",
                         help="also the split made again by the built-in corpus' generator")
+    parser.add_argument("--mistakes", type=rates_argument, default=[],
+                        help="with --resample, also rows of the caption's parameters with each kind "
+                             "of a generator's error made at these rates, e.g. 0.1,0.3")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
     try:  # the project's parser raises SegmoError: every failure is one line
         args = parser.parse_args(argv)
+        if args.mistakes and not args.resample:
+            parser.error("--mistakes: needs --resample (they are made in the remade motions)")
         if args.split == args.other:
             parser.error(f"--other {args.other}: the same split as --split; the other motions must be other ones")
         version = corpus_version(args.data) if args.resample else None
@@ -211,8 +256,14 @@ def main(argv: list[str] | None = None) -> int:
         if n > len(other.ids) or 2 * max(args.sizes, default=0) > len(other.ids):
             raise SegmoError(f"--other {args.other}: {len(other.ids)} motions, too few for {n} a side "
                              f"and two disjoint draws of {max(args.sizes, default=0)}")
-        resampled = {name: [split.resampled(args.data, version, keep, args.seed, r) for r in range(args.repeats)]
-                     for name, keep in RESAMPLED.items()} if args.resample else None
+        resampled = {}
+        for name, keep in RESAMPLED.items() if args.resample else ():
+            resampled[name] = [split.resampled(args.data, version, keep, args.seed, r) for r in range(args.repeats)]
+        for kind, what in MISTAKES.items() if args.mistakes else ():
+            for rate in args.mistakes:
+                resampled[f"the caption's parameters, {rate:.0%} of the {what}"] = [
+                    split.resampled(args.data, version, "named", args.seed, r, (kind, rate))
+                    for r in range(args.repeats)]
     except (SegmoError, OSError) as error:
         print(f"fid_floor: {error}", file=sys.stderr)
         return 2
