@@ -622,11 +622,14 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     assert all(m["mean"] == m["mean"] and m["interval"] >= 0 for r in rows.values()
                for k, m in r.items() if k != "motions")  # no NaN
     assert "| train against train, disjoint | 4 |" in capsys.readouterr().out
-    plain = tmp_path / "plain"
+    plain = tmp_path / "plain"  # a folder that is no built-in corpus
+    plain.mkdir()
     for argv, names in ((["--sizes", "4,x"], "--sizes"), (["--other", "test"], "--other"),
                         (["--sizes", "50"], "--other train"), (["--split", "nope"], "nope"),
                         (["--resample", "--data", str(plain)], "corpus.json"),
-                        (["--mistakes", "0.5"], "--resample"), (["--resample", "--mistakes", "0,2"], "--mistakes")):
+                        (["--mistakes", "0.5"], "--resample"), (["--resample", "--mistakes", "0,2"], "--mistakes"),
+                        (["--data", str(tmp_path / "nowhere")], "--data"), (["--out", str(tmp_path)], "--out"),
+                        (["--out", str(tmp_path / "no" / "floor.json")], "--out")):
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err

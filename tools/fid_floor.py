@@ -239,6 +239,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
     try:  # the project's parser raises SegmoError: every failure is one line
         args = parser.parse_args(argv)
+        if not args.data.is_dir():
+            parser.error(f"--data {args.data}: no such folder")
+        if args.out and (args.out.is_dir() or not args.out.parent.is_dir()):
+            parser.error(f"--out {args.out}: " + ("is a folder; give a file name" if args.out.is_dir()
+                                                   else f"its folder {args.out.parent} does not exist"))
         if args.mistakes and not args.resample:
             parser.error("--mistakes: needs --resample (they are made in the remade motions)")
         if args.split == args.other:
