@@ -258,15 +258,16 @@ def main(argv: list[str] | None = None) -> int:
         if n < 2:
             raise SegmoError(f"--split {args.split}: {len(split.ids)} motions, fewer than two in whole "
                              f"batches of --batch-size {args.batch_size}")
-        if n > len(other.ids) or 2 * max(args.sizes, default=0) > len(other.ids):
-            raise SegmoError(f"--other {args.other}: {len(other.ids)} motions, too few for {n} a side "
-                             f"and two disjoint draws of {max(args.sizes, default=0)}")
+        need = max(n, 2 * max(args.sizes, default=0))
+        if need > len(other.ids):
+            raise SegmoError(f"--other {args.other}: {len(other.ids)} motions, fewer than the {need} "
+                             f"these rows draw (--split {args.split}'s {n}, twice the largest --sizes)")
         resampled = {}
         for name, keep in RESAMPLED.items() if args.resample else ():
             resampled[name] = [split.resampled(args.data, version, keep, args.seed, r) for r in range(args.repeats)]
         for kind, what in MISTAKES.items() if args.mistakes else ():
             for rate in args.mistakes:
-                resampled[f"the caption's parameters, {rate:.0%} of the {what}"] = [
+                resampled[f"the caption's parameters, {100 * rate:g}% of the {what}"] = [
                     split.resampled(args.data, version, "named", args.seed, r, (kind, rate))
                     for r in range(args.repeats)]
     except (SegmoError, OSError) as error:
