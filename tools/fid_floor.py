@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -71,20 +72,26 @@ class Split:
         ds, batches = load_batches(EvaluateConfig(data=str(data), evaluator="", out="", split=split),
                                    self.skeleton)
         self.mean, self.std = ds.mean, ds.std
-        embed_text, self.embed_motion = t2m_embedders(evaluator, data, ds.mean, ds.std)
+        self.embed_text, self.embed_motion = t2m_embedders(evaluator, data, ds.mean, ds.std)
+        self.batches = batches
         rows = first_rows(batches)
         self.ids = [b["id"][r] for b, r in rows]
         self.embeddings = self.embed([b["motion"][r, :int(b["lengths"][r])] for b, r in rows])
-        captions = all_rows(batches)
+        self.actions: dict[str, list[dict]] = {}  # ground-truth actions, read once per motion
+
+    @cached_property
+    def texts(self) -> list[np.ndarray]:
+        """(captions, embed_dim) of every caption of each motion: a paired row draws one per
+        motion, as `segmo evaluate` does (the test split's first captions are mostly
+        held-out templates). Only the split the rows pair with needs them."""
+        captions = all_rows(self.batches)
         with torch.no_grad():
-            text = embed_text([b["caption"][r] for b, r in captions], captions)
-        # every caption of each motion: a paired row draws one per motion, as `segmo evaluate`
-        # does (the test split's first captions are mostly held-out templates)
+            text = self.embed_text([b["caption"][r] for b, r in captions], captions)
         where = {mid: i for i, mid in enumerate(self.ids)}
-        self.texts = [[] for _ in self.ids]
+        grouped: list[list[np.ndarray]] = [[] for _ in self.ids]
         for (b, r), vector in zip(captions, text, strict=True):
-            self.texts[where[b["id"][r]]].append(vector)
-        self.texts = [np.stack(v) for v in self.texts]
+            grouped[where[b["id"][r]]].append(vector)
+        return [np.stack(v) for v in grouped]
 
     def embed(self, motions: list[torch.Tensor]) -> np.ndarray:
         """(len(motions), embed_dim) of z-scored (t, d) motions, 32 at a time."""
@@ -104,7 +111,9 @@ class Split:
         for k, mid in enumerate(self.ids):
             rng = np.random.default_rng([seed, repeat, k, RESAMPLE_KEEPS.index(keep)])
             try:
-                actions = read_ground_truth(data, mid)["actions"]
+                if mid not in self.actions:
+                    self.actions[mid] = read_ground_truth(data, mid)["actions"]
+                actions = self.actions[mid]
                 if mistake:
                     actions = with_mistake(actions, *mistake, rng, version)
                 joints = resample_motion(rng, actions, version, keep).joints
