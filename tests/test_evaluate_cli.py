@@ -589,6 +589,14 @@ def test_fid_floor_rows_follow_the_draws() -> None:
     table = tool.table(rows, "test", "train")
     assert "| test against as many train motions | 64 | – | – |" in table
     assert "| test made again, same parameters | 64 |" in table
+    assert "order" not in table  # no classifier, no order columns
+    orders = {"itself": [{"order, 3+ actions": 1.0}] * 5,
+              "same parameters": [{"order, 3+ actions": x} for x in (0.5, 0.6, 0.7)]}
+    read = tool.floor(split, text, same, n=64, sizes=[], repeats=5, seed=0, resampled=remade, orders=orders)
+    assert read["itself"]["order, 3+ actions"] == {"mean": 1.0, "interval": 0.0}
+    assert abs(read["resampled, same parameters"]["order, 3+ actions"]["mean"] - 0.6) < 1e-9
+    assert read["resampled, same parameters"]["fid"] == pytest.approx(remake["fid"])  # same draws, orders beside
+    assert "| Top-1 | MM-Dist | FID | Diversity | order, 3+ actions |" in tool.table(read, "test", "train")
 
 
 def test_fid_floor_mistakes_leave_out_short_actions_or_draw_parameters_anew() -> None:
@@ -605,6 +613,12 @@ def test_fid_floor_mistakes_leave_out_short_actions_or_draw_parameters_anew() ->
     misnamed = tool.with_mistake(actions, "misnamed", 1.0, rng, 3)
     assert [a["action"] for a in misnamed] == [a["action"] for a in actions]
     assert all(new["params"] != old["params"] for new, old in zip(misnamed, actions))
+    # stretched to a length: the ends kept, evenly in between
+    joints = np.arange(11, dtype=float)[:, None, None] * np.ones((1, 2, 3))
+    longer = tool.stretch(joints, 21)
+    assert longer.shape == (21, 2, 3) and longer[0, 0, 0] == 0 and longer[-1, 0, 0] == 10
+    assert np.allclose(np.diff(longer[:, 0, 0]), 0.5)
+    assert np.allclose(tool.stretch(joints, 11), joints)
 
 
 def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> None:
@@ -612,13 +626,19 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     common = ["--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]), "--batch-size", "2"]
     out = tmp_path / "floor.json"
     assert tool.main([*common, "--repeats", "2", "--sizes", "4", "--resample", "--mistakes", "0.5",
-                      "--out", str(out)]) == 0
+                      "--action-classifier", str(setup["classifier"]), "--out", str(out)]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert list(rows) == ["itself", "other", "disjoint 4", "resampled, same parameters",
                           "resampled, the caption's parameters", "resampled, new parameters",
                           "resampled, the caption's parameters, 50% of the short actions left out",
+                          "resampled, the caption's parameters, 50% of the short actions left out, stretched",
                           "resampled, the caption's parameters, 50% of the actions misnamed"]
     assert rows["disjoint 4"]["motions"] == 4 and "top1" in rows["resampled, new parameters"]
+    # action order beside every row a classifier reads (the tiny test split: 2, 3 and 4 actions)
+    assert all({"order, 2+ actions", "order, 3+ actions"} <= set(r) for name, r in rows.items()
+               if name == "itself" or name.startswith("resampled"))
+    assert all(0 <= r["order, 3+ actions"]["mean"] <= 1 for r in rows.values() if "order, 3+ actions" in r)
+    assert "order" not in str(rows["other"]) + str(rows["disjoint 4"])
     assert all(m["mean"] == m["mean"] and m["interval"] >= 0 for r in rows.values()
                for k, m in r.items() if k != "motions")  # no NaN
     assert "| train against train, disjoint | 4 |" in capsys.readouterr().out
@@ -629,7 +649,8 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
                         (["--resample", "--data", str(plain)], "corpus.json"),
                         (["--mistakes", "0.5"], "--resample"), (["--resample", "--mistakes", "0,2"], "--mistakes"),
                         (["--data", str(tmp_path / "nowhere")], "--data"), (["--out", str(tmp_path)], "--out"),
-                        (["--out", str(tmp_path / "no" / "floor.json")], "--out")):
+                        (["--out", str(tmp_path / "no" / "floor.json")], "--out"),
+                        (["--action-classifier", str(setup["evaluator"])], "--action-classifier")):
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err

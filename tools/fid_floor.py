@@ -3,7 +3,7 @@ against other motions in the evaluator's space of `segmo evaluate`, with nothing
 
     python tools/fid_floor.py --data data/v3 --evaluator models/evaluator [--split test] \\
         [--other train] [--repeats 10] [--sizes 96,288,800] [--resample [--mistakes 0.1,0.3]] \\
-        [--out floor.json]
+        [--action-classifier models/action_classifier] [--out floor.json]
 
 `segmo evaluate`'s real row compares the split with itself (two draws of its motions) and
 its reconstruction row every real motion with its own round trip: both pair each motion
@@ -29,7 +29,16 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
   nothing else;
 - with --mistakes R1,R2 also the caption's parameters with a generator's errors made in
   each action at each rate (`with_mistake`): a short action left out, or its parameters
-  drawn anew (misnamed): what each kind of error costs.
+  drawn anew (misnamed): what each kind of error costs. A remake that leaves an action
+  out is shorter by it, where a generator is given the real motion's length and fills it:
+  the row "left out, stretched" slows the same remake evenly to the real motion's length
+  (`stretch`), the other bound.
+
+With --action-classifier (the built-in corpus' classifier behind `segmo evaluate`'s action
+order) every remade row and `itself` also report action order: the share of the split's
+motions of 2+ and of 3+ ground-truth actions whose remake (for `itself`: the real motion)
+the classifier reads as exactly their actions in order, over all the split's motions and
+each repeat, as `tools/order_by_template.py` counts it for a generator.
 
 N is the split's motions rounded down to whole batches of --batch-size, as `segmo
 evaluate` draws them. Each motion is embedded once (its whole clip, as `segmo evaluate`
@@ -51,32 +60,40 @@ from torch.nn.utils.rnn import pad_sequence
 
 from segmo.data.layout import ground_truth_file, read_ground_truth
 from segmo.errors import ArgumentParser, SegmoError, positive_int
+from segmo.evaluation.action_order import sequence_accuracy
 from segmo.evaluation.metrics import fid, mean_and_interval, row_metrics, t2m_embedders
 from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load_batches
 from segmo.files import write_atomic
+from segmo.models.action_classifier import ActionClassifier, collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import joints_to_features
 from segmo.synth.actions import ACTIONS, sample_params
 from segmo.synth.sequence import RESAMPLE_KEEPS, SHORT_V2, resample_motion
 
 RESAMPLED = {"same parameters": "all", "the caption's parameters": "named", "new parameters": "none"}  # row → keep
-MISTAKES = {"left out": "short actions left out", "misnamed": "actions misnamed"}  # `with_mistake` → row
+# `with_mistake`'s kind, stretched to the real length → the row's words
+MISTAKES = {("left out", False): "short actions left out", ("left out", True): "short actions left out, stretched",
+            ("misnamed", False): "actions misnamed"}
+ORDERS = {"order, 2+ actions": 2, "order, 3+ actions": 3}  # row metric → fewest ground-truth actions
 
 
 class Split:
     """The motions of one split, one per id in file order, and the evaluator's embeddings of
-    them and of their captions."""
+    them and of their captions; with `classifier`, its reading of their action sequences."""
 
-    def __init__(self, evaluator: Any, data: Path, split: str) -> None:
+    def __init__(self, evaluator: Any, data: Path, split: str, classifier: ActionClassifier | None = None) -> None:
         self.skeleton = "kit" if evaluator.config.feature_dim == 251 else "t2m"
         ds, batches = load_batches(EvaluateConfig(data=str(data), evaluator="", out="", split=split),
                                    self.skeleton)
-        self.mean, self.std = ds.mean, ds.std
+        self.data, self.mean, self.std, self.classifier = data, ds.mean, ds.std, classifier
         self.embed_text, self.embed_motion = t2m_embedders(evaluator, data, ds.mean, ds.std)
         self.batches = batches
         rows = first_rows(batches)
         self.ids = [b["id"][r] for b, r in rows]
-        self.embeddings = self.embed([b["motion"][r, :int(b["lengths"][r])] for b, r in rows])
+        self.frames = [int(b["lengths"][r]) for b, r in rows]
+        motions = [b["motion"][r, :frames] for (b, r), frames in zip(rows, self.frames, strict=True)]
+        self.embeddings = self.embed(motions)
+        self.sequences = self.read(motions) if classifier else None
         self.actions: dict[str, list[dict]] = {}  # ground-truth actions, read once per motion
 
     @cached_property
@@ -103,25 +120,62 @@ class Split:
                 out.append(self.embed_motion(pad_sequence(chunk, batch_first=True), lengths))
         return np.concatenate(out)
 
-    def resampled(self, data: Path, version: int, keep: str, seed: int, repeat: int,
-                  mistake: tuple[str, float] | None = None) -> np.ndarray:
+    def read(self, motions: list[torch.Tensor]) -> list[list[str]]:
+        """The classifier's action sequence of each z-scored (t, d) motion."""
+        return [self.classifier.predict_sequence((m.numpy() * self.std + self.mean).astype(np.float32))
+                for m in motions]
+
+    def ground_truth(self, k: int) -> list[dict]:
+        """The ground-truth actions of motion k, read once."""
+        mid = self.ids[k]
+        if mid not in self.actions:
+            try:
+                self.actions[mid] = read_ground_truth(self.data, mid)["actions"]
+            except (ValueError, KeyError, TypeError) as error:
+                raise SegmoError(f"{ground_truth_file(self.data, mid)}: no ground-truth actions ({error!r})") from None
+        return self.actions[mid]
+
+    def orders(self, sequences: list[list[str]]) -> dict[str, float]:
+        """`ORDERS` of the classifier's `sequences`, one per motion of the split, against the
+        motions' ground-truth actions (each where the split has such motions)."""
+        out = {}
+        for name, fewest in ORDERS.items():
+            rows = [k for k in range(len(self.ids)) if len(self.ground_truth(k)) >= fewest]
+            if rows:
+                out[name] = sequence_accuracy([sequences[k] for k in rows],
+                                              [collapse([a["action"] for a in self.ground_truth(k)]) for k in rows])
+        return out
+
+    def resampled(self, version: int, keep: str, seed: int, repeat: int,
+                  mistake: tuple[str, float] | None = None, stretched: bool = False
+                  ) -> tuple[np.ndarray, dict[str, float]]:
         """Embeddings of every motion made again from its ground-truth actions (module
-        docstring), with `mistake` (kind, rate) made first (`with_mistake`)."""
+        docstring), with `mistake` (kind, rate) made first (`with_mistake`), `stretched` to
+        the real motion's length; and with a classifier their `orders` (else {})."""
         motions = []
         for k, mid in enumerate(self.ids):
             rng = np.random.default_rng([seed, repeat, k, RESAMPLE_KEEPS.index(keep)])
+            actions = self.ground_truth(k)
             try:
-                if mid not in self.actions:
-                    self.actions[mid] = read_ground_truth(data, mid)["actions"]
-                actions = self.actions[mid]
                 if mistake:
                     actions = with_mistake(actions, *mistake, rng, version)
                 joints = resample_motion(rng, actions, version, keep).joints
             except (ValueError, KeyError, TypeError) as error:  # a ground truth the corpus cannot make
-                raise SegmoError(f"{ground_truth_file(data, mid)}: cannot be made again ({error!r})") from None
+                raise SegmoError(f"{ground_truth_file(self.data, mid)}: cannot be made again ({error!r})") from None
+            if stretched:
+                joints = stretch(joints, self.frames[k] + 1)  # features are one frame fewer than joints
             features = joints_to_features(joints.astype(np.float32), self.skeleton)
             motions.append(torch.from_numpy(((features - self.mean) / self.std).astype(np.float32)))
-        return self.embed(motions)
+        return self.embed(motions), (self.orders(self.read(motions)) if self.classifier else {})
+
+
+def stretch(joints: np.ndarray, frames: int) -> np.ndarray:
+    """(frames, ...) of (t, ...) `joints` slowed or sped up evenly (linear interpolation;
+    the first and last frame kept)."""
+    at = np.linspace(0.0, len(joints) - 1, frames)
+    lo = np.minimum(at.astype(int), max(len(joints) - 2, 0))
+    w = (at - lo).reshape((-1,) + (1,) * (joints.ndim - 1))
+    return (1 - w) * joints[lo] + w * joints[np.minimum(lo + 1, len(joints) - 1)]
 
 
 def with_mistake(actions: list[dict], kind: str, rate: float, rng: np.random.Generator,
@@ -153,46 +207,56 @@ def corpus_version(data: Path) -> int:
 PAIRED = ("top1", "matching", "fid", "diversity")  # the metrics of a row whose motions pair with captions
 
 
+def summary(per_repeat: list[dict[str, float]], motions: int) -> dict[str, Any]:
+    """{"motions": motions, metric: {"mean", "interval"}} over the repeats."""
+    out: dict[str, Any] = {"motions": motions}
+    for metric in per_repeat[0]:
+        mean, interval = mean_and_interval([r[metric] for r in per_repeat])
+        out[metric] = {"mean": mean, "interval": interval}
+    return out
+
+
 def floor(split_emb: np.ndarray, texts: list[np.ndarray], other_emb: np.ndarray, n: int, sizes: list[int],
           repeats: int, seed: int, resampled: dict[str, list[np.ndarray]] | None = None,
-          batch_size: int = 32) -> dict[str, dict[str, Any]]:
+          batch_size: int = 32, orders: dict[str, list[dict[str, float]]] | None = None
+          ) -> dict[str, dict[str, Any]]:
     """The table's rows: {name: {"motions": N, metric: {"mean", "interval"}}}; rows whose
     motions pair with the split's captions (`texts[i]`: (captions, embed_dim) of motion i,
     one drawn per motion and draw) have `PAIRED`, the others FID only. `resampled`: row
-    name → one (len(split_emb), embed_dim) array per repeat, row i made from motion i."""
+    name → one (len(split_emb), embed_dim) array per repeat, row i made from motion i.
+    `orders`: row name ("itself" or a `resampled` one) → one {`ORDERS` metric: value} per
+    repeat, added to the row."""
     rng = np.random.default_rng(seed)
+    orders = orders or {}
 
     def pick(k: int, among: int) -> np.ndarray:
         return rng.choice(among, k, replace=False)
-
-    def row(per_repeat: list[dict[str, float]], motions: int) -> dict[str, Any]:
-        out: dict[str, Any] = {"motions": motions}
-        for metric in per_repeat[0]:
-            mean, interval = mean_and_interval([r[metric] for r in per_repeat])
-            out[metric] = {"mean": mean, "interval": interval}
-        return out
 
     def paired(emb: np.ndarray, rows: np.ndarray, reference: np.ndarray) -> dict[str, float]:
         text = np.stack([texts[i][rng.integers(len(texts[i]))] for i in rows])
         metrics = row_metrics(text, emb[rows], reference, rng, batch_size=batch_size)
         return {k: metrics[k] for k in PAIRED if k in metrics}
 
-    out = {"itself": row([paired(split_emb, pick(n, len(split_emb)), split_emb[pick(n, len(split_emb))])
-                          for _ in range(repeats)], n),
-           "other": row([{"fid": fid(split_emb[pick(n, len(split_emb))], other_emb[pick(n, len(other_emb))])}
-                         for _ in range(repeats)], n)}
+    def with_orders(name: str, draws: list[dict[str, float]]) -> list[dict[str, float]]:
+        return [d | o for d, o in zip(draws, orders[name], strict=True)] if name in orders else draws
+
+    out = {"itself": summary(with_orders("itself", [
+               paired(split_emb, pick(n, len(split_emb)), split_emb[pick(n, len(split_emb))])
+               for _ in range(repeats)]), n),
+           "other": summary([{"fid": fid(split_emb[pick(n, len(split_emb))], other_emb[pick(n, len(other_emb))])}
+                             for _ in range(repeats)], n)}
     for k in sizes:
         draws = []
         for _ in range(repeats):
             order = rng.permutation(len(other_emb))
             draws.append({"fid": fid(other_emb[order[:k]], other_emb[order[k:2 * k]])})
-        out[f"disjoint {k}"] = row(draws, k)
+        out[f"disjoint {k}"] = summary(draws, k)
     for name, per_repeat in (resampled or {}).items():
         draws = []
         for emb in per_repeat:
             rows = pick(n, len(split_emb))  # the same motions on both sides
             draws.append(paired(emb, rows, split_emb[rows]))
-        out[f"resampled, {name}"] = row(draws, n)
+        out[f"resampled, {name}"] = summary(with_orders(name, draws), n)
     return out
 
 
@@ -201,10 +265,12 @@ def table(rows: dict[str, dict[str, Any]], split: str, other: str) -> str:
             "other": f"{split} against as many {other} motions"}
     what |= {name: f"{split} made again, {name.removeprefix('resampled, ')}" for name in rows
              if name.startswith("resampled, ")}
-    lines = ["| real motions compared | motions a side | Top-1 | MM-Dist | FID | Diversity |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    metrics = [*PAIRED, *(o for o in ORDERS if any(o in r for r in rows.values()))]
+    heads = {"top1": "Top-1", "matching": "MM-Dist", "fid": "FID", "diversity": "Diversity"}
+    lines = ["| real motions compared | motions a side | " + " | ".join(heads.get(m, m) for m in metrics) + " |",
+             "| --- | --- |" + " --- |" * len(metrics)]
     for name, r in rows.items():
-        cells = [f"{r[m]['mean']:.3f} ± {r[m]['interval']:.3f}" if m in r else "–" for m in PAIRED]
+        cells = [f"{r[m]['mean']:.3f} ± {r[m]['interval']:.3f}" if m in r else "–" for m in metrics]
         lines.append(f"| {what.get(name, f'{other} against {other}, disjoint')} | {r['motions']} | "
                      + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -244,6 +310,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mistakes", type=rates_argument, default=[],
                         help="with --resample, also rows of the caption's parameters with each kind "
                              "of a generator's error made at these rates, e.g. 0.1,0.3")
+    parser.add_argument("--action-classifier", type=Path,
+                        help="also action order, read by this classifier (segmo export; the built-in corpus only)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
     try:  # the project's parser raises SegmoError: every failure is one line
@@ -262,7 +330,14 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(evaluator, "kind", None) != "evaluator":
             raise SegmoError(f"--evaluator {args.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
                              "model, not a T2M evaluator")
-        split, other = Split(evaluator, args.data, args.split), Split(evaluator, args.data, args.other)
+        classifier = None
+        if args.action_classifier:
+            classifier = load_pretrained(args.action_classifier).eval()
+            if getattr(classifier, "kind", None) != "action_classifier":
+                raise SegmoError(f"--action-classifier {args.action_classifier}: holds a "
+                                 f"{getattr(classifier, 'kind', '?')!r} model, not an action classifier")
+        split = Split(evaluator, args.data, args.split, classifier)
+        other = Split(evaluator, args.data, args.other)
         n = len(split.ids) // args.batch_size * args.batch_size
         if n < 2:
             raise SegmoError(f"--split {args.split}: {len(split.ids)} motions, fewer than two in whole "
@@ -271,19 +346,22 @@ def main(argv: list[str] | None = None) -> int:
         if need > len(other.ids):
             raise SegmoError(f"--other {args.other}: {len(other.ids)} motions, fewer than the {need} "
                              f"these rows draw (--split {args.split}'s {n}, twice the largest --sizes)")
-        resampled = {}
+        made = {}  # row name → one (embeddings, orders) per repeat
         for name, keep in RESAMPLED.items() if args.resample else ():
-            resampled[name] = [split.resampled(args.data, version, keep, args.seed, r) for r in range(args.repeats)]
-        for kind, what in MISTAKES.items() if args.mistakes else ():
+            made[name] = [split.resampled(version, keep, args.seed, r) for r in range(args.repeats)]
+        for (kind, stretched), what in MISTAKES.items() if args.mistakes else ():
             for rate in args.mistakes:
-                resampled[f"the caption's parameters, {100 * rate:g}% of the {what}"] = [
-                    split.resampled(args.data, version, "named", args.seed, r, (kind, rate))
+                made[f"the caption's parameters, {100 * rate:g}% of the {what}"] = [
+                    split.resampled(version, "named", args.seed, r, (kind, rate), stretched)
                     for r in range(args.repeats)]
+        orders = {name: [o for _, o in per_repeat] for name, per_repeat in made.items() if classifier}
+        if classifier:
+            orders["itself"] = [split.orders(split.sequences)] * args.repeats
     except (SegmoError, OSError) as error:
         print(f"fid_floor: {error}", file=sys.stderr)
         return 2
     rows = floor(split.embeddings, split.texts, other.embeddings, n, args.sizes, args.repeats, args.seed,
-                 resampled, args.batch_size)
+                 {name: [e for e, _ in per_repeat] for name, per_repeat in made.items()}, args.batch_size, orders)
     print(table(rows, args.split, args.other))
     if args.out:
         write_atomic(args.out, json.dumps({"split": args.split, "other": args.other, "rows": rows},
