@@ -30,9 +30,9 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
 - with --mistakes R1,R2 also the caption's parameters with a generator's errors made in
   each action at each rate (`with_mistake`): a short action left out, or its parameters
   drawn anew (misnamed): what each kind of error costs. A remake that leaves an action
-  out is shorter by it, where a generator is given the real motion's length and fills it:
-  the row "left out, stretched" slows the same remake evenly to the real motion's length
-  (`stretch`), the other bound.
+  out is shorter by it, where a generator is given a length and fills it: the row "left
+  out, stretched" slows each such remake evenly (`stretch`) to the length of the same
+  motion's remake without the mistake (the caption's parameters row's), the other bound.
 
 With --action-classifier (the built-in corpus' classifier behind `segmo evaluate`'s action
 order) every remade row and `itself` also report action order: the share of the split's
@@ -150,20 +150,21 @@ class Split:
                   mistake: tuple[str, float] | None = None, stretched: bool = False
                   ) -> tuple[np.ndarray, dict[str, float]]:
         """Embeddings of every motion made again from its ground-truth actions (module
-        docstring), with `mistake` (kind, rate) made first (`with_mistake`), `stretched` to
-        the real motion's length; and with a classifier their `orders` (else {})."""
+        docstring), with `mistake` (kind, rate) made first (`with_mistake`); `stretched`: a
+        remake that lost an action slowed to the length of the same remake without the
+        mistake (the same draws); and with a classifier their `orders` (else {})."""
         motions = []
         for k, mid in enumerate(self.ids):
-            rng = np.random.default_rng([seed, repeat, k, RESAMPLE_KEEPS.index(keep)])
-            actions = self.ground_truth(k)
+            key = [seed, repeat, k, RESAMPLE_KEEPS.index(keep)]
+            rng, truth = np.random.default_rng(key), self.ground_truth(k)
             try:
-                if mistake:
-                    actions = with_mistake(actions, *mistake, rng, version)
+                actions = with_mistake(truth, *mistake, rng, version) if mistake else truth
                 joints = resample_motion(rng, actions, version, keep).joints
+                if stretched and len(actions) < len(truth):
+                    joints = stretch(joints, len(resample_motion(np.random.default_rng(key), truth, version,
+                                                                 keep).joints))
             except (ValueError, KeyError, TypeError) as error:  # a ground truth the corpus cannot make
                 raise SegmoError(f"{ground_truth_file(self.data, mid)}: cannot be made again ({error!r})") from None
-            if stretched:
-                joints = stretch(joints, self.frames[k] + 1)  # features are one frame fewer than joints
             features = joints_to_features(joints.astype(np.float32), self.skeleton)
             motions.append(torch.from_numpy(((features - self.mean) / self.std).astype(np.float32)))
         return self.embed(motions), (self.orders(self.read(motions)) if self.classifier else {})
