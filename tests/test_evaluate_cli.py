@@ -613,6 +613,20 @@ def test_fid_floor_mistakes_leave_out_short_actions_or_draw_parameters_anew() ->
     misnamed = tool.with_mistake(actions, "misnamed", 1.0, rng, 3)
     assert [a["action"] for a in misnamed] == [a["action"] for a in actions]
     assert all(new["params"] != old["params"] for new, old in zip(misnamed, actions))
+    from segmo.synth.actions import ACTIONS
+    from segmo.synth.sequence import SHORT_V2
+
+    for _ in range(20):  # substituted: only the clap, by a short action unlike its neighbours and itself
+        names = [a["action"] for a in tool.with_mistake(actions, "substituted", 1.0, rng, 3)]
+        assert names[::2] == ["walk_forward", "sit_down"] and names[1] in SHORT_V2
+        assert names[1] not in ("walk_forward", "clap", "sit_down")
+        extra = [a["action"] for a in tool.with_mistake(actions, "extra", 1.0, rng, 3)]  # one before each but the first
+        assert extra[::2] == [a["action"] for a in actions] and len(extra) == 5
+        assert all(x in SHORT_V2 and x not in (extra[i], extra[i + 2]) for i, x in zip((0, 2), extra[1::2]))
+        assert ACTIONS[extra[3]].needs in ("any", "standing")  # before sit_down: still standing
+    seated = [{"action": "sit_down", "params": {"duration": 1.3}}, {"action": "clap", "params": {"count": 3}}]
+    assert all(ACTIONS[a["action"]].needs in ("any", "sitting")
+               for _ in range(20) for a in tool.with_mistake(seated, "substituted", 1.0, rng, 3)[1:])
     # stretched to a length: the ends kept, evenly in between
     joints = np.arange(11, dtype=float)[:, None, None] * np.ones((1, 2, 3))
     longer = tool.stretch(joints, 21)
@@ -632,6 +646,8 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
                           "resampled, the caption's parameters", "resampled, new parameters",
                           "resampled, the caption's parameters, 50% of the short actions left out",
                           "resampled, the caption's parameters, 50% of the short actions left out, stretched",
+                          "resampled, the caption's parameters, 50% of the short actions substituted",
+                          "resampled, the caption's parameters, 50% of the actions with a short one before",
                           "resampled, the caption's parameters, 50% of the actions misnamed"]
     assert rows["disjoint 4"]["motions"] == 4 and "top1" in rows["resampled, new parameters"]
     # action order beside every row a classifier reads (the tiny test split: 2, 3 and 4 actions)

@@ -28,8 +28,9 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
   as the corpus does, would score); `new parameters`: the same actions in the same order and
   nothing else;
 - with --mistakes R1,R2 also the caption's parameters with a generator's errors made in
-  each action at each rate (`with_mistake`): a short action left out, or its parameters
-  drawn anew (misnamed): what each kind of error costs. A remake that leaves an action
+  each action at each rate (`with_mistake`): a short action left out, replaced by another
+  (substituted), an extra short action put in, or an action's parameters drawn anew
+  (misnamed): what each kind of error costs. A remake that leaves an action
   out is shorter by it, where a generator is given a length and fills it: the row "left
   out, stretched" slows each such remake evenly (`stretch`) to the length of the same
   motion's remake without the mistake (the caption's parameters row's), the other bound.
@@ -68,11 +69,18 @@ from segmo.models.action_classifier import ActionClassifier, collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import joints_to_features
 from segmo.synth.actions import ACTIONS, sample_params
-from segmo.synth.sequence import RESAMPLE_KEEPS, SHORT_V2, resample_motion
+from segmo.synth.sequence import (
+    RESAMPLE_KEEPS,
+    SHORT_V2,
+    choose_short,
+    resample_motion,
+    seated_before,
+)
 
 RESAMPLED = {"same parameters": "all", "the caption's parameters": "named", "new parameters": "none"}  # row → keep
 # `with_mistake`'s kind, stretched to the real length → the row's words
 MISTAKES = {("left out", False): "short actions left out", ("left out", True): "short actions left out, stretched",
+            ("substituted", False): "short actions substituted", ("extra", False): "actions with a short one before",
             ("misnamed", False): "actions misnamed"}
 ORDERS = {"order, 2+ actions": 2, "order, 3+ actions": 3}  # row metric → fewest ground-truth actions
 
@@ -182,14 +190,30 @@ def stretch(joints: np.ndarray, frames: int) -> np.ndarray:
 def with_mistake(actions: list[dict], kind: str, rate: float, rng: np.random.Generator,
                  version: int) -> list[dict]:
     """A generator's kind of error, made in each action at `rate`: `left out` a short action
-    that leaves the body as it is (never the last one left), `misnamed` its parameters
-    drawn anew (side, count, speed class and the rest: they may come out the same)."""
+    that leaves the body as it is (never the last one left); `substituted` such an action
+    replaced by another short one the body can do there, unlike it and its neighbours;
+    `extra` a short action put in before an action (not the first), unlike its neighbours;
+    `misnamed` an action's parameters drawn anew (side, count, speed class and the rest:
+    they may come out the same). `MISTAKES` names the rows."""
+    names = [a["action"] for a in actions]
+    seated = seated_before(names)
+
+    def short(k: int, neighbours: list[str]) -> dict | None:
+        try:
+            name = choose_short(rng, seated[k], neighbours)
+        except ValueError:  # no short action the body can do there is left
+            return None
+        return {"action": name, "params": sample_params(name, rng, version)}
+
     out = []
     for k, action in enumerate(actions):
-        last = not out and k == len(actions) - 1
-        if (kind == "left out" and not last and action["action"] in SHORT_V2
-                and ACTIONS[action["action"]].ends is None and rng.random() < rate):
+        neutral = action["action"] in SHORT_V2 and ACTIONS[action["action"]].ends is None
+        if kind == "left out" and neutral and not (not out and k == len(actions) - 1) and rng.random() < rate:
             continue
+        if kind == "substituted" and neutral and rng.random() < rate:
+            action = short(k, names[max(k - 1, 0):k + 2]) or action
+        if kind == "extra" and k > 0 and rng.random() < rate:
+            out += [a for a in [short(k, names[k - 1:k + 1])] if a]
         if kind == "misnamed" and rng.random() < rate:
             action = action | {"params": sample_params(action["action"], rng, version)}
         out.append(action)

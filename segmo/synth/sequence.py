@@ -155,7 +155,7 @@ def _sample_v2(rng: np.random.Generator, version: int) -> SynthMotion:
                     and not (contrast and _only_long(names[:len(plan)], i))):
                 # Its draws keep it too long: a short action takes its place instead.
                 neighbours = names[max(i - 1, 0):i] + names[i + 1:i + 2]
-                names[i] = _choose_short(rng, seated[i], neighbours)
+                names[i] = choose_short(rng, seated[i], neighbours)
             plan[i] = _draw(rng, names[i], seated[i], version)
         if len(plan) == 1:  # cannot happen with the library's lengths; keep the loop finite
             raise RuntimeError(f"sample_motion: {names[0]} never fits in {MAX_FRAMES} frames")
@@ -193,10 +193,7 @@ def resample_motion(rng: np.random.Generator, actions: list[dict], version: int 
     if keep not in RESAMPLE_KEEPS:
         raise ValueError(f"resample_motion: keep must be one of {RESAMPLE_KEEPS}, got {keep!r}")
     names = [a["action"] for a in actions]
-    seated, sitting = [], False
-    for name in names:
-        seated.append(sitting)
-        sitting = {"sitting": True, "standing": False}.get(ACTIONS[name].ends, sitting)
+    seated = seated_before(names)
 
     def like(name: str, given: dict, sample) -> dict:
         if keep == "all":
@@ -244,7 +241,7 @@ def _hold_contrast(rng, names: list[str], seated: list[bool]) -> None:
         for i, n in enumerate(names):
             if i != keep and ACTIONS[n].ends is None and n not in SHORT_V2:
                 neighbours = names[max(i - 1, 0):i] + names[i + 1:i + 2]
-                names[i] = _choose_short(rng, seated[i], neighbours)
+                names[i] = choose_short(rng, seated[i], neighbours)
     for pool, other in ((LONG_V3, SHORT_V2), (SHORT_V2, LONG_V3)):
         if any(n in pool for n in names):
             continue
@@ -263,7 +260,18 @@ def _hold_contrast(rng, names: list[str], seated: list[bool]) -> None:
             names[i] = choices[int(rng.choice(len(choices), p=weights / weights.sum()))]
 
 
-def _choose_short(rng, sitting: bool, neighbours: list[str]) -> str:
+def seated_before(names: list[str]) -> list[bool]:
+    """Whether the body sits as each of the actions `names` begins (a sequence starts standing)."""
+    seated, sitting = [], False
+    for name in names:
+        seated.append(sitting)
+        sitting = {"sitting": True, "standing": False}.get(ACTIONS[name].ends, sitting)
+    return seated
+
+
+def choose_short(rng, sitting: bool, neighbours: list[str]) -> str:
+    """A short action (`SHORT_V2`) the body can do sitting or standing, none of `neighbours`,
+    drawn by `ACTION_WEIGHTS`."""
     state = "sitting" if sitting else "standing"
     names = [n for n in SHORT_V2 if n not in neighbours and ACTIONS[n].needs in ("any", state)]
     weights = np.array([ACTION_WEIGHTS.get(n, 1.0) for n in names])
