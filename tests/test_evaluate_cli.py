@@ -624,6 +624,9 @@ def test_fid_floor_mistakes_leave_out_short_actions_or_draw_parameters_anew() ->
         assert extra[::2] == [a["action"] for a in actions] and len(extra) == 5
         assert all(x in SHORT_V2 and x not in (extra[i], extra[i + 2]) for i, x in zip((0, 2), extra[1::2]))
         assert ACTIONS[extra[3]].needs in ("any", "standing")  # before sit_down: still standing
+    mixed = [[a["action"] for a in tool.with_mistake(actions, "mixed", 0.9, rng, 3)] for _ in range(200)]
+    assert {len(m) for m in mixed} >= {2, 3, 4}  # some left out, some put in
+    assert any(len(m) == 3 and m[1] != "clap" for m in mixed)  # some substituted
     seated = [{"action": "sit_down", "params": {"duration": 1.3}}, {"action": "clap", "params": {"count": 3}}]
     assert all(ACTIONS[a["action"]].needs in ("any", "sitting")
                for _ in range(20) for a in tool.with_mistake(seated, "substituted", 1.0, rng, 3)[1:])
@@ -648,7 +651,9 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
                           "resampled, the caption's parameters, 50% of the short actions left out, stretched",
                           "resampled, the caption's parameters, 50% of the short actions substituted",
                           "resampled, the caption's parameters, 50% of the actions with a short one before",
-                          "resampled, the caption's parameters, 50% of the actions misnamed"]
+                          "resampled, the caption's parameters, 50% of the actions misnamed",
+                          "resampled, the caption's parameters, 50% of the actions wrong, a third each left out, "
+                          "substituted, extra"]
     assert rows["disjoint 4"]["motions"] == 4 and "top1" in rows["resampled, new parameters"]
     # action order beside every row a classifier reads (the tiny test split: 2, 3 and 4 actions)
     assert all({"order, 2+ actions", "order, 3+ actions"} <= set(r) for name, r in rows.items()
@@ -658,6 +663,10 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     assert all(m["mean"] == m["mean"] and m["interval"] >= 0 for r in rows.values()
                for k, m in r.items() if k != "motions")  # no NaN
     assert "| train against train, disjoint | 4 |" in capsys.readouterr().out
+    assert tool.main([*common, "--repeats", "1", "--resample", "--mistakes", "0.5", "--kinds", "mixed",
+                      "--out", str(out)]) == 0  # --kinds picks the error rows
+    assert [r for r in json.loads(out.read_text())["rows"] if "%" in r] == [
+        "resampled, the caption's parameters, 50% of the actions wrong, a third each left out, substituted, extra"]
     plain = tmp_path / "plain"  # a folder that is no built-in corpus
     plain.mkdir()
     for argv, names in ((["--sizes", "4,x"], "--sizes"), (["--other", "test"], "--other"),
@@ -666,7 +675,9 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
                         (["--mistakes", "0.5"], "--resample"), (["--resample", "--mistakes", "0,2"], "--mistakes"),
                         (["--data", str(tmp_path / "nowhere")], "--data"), (["--out", str(tmp_path)], "--out"),
                         (["--out", str(tmp_path / "no" / "floor.json")], "--out"),
-                        (["--action-classifier", str(setup["evaluator"])], "--action-classifier")):
+                        (["--action-classifier", str(setup["evaluator"])], "--action-classifier"),
+                        (["--action-classifier", str(tmp_path / "none")], "--action-classifier"),
+                        (["--resample", "--mistakes", "0.5", "--kinds", "mixed,typo"], "--kinds")):
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err

@@ -3,6 +3,7 @@ against other motions in the evaluator's space of `segmo evaluate`, with nothing
 
     python tools/fid_floor.py --data data/v3 --evaluator models/evaluator [--split test] \\
         [--other train] [--repeats 10] [--sizes 96,288,800] [--resample [--mistakes 0.1,0.3]] \\
+        [--kinds left-out,stretched,substituted,extra,misnamed,mixed] \\
         [--action-classifier models/action_classifier] [--out floor.json]
 
 `segmo evaluate`'s real row compares the split with itself (two draws of its motions) and
@@ -30,7 +31,8 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
 - with --mistakes R1,R2 also the caption's parameters with a generator's errors made in
   each action at each rate (`with_mistake`): a short action left out, replaced by another
   (substituted), an extra short action put in, or an action's parameters drawn anew
-  (misnamed): what each kind of error costs. A remake that leaves an action
+  (misnamed), or the first three mixed (--kinds picks among them): what each kind of
+  error costs. A remake that leaves an action
   out is shorter by it, where a generator is given a length and fills it: the row "left
   out, stretched" slows each such remake evenly (`stretch`) to the length of the same
   motion's remake without the mistake (the caption's parameters row's), the other bound.
@@ -79,9 +81,13 @@ from segmo.synth.sequence import (
 
 RESAMPLED = {"same parameters": "all", "the caption's parameters": "named", "new parameters": "none"}  # row → keep
 # `with_mistake`'s kind, stretched to the real length → the row's words
-MISTAKES = {("left out", False): "short actions left out", ("left out", True): "short actions left out, stretched",
-            ("substituted", False): "short actions substituted", ("extra", False): "actions with a short one before",
-            ("misnamed", False): "actions misnamed"}
+# --kinds name → (`with_mistake`'s kind, stretched to the remake's length), the row's words
+MISTAKES = {"left-out": (("left out", False), "short actions left out"),
+            "stretched": (("left out", True), "short actions left out, stretched"),
+            "substituted": (("substituted", False), "short actions substituted"),
+            "extra": (("extra", False), "actions with a short one before"),
+            "misnamed": (("misnamed", False), "actions misnamed"),
+            "mixed": (("mixed", False), "actions wrong, a third each left out, substituted, extra")}
 ORDERS = {"order, 2+ actions": 2, "order, 3+ actions": 3}  # row metric → fewest ground-truth actions
 
 
@@ -194,7 +200,12 @@ def with_mistake(actions: list[dict], kind: str, rate: float, rng: np.random.Gen
     replaced by another short one the body can do there, unlike it and its neighbours;
     `extra` a short action put in before an action (not the first), unlike its neighbours;
     `misnamed` an action's parameters drawn anew (side, count, speed class and the rest:
-    they may come out the same). `MISTAKES` names the rows."""
+    they may come out the same); `mixed` left out, substituted and extra, each at a third
+    of `rate`. `MISTAKES` names the rows."""
+    if kind == "mixed":
+        for part in ("left out", "substituted", "extra"):
+            actions = with_mistake(actions, part, rate / 3, rng, version)
+        return actions
     names = [a["action"] for a in actions]
     seated = seated_before(names)
 
@@ -320,6 +331,22 @@ def rates_argument(text: str) -> list[float]:
     return rates
 
 
+def kinds_argument(text: str) -> list[str]:
+    """`--kinds`: names of `MISTAKES`, comma-separated."""
+    kinds = [k.strip() for k in text.split(",") if k.strip()]
+    if not kinds or any(k not in MISTAKES for k in kinds):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected some of {', '.join(MISTAKES)}, separated by commas")
+    return kinds
+
+
+def load(path: Path, argument: str) -> Any:
+    """The model at `path`, in eval mode; a failure names `argument`."""
+    try:
+        return load_pretrained(path).eval()
+    except (SegmoError, OSError) as error:
+        raise SegmoError(f"{argument} {error}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="fid_floor.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True, type=Path, help="a dataset folder (HumanML3D layout)")
@@ -335,6 +362,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mistakes", type=rates_argument, default=[],
                         help="with --resample, also rows of the caption's parameters with each kind "
                              "of a generator's error made at these rates, e.g. 0.1,0.3")
+    parser.add_argument("--kinds", type=kinds_argument, default=list(MISTAKES),
+                        help=f"with --mistakes, which kinds of error (comma-separated; default all: "
+                             f"{','.join(MISTAKES)})")
     parser.add_argument("--action-classifier", type=Path,
                         help="also action order, read by this classifier (segmo export; the built-in corpus only)")
     parser.add_argument("--seed", type=int, default=0)
@@ -351,13 +381,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.split == args.other:
             parser.error(f"--other {args.other}: the same split as --split; the other motions must be other ones")
         version = corpus_version(args.data) if args.resample else None
-        evaluator = load_pretrained(args.evaluator).eval()
+        evaluator = load(args.evaluator, "--evaluator")
         if getattr(evaluator, "kind", None) != "evaluator":
             raise SegmoError(f"--evaluator {args.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
                              "model, not a T2M evaluator")
         classifier = None
         if args.action_classifier:
-            classifier = load_pretrained(args.action_classifier).eval()
+            classifier = load(args.action_classifier, "--action-classifier")
             if getattr(classifier, "kind", None) != "action_classifier":
                 raise SegmoError(f"--action-classifier {args.action_classifier}: holds a "
                                  f"{getattr(classifier, 'kind', '?')!r} model, not an action classifier")
@@ -374,7 +404,7 @@ def main(argv: list[str] | None = None) -> int:
         made = {}  # row name → one (embeddings, orders) per repeat
         for name, keep in RESAMPLED.items() if args.resample else ():
             made[name] = [split.resampled(version, keep, args.seed, r) for r in range(args.repeats)]
-        for (kind, stretched), what in MISTAKES.items() if args.mistakes else ():
+        for (kind, stretched), what in (MISTAKES[k] for k in args.kinds) if args.mistakes else ():
             for rate in args.mistakes:
                 made[f"the caption's parameters, {100 * rate:g}% of the {what}"] = [
                     split.resampled(version, "named", args.seed, r, (kind, rate), stretched)
