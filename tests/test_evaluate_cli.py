@@ -677,7 +677,8 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
                         (["--out", str(tmp_path / "no" / "floor.json")], "--out"),
                         (["--action-classifier", str(setup["evaluator"])], "--action-classifier"),
                         (["--action-classifier", str(tmp_path / "none")], "--action-classifier"),
-                        (["--resample", "--mistakes", "0.5", "--kinds", "mixed,typo"], "--kinds")):
+                        (["--resample", "--mistakes", "0.5", "--kinds", "mixed,typo"], "--kinds"),
+                        (["--resample", "--kinds", "mixed"], "--kinds")):
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err

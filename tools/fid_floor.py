@@ -32,10 +32,10 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
   each action at each rate (`with_mistake`): a short action left out, replaced by another
   (substituted), an extra short action put in, or an action's parameters drawn anew
   (misnamed), or the first three mixed (--kinds picks among them): what each kind of
-  error costs. A remake that leaves an action
-  out is shorter by it, where a generator is given a length and fills it: the row "left
-  out, stretched" slows each such remake evenly (`stretch`) to the length of the same
-  motion's remake without the mistake (the caption's parameters row's), the other bound.
+  error costs. A remake that leaves an action out is shorter by it, where a generator is
+  given a length and fills it: the row "left out, stretched" slows each such remake evenly
+  (`stretch`) to the length of the same motion's remake without the mistake (the caption's
+  parameters row's), the other bound.
 
 With --action-classifier (the built-in corpus' classifier behind `segmo evaluate`'s action
 order) every remade row and `itself` also report action order: the share of the split's
@@ -80,7 +80,6 @@ from segmo.synth.sequence import (
 )
 
 RESAMPLED = {"same parameters": "all", "the caption's parameters": "named", "new parameters": "none"}  # row → keep
-# `with_mistake`'s kind, stretched to the real length → the row's words
 # --kinds name → (`with_mistake`'s kind, stretched to the remake's length), the row's words
 MISTAKES = {"left-out": (("left out", False), "short actions left out"),
             "stretched": (("left out", True), "short actions left out, stretched"),
@@ -362,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mistakes", type=rates_argument, default=[],
                         help="with --resample, also rows of the caption's parameters with each kind "
                              "of a generator's error made at these rates, e.g. 0.1,0.3")
-    parser.add_argument("--kinds", type=kinds_argument, default=list(MISTAKES),
+    parser.add_argument("--kinds", type=kinds_argument,
                         help=f"with --mistakes, which kinds of error (comma-separated; default all: "
                              f"{','.join(MISTAKES)})")
     parser.add_argument("--action-classifier", type=Path,
@@ -378,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
                                                    else f"its folder {args.out.parent} does not exist"))
         if args.mistakes and not args.resample:
             parser.error("--mistakes: needs --resample (they are made in the remade motions)")
+        if args.kinds and not args.mistakes:
+            parser.error("--kinds: needs --mistakes (the rates to make them at)")
         if args.split == args.other:
             parser.error(f"--other {args.other}: the same split as --split; the other motions must be other ones")
         version = corpus_version(args.data) if args.resample else None
@@ -404,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         made = {}  # row name → one (embeddings, orders) per repeat
         for name, keep in RESAMPLED.items() if args.resample else ():
             made[name] = [split.resampled(version, keep, args.seed, r) for r in range(args.repeats)]
-        for (kind, stretched), what in (MISTAKES[k] for k in args.kinds) if args.mistakes else ():
+        for (kind, stretched), what in (MISTAKES[k] for k in args.kinds or MISTAKES) if args.mistakes else ():
             for rate in args.mistakes:
                 made[f"the caption's parameters, {100 * rate:g}% of the {what}"] = [
                     split.resampled(version, "named", args.seed, r, (kind, rate), stretched)
