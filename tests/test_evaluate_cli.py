@@ -631,11 +631,13 @@ def test_fid_floor_mistakes_leave_out_short_actions_or_draw_parameters_anew() ->
     assert all(ACTIONS[a["action"]].needs in ("any", "sitting")
                for _ in range(20) for a in tool.with_mistake(seated, "substituted", 1.0, rng, 3)[1:])
     # stretched to a length: the ends kept, evenly in between
+    from segmo.synth.actions import resample_frames
+
     joints = np.arange(11, dtype=float)[:, None, None] * np.ones((1, 2, 3))
-    longer = tool.stretch(joints, 21)
+    longer = resample_frames(joints, 21)
     assert longer.shape == (21, 2, 3) and longer[0, 0, 0] == 0 and longer[-1, 0, 0] == 10
     assert np.allclose(np.diff(longer[:, 0, 0]), 0.5)
-    assert np.allclose(tool.stretch(joints, 11), joints)
+    assert np.allclose(resample_frames(joints, 11), joints)
 
 
 def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> None:

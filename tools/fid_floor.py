@@ -34,7 +34,7 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
   (misnamed), or the first three mixed (--kinds picks among them): what each kind of
   error costs. A remake that leaves an action out is shorter by it, where a generator is
   given a length and fills it: the row "left out, stretched" slows each such remake evenly
-  (`stretch`) to the length of the same motion's remake without the mistake (the caption's
+  (`segmo.synth.actions.resample_frames`) to the length of the same motion's remake without the mistake (the caption's
   parameters row's), the other bound.
 
 With --action-classifier (the built-in corpus' classifier behind `segmo evaluate`'s action
@@ -68,9 +68,9 @@ from segmo.evaluation.metrics import fid, mean_and_interval, row_metrics, t2m_em
 from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load_batches
 from segmo.files import write_atomic
 from segmo.models.action_classifier import ActionClassifier, collapse
-from segmo.models.pretrained import load_pretrained
+from segmo.models.evaluator import T2MEvaluator
 from segmo.motion.features import joints_to_features
-from segmo.synth.actions import ACTIONS, sample_params
+from segmo.synth.actions import ACTIONS, resample_frames, sample_params
 from segmo.synth.sequence import (
     RESAMPLE_KEEPS,
     SHORT_V2,
@@ -174,22 +174,13 @@ class Split:
                 actions = with_mistake(truth, *mistake, rng, version) if mistake else truth
                 joints = resample_motion(rng, actions, version, keep).joints
                 if stretched and len(actions) < len(truth):
-                    joints = stretch(joints, len(resample_motion(np.random.default_rng(key), truth, version,
+                    joints = resample_frames(joints, len(resample_motion(np.random.default_rng(key), truth, version,
                                                                  keep).joints))
             except (ValueError, KeyError, TypeError) as error:  # a ground truth the corpus cannot make
                 raise SegmoError(f"{ground_truth_file(self.data, mid)}: cannot be made again ({error!r})") from None
             features = joints_to_features(joints.astype(np.float32), self.skeleton)
             motions.append(torch.from_numpy(((features - self.mean) / self.std).astype(np.float32)))
         return self.embed(motions), (self.orders(self.read(motions)) if self.classifier else {})
-
-
-def stretch(joints: np.ndarray, frames: int) -> np.ndarray:
-    """(frames, ...) of (t, ...) `joints` slowed or sped up evenly (linear interpolation;
-    the first and last frame kept)."""
-    at = np.linspace(0.0, len(joints) - 1, frames)
-    lo = np.minimum(at.astype(int), max(len(joints) - 2, 0))
-    w = (at - lo).reshape((-1,) + (1,) * (joints.ndim - 1))
-    return (1 - w) * joints[lo] + w * joints[np.minimum(lo + 1, len(joints) - 1)]
 
 
 def with_mistake(actions: list[dict], kind: str, rate: float, rng: np.random.Generator,
@@ -338,10 +329,11 @@ def kinds_argument(text: str) -> list[str]:
     return kinds
 
 
-def load(path: Path, argument: str) -> Any:
-    """The model at `path`, in eval mode; a failure names `argument`."""
+def load(cls: type, path: Path, argument: str) -> Any:
+    """The `cls` model at `path` (its `from_pretrained` refuses another kind), in eval mode;
+    a failure names `argument`."""
     try:
-        return load_pretrained(path).eval()
+        return cls.from_pretrained(path).eval()
     except (SegmoError, OSError) as error:
         raise SegmoError(f"{argument} {error}") from None
 
@@ -382,16 +374,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.split == args.other:
             parser.error(f"--other {args.other}: the same split as --split; the other motions must be other ones")
         version = corpus_version(args.data) if args.resample else None
-        evaluator = load(args.evaluator, "--evaluator")
-        if getattr(evaluator, "kind", None) != "evaluator":
-            raise SegmoError(f"--evaluator {args.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
-                             "model, not a T2M evaluator")
-        classifier = None
-        if args.action_classifier:
-            classifier = load(args.action_classifier, "--action-classifier")
-            if getattr(classifier, "kind", None) != "action_classifier":
-                raise SegmoError(f"--action-classifier {args.action_classifier}: holds a "
-                                 f"{getattr(classifier, 'kind', '?')!r} model, not an action classifier")
+        evaluator = load(T2MEvaluator, args.evaluator, "--evaluator")
+        classifier = (load(ActionClassifier, args.action_classifier, "--action-classifier")
+                      if args.action_classifier else None)
         split = Split(evaluator, args.data, args.split, classifier)
         other = Split(evaluator, args.data, args.other)
         n = len(split.ids) // args.batch_size * args.batch_size

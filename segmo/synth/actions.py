@@ -465,18 +465,24 @@ def _pad(track: BodyTrack, before: int, after: int) -> BodyTrack:
 _QUATERNIONS = ("pelvis", "spine", "neck", "foot_rot")
 
 
+def resample_frames(x: np.ndarray, frames: int) -> np.ndarray:
+    """(frames, ...) of (t ≥ 2, ...) `x` slowed or sped up evenly: linear interpolation in
+    time, the first and last frame kept."""
+    t = len(x)
+    at = np.linspace(0.0, t - 1, frames)
+    lo = np.minimum(at.astype(int), t - 2)
+    w = (at - lo).reshape((-1,) + (1,) * (x.ndim - 1))
+    return (1 - w) * x[lo] + w * x[lo + 1]
+
+
 def _retime(track: BodyTrack, tempo: float) -> BodyTrack:
     """The same movement `tempo` times faster: every channel resampled in time (linear,
     quaternions renormalised), first and last frame kept, so it still starts and ends at
     rest. Counts (waves, claps, steps) are unchanged; only their pace is."""
-    t = track.num_frames
-    at = np.linspace(0.0, t - 1, max(2, int(round((t - 1) / tempo)) + 1))
-    lo = np.minimum(at.astype(int), t - 2)
-    w = at - lo
+    frames = max(2, int(round((track.num_frames - 1) / tempo)) + 1)
     out = {}
     for key, x in vars(track).items():
-        wk = w.reshape((-1,) + (1,) * (x.ndim - 1))
-        y = (1 - wk) * x[lo] + wk * x[lo + 1]
+        y = resample_frames(x, frames)
         if key in _QUATERNIONS:
             y = y / np.linalg.norm(y, axis=-1, keepdims=True)
         out[key] = y
