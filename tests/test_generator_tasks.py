@@ -403,3 +403,31 @@ def test_mask_whole_segment_masks_one_known_segment_of_the_chosen_samples():
         assert masked[1].tolist() == [False, True, True, True, False, False]
         assert torch.equal(new[1, 4:], inputs[1, 4:])
         assert torch.equal(new[2], inputs[2]) and not new_target[2].any()  # not chosen
+
+
+def test_segment_dropout_hides_present_segments_in_training_only(text_dataset, tokenizer_dir,
+                                                                 tmp_path):
+    from segmo.errors import SegmoError
+
+    config = REPO / "configs/mask/synthetic.yaml"
+    cli = cli_main(["fit", "--config", str(config),
+                    *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                    "--model.init_args.segment_drop_prob=0.5", "--trainer.fast_dev_run=true"])
+    task, batch = cli.model, next(iter(cli.datamodule.train_dataloader()))
+    assert torch.isfinite(cli.trainer.callback_metrics["train/loss"])
+    assert task.export_model().meta["segment_drop_prob"] == 0.5
+    seen = []
+    forward = task.model.forward
+    task.model.forward = lambda *a, **k: seen.append(k.get("hidden_segments")) or forward(*a, **k)
+    task.log = task.log_dict = lambda *a, **k: None  # outside a fit loop
+    _, _, segment_mask = text_condition(batch)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        task.step(batch)
+        task._evaluate("val", batch, 0)
+    hidden, validation = seen[0], seen[1]
+    assert bool(hidden.any()) and not bool((hidden & ~segment_mask).any())  # present ones only
+    assert 0.25 < hidden.sum() / segment_mask.sum() < 0.75
+    assert not bool(validation.any())  # validation sees every segment
+    with pytest.raises(SegmoError, match=r"model.init_args.segment_drop_prob=-0.1: a share in \[0, 1\]"):
+        MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, segment_drop_prob=-0.1)

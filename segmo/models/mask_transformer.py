@@ -116,7 +116,8 @@ class MaskTransformer(nn.Module, Pretrained):
                   unordered: torch.Tensor | None = None, words: torch.Tensor | None = None,
                   word_mask: torch.Tensor | None = None,
                   keep_local: torch.Tensor | None = None, spans: torch.Tensor | None = None,
-                  span_known: torch.Tensor | None = None) -> Condition:
+                  span_known: torch.Tensor | None = None,
+                  hidden_segments: torch.Tensor | None = None) -> Condition:
         """Prefix tokens (b, 1 + a, dim) and their encoding by the trunk, which does not
         depend on the motion tokens: computed once per generation, reused at every step.
         `unordered` (b,) bool: rows whose segments enter without order; `words`
@@ -124,9 +125,10 @@ class MaskTransformer(nn.Module, Pretrained):
         `config.text_tokens` is "words" (`TextPrefix`); `spans` (b, a, 2) long token spans
         of the segments and `span_known` (b, a) bool (None = all): the segment timing of a
         model with it, kept as `Condition.token_segments` for the motion positions
-        (`predict_spans`); a model without timing refuses spans."""
+        (`predict_spans`); a model without timing refuses spans; `hidden_segments` (b, a)
+        bool: segment slots masked out of attention, their timing with them (`TextPrefix`)."""
         condition = self.prefix(sentence, segments, segment_mask, drop_condition, unordered,
-                                words, word_mask, keep_local)
+                                words, word_mask, keep_local, hidden_segments)
         if spans is not None:
             if not hasattr(self, "timing"):
                 raise ValueError("MaskTransformer: this model has no segment timing "
@@ -190,16 +192,19 @@ class MaskTransformer(nn.Module, Pretrained):
                 word_mask: torch.Tensor | None = None,
                 sink_rows: torch.Tensor | None = None,
                 keep_local: torch.Tensor | None = None, spans: torch.Tensor | None = None,
-                span_known: torch.Tensor | None = None) -> MaskTransformerOutput:
+                span_known: torch.Tensor | None = None,
+                hidden_segments: torch.Tensor | None = None) -> MaskTransformerOutput:
         """indices (b, n) long with masked positions already replaced by `mask_id`;
         token_mask (b, n) bool; sentence (b, text_dim); segments (b, a, text_dim) in
         execution order; segment_mask (b, a) bool; drop_condition (b,) bool (classifier-free
         guidance); unordered (b,) bool (segments as a set, as grounding uses them);
         sink_rows (b,) bool: the sink mask's rows (`sink_mask_rows`); keep_local (b,) bool:
         dropped rows that keep their segments and words (`TextPrefix`); spans (b, a, 2) and
-        span_known (b, a): the segment timing (`condition`)."""
+        span_known (b, a): the segment timing; hidden_segments (b, a) bool: segment slots
+        masked out of attention (`condition`)."""
         condition = self.condition(sentence, segments, segment_mask, drop_condition, unordered,
-                                   words, word_mask, keep_local, spans, span_known)
+                                   words, word_mask, keep_local, spans, span_known,
+                                   hidden_segments)
         return self.forward_condition(indices, token_mask, condition, sink_rows=sink_rows)
 
     def sink_mask_rows(self, t: torch.Tensor) -> torch.Tensor | None:

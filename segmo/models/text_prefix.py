@@ -151,6 +151,7 @@ class TextPrefix(nn.Module):
         words: torch.Tensor | None = None,
         word_mask: torch.Tensor | None = None,
         keep_local: torch.Tensor | None = None,
+        hidden_segments: torch.Tensor | None = None,
     ) -> Condition:
         """sentence (b, text_dim), segments (b, a, text_dim) in execution order,
         segment_mask (b, a) bool, drop_condition (b,) bool or None, unordered (b,) bool or
@@ -158,8 +159,10 @@ class TextPrefix(nn.Module):
         (b, l, text_dim) and word_mask (b, l) bool: the caption's word features (a model
         with word keys needs them, one without ignores them); keep_local (b,) bool: rows of
         `drop_condition` that keep their local condition (segments, words) and drop the
-        sentence only (MLA-Gen's unconditional branch with local features) → Condition with
-        p = 1 + a (+ l)."""
+        sentence only (MLA-Gen's unconditional branch with local features); hidden_segments
+        (b, a) bool: segment slots masked out of attention, each row keeping the rest of its
+        text (segment dropout in training, per-segment guidance at generation); what they
+        say stays in `Condition.content` → Condition with p = 1 + a (+ l)."""
         b, a = segment_mask.shape
         if sentence.dim() != 2 or segments.shape[:2] != (b, a) or sentence.shape[0] != b:
             raise ValueError(
@@ -186,6 +189,11 @@ class TextPrefix(nn.Module):
                 dropped = dropped & (~keep_local.bool()[:, None]
                                      | (torch.arange(1 + a, device=dropped.device) == 0))
             valid = valid & ~dropped
+        if hidden_segments is not None:
+            if tuple(hidden_segments.shape) != (b, a):
+                raise ValueError(f"TextPrefix: hidden_segments must be (b, a) = {(b, a)}, got "
+                                 f"{tuple(hidden_segments.shape)}")
+            valid = valid & ~F.pad(hidden_segments.bool(), (1, 0))
         tokens = (content + slots).masked_fill(~valid[..., None], 0.0)
         if self.text_tokens == "none":
             return Condition(tokens=tokens, mask=valid, content=content, labels=prefix_labels(a))

@@ -174,6 +174,7 @@ class MaskTask(TransformerTask):
         position_text: bool = False,
         loss_weighting: Literal["token", "segment"] = "token",
         segment_mask_prob: float = 0.0,
+        segment_drop_prob: float = 0.0,
         **kwargs,
     ) -> None:
         """`alignment*`, `segmenter`: the alignment loss (`AlignmentLoss`; "none" trains
@@ -199,8 +200,11 @@ class MaskTask(TransformerTask):
         `segment_mask_prob`: the share of samples in which every token of one of their
         segments (drawn at random; spans as for `loss_weighting`) is masked besides the
         random masking (`mask_whole_segment`), so the model learns to fill a segment from
-        its text between visible neighbours. The other arguments (`**kwargs`) are
-        `TransformerTask`'s."""
+        its text between visible neighbours. `segment_drop_prob`: in samples that keep
+        their condition, each segment slot is hidden from attention with this probability
+        (segment dropout), so the model also predicts with one segment missing, which
+        per-segment guidance compares against (`SamplingOptions.segment_guidance`). The other
+        arguments (`**kwargs`) are `TransformerTask`'s."""
         super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
         if temperature is not None:  # checkpoints of this run hold the new name only
             alignment_temperature = former_temperature(temperature, alignment_temperature)
@@ -223,7 +227,8 @@ class MaskTask(TransformerTask):
             raise SegmoError("model.init_args.position_text=true needs segment_timing truth "
                              "or segmenter (it reads each position's segment)")
         for name, share in (("timing_drop_prob", timing_drop_prob),
-                            ("segment_mask_prob", segment_mask_prob)):
+                            ("segment_mask_prob", segment_mask_prob),
+                            ("segment_drop_prob", segment_drop_prob)):
             if not 0.0 <= share <= 1.0:
                 raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
         self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
@@ -285,10 +290,12 @@ class MaskTask(TransformerTask):
     def step(self, batch: dict, generator: torch.Generator | None = None,
              drop: Tensor | None = None, unordered: Tensor | None = None,
              timing_drop: Tensor | None = None,
-             segment_masked: Tensor | None = None) -> dict[str, Tensor]:
+             segment_masked: Tensor | None = None,
+             hidden: Tensor | None = None) -> dict[str, Tensor]:
         """Losses of one batch; `drop` (condition dropped), `unordered` (segments without
         order), `timing_drop` (segment timing left out) and `segment_masked` (one whole
-        segment masked) are drawn with their probabilities unless given, (b,) bool."""
+        segment masked) are drawn with their probabilities unless given, (b,) bool; so is
+        `hidden` (b, a) bool, the segment slots dropped (`segment_drop_prob`)."""
         base, valid, lengths = self.tokens(batch)
         sentence, segments, segment_mask = text_condition(batch)
         inputs, target = mask_tokens(base, valid, self.model.config.codebook_size, generator)
@@ -297,6 +304,9 @@ class MaskTask(TransformerTask):
             drop = torch.rand(b, device=base.device) < self.hparams.cond_drop_prob
         if unordered is None:
             unordered = torch.rand(b, device=base.device) < self.hparams.order_drop_prob
+        if hidden is None and self.hparams.segment_drop_prob > 0:
+            hidden = segment_mask & (torch.rand(segment_mask.shape, device=base.device)
+                                     < self.hparams.segment_drop_prob)
         # The motion segmenter's spans, cut once for the alignment loss, segmenter timing and
         # the segment options (where a sample lacks ground truth).
         num_segments = torch.minimum(segment_mask.sum(1), lengths)
@@ -324,7 +334,8 @@ class MaskTask(TransformerTask):
         sink_rows = self.model.sink_mask_rows(mask_ratio_time(target, valid))
         out = self.model(inputs, valid, sentence, segments, segment_mask, drop, unordered,
                          **word_condition(batch, self.model), sink_rows=sink_rows,
-                         keep_local=self.keep_local(drop), spans=spans, span_known=span_known)
+                         keep_local=self.keep_local(drop), spans=spans, span_known=span_known,
+                         hidden_segments=hidden)
         if self.hparams.loss_weighting == "segment":
             # mask_loss stays the plain mean, comparable across runs; training follows the
             # balanced one. One cross-entropy pass serves both.
@@ -373,8 +384,9 @@ class MaskTask(TransformerTask):
         # The same masking every epoch, so the accuracy of two runs is comparable.
         generator = torch.Generator(device=batch["motion"].device).manual_seed(batch_idx)
         never = torch.zeros(b, dtype=torch.bool, device=batch["motion"].device)
+        no_segment = torch.zeros_like(text_condition(batch)[2], dtype=torch.bool)
         terms = self.step(batch, generator, drop=never, unordered=never, timing_drop=never,
-                          segment_masked=never)
+                          segment_masked=never, hidden=no_segment)
         self.log_dict({f"{prefix}/{k}": v for k, v in terms.items()}, batch_size=b,
                       sync_dist=True, prog_bar=False)
         if batch.get("spans") is not None:
@@ -468,5 +480,6 @@ class MaskTask(TransformerTask):
             "segmenter": self.hparams.segmenter,
             "cond_drop_prob": self.hparams.cond_drop_prob,
             "segment_timing": self.hparams.segment_timing,
+            "segment_drop_prob": self.hparams.segment_drop_prob,
         }
         return self.model
