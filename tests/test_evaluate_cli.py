@@ -552,13 +552,14 @@ def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_tex
     model.generate = lambda *a, **k: seen.append(k.get("sampling")) or real(*a, **k)
     mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
     for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local", "word_text": "segments",
-                       "segment_timing": "none", "remasking": "segments"}):
+                       "segment_timing": "none", "remasking": "segments",
+                       "segment_guidance": 0.5}):
         cfg = EvaluateConfig(data="", evaluator="", out="", progress=False, **given)
         Generator(model, cfg, mean, std)(["a person walks forward"], torch.tensor([8]), seed=0)
     assert seen[0] is None
     assert (seen[1].ctrl_k_base, seen[1].unconditional, seen[1].word_text,
-            seen[1].segment_timing, seen[1].remasking) == (0.25, "local", "segments", "none",
-                                                           "segments")
+            seen[1].segment_timing, seen[1].remasking, seen[1].segment_guidance) == (
+                0.25, "local", "segments", "none", "segments", 0.5)
     assert seen[1].guidance_scale == model.sampling.guidance_scale
 
 

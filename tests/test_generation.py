@@ -553,3 +553,79 @@ def test_remasking_by_segments_counts_per_segment_at_every_step(monkeypatch):
                          for r in ("segments", "confidence")))
     with pytest.raises(Exception, match="remasking must be 'confidence' or 'segments'"):
         SamplingOptions(remasking="random")
+
+
+def test_hidden_segments_mask_their_slots_and_keep_their_content(models):
+    mask, _ = models
+    sentence, segments, segment_mask = text(2)
+    hidden = torch.tensor([[False, True, False], [True, False, False]])
+    plain = mask.condition(sentence, segments, segment_mask)
+    condition = mask.condition(sentence, segments, segment_mask, hidden_segments=hidden)
+    assert torch.equal(condition.mask[:, 1:], plain.mask[:, 1:] & ~hidden)
+    assert bool(condition.mask[:, 0].all())  # the sentence stays
+    torch.testing.assert_close(condition.content, plain.content)  # what they say is kept
+    with pytest.raises(ValueError, match="hidden_segments must be"):
+        mask.condition(sentence, segments, segment_mask, hidden_segments=hidden[:, :2])
+
+
+def test_segment_guidance_adds_each_segments_own_difference(models):
+    """u + s·(c − u) + w·Σⱼ (c − c₋ⱼ), with c₋ⱼ the conditional logits with segment j hidden:
+    computed here pass by pass against `segment_guided`."""
+    mask, _ = models
+    mask.eval()
+    b, n = 2, 7
+    sentence, segments, segment_mask = text(b)
+    indices = torch.randint(0, 17, (b, n))
+    token_mask = torch.arange(n) < torch.tensor([7, 4])[:, None]
+    condition = guidance_condition(mask, sentence, segments, segment_mask)
+    both = mask.forward_condition(torch.cat([indices, indices]),
+                                  torch.cat([token_mask, token_mask]), condition).logits
+    guidance = generate_module.segment_guidance_condition(mask, sentence, segments,
+                                                          segment_mask, 0.7)
+    assert guidance.rows.tolist() == [0, 0, 1, 1, 1]  # caption 0 has two segments
+    without = mask.forward_condition(indices[guidance.rows], token_mask[guidance.rows],
+                                     guidance.condition).logits
+    conditional, unconditional = both.chunk(2)
+    expected = unconditional + 2.0 * (conditional - unconditional)
+    for i in range(b):
+        for j in range(int(segment_mask[i].sum())):
+            hidden = torch.zeros(1, 3, dtype=torch.bool)
+            hidden[0, j] = True
+            alone = mask(indices[i:i + 1], token_mask[i:i + 1], sentence[i:i + 1],
+                         segments[i:i + 1], segment_mask[i:i + 1], hidden_segments=hidden).logits
+            expected[i] += 0.7 * (conditional[i] - alone[0])
+    torch.testing.assert_close(generate_module.segment_guided(both, without, guidance, 2.0),
+                               expected, rtol=1e-4, atol=1e-4)
+    assert generate_module.segment_guidance_condition(mask, sentence, segments,
+                                                      segment_mask, 0.0) is None
+
+
+def test_segment_guidance_zero_is_plain_cfg_and_otherwise_changes_tokens(models):
+    mask, residual = models
+    lengths = torch.tensor([48, 32, 20])
+
+    def run(**options):
+        return generate_tokens(mask, residual, *text(3), lengths,
+                               options=SamplingOptions(steps=6, **options),
+                               generator=torch.Generator().manual_seed(8))
+
+    cfg = run()
+    assert torch.equal(cfg, run(segment_guidance=0.0))
+    guided = run(segment_guidance=3.0)
+    assert torch.equal(guided < 0, cfg < 0)  # the same padding
+    assert not torch.equal(cfg[..., 0], guided[..., 0])
+    # One caption of one motion token and three segments: more guidance rows than the batch's.
+    one = generate_tokens(mask, residual, torch.randn(1, 8), torch.randn(1, 3, 8),
+                          torch.ones(1, 3, dtype=torch.bool), torch.tensor([4]),
+                          options=SamplingOptions(steps=3, segment_guidance=1.0))
+    assert one.shape == (1, 1, 3) and bool((one >= 0).all())
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(segment_guidance=-1.0), "segment_guidance must be >= 0"),
+    (dict(segment_guidance=float("nan")), "segment_guidance must be a finite number"),
+    (dict(segment_guidance=1.0, guidance="sink_ctrl"), "segment_guidance works with guidance 'cfg'"),
+])
+def test_segment_guidance_refuses_what_it_cannot_use(bad, message):
+    with pytest.raises(Exception, match=message):
+        SamplingOptions(**bad)

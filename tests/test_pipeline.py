@@ -700,6 +700,24 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     assert "--tokenizer" in line and "no such directory" in line
 
 
+def test_cli_bundle_records_segment_guidance(stages, tmp_path, hash_text_encoder, capsys):
+    out = tmp_path / "b"
+    bundle_main(["--tokenizer", str(stages["tokenizer"]), "--mask", str(stages["mask"]),
+                 "--segment-guidance", "1.5", "--out", str(out)])
+    assert json.loads((out / "segmo.json").read_text())["segment_guidance"] == 1.5
+    model = SegMo.from_pretrained(out)
+    assert model.sampling.segment_guidance == 1.5
+    assert model.generate(["a person walks forward, then waves"], [16]).tokens.shape[:2] == (1, 4)
+    line = cli_failure(["bundle", "--tokenizer", str(stages["tokenizer"]), "--mask",
+                        str(stages["mask"]), "--segment-guidance", "-1", "--out",
+                        str(tmp_path / "c")], capsys)
+    assert "--segment-guidance" in line and "expected a number >= 0" in line
+    line = cli_failure(["bundle", "--tokenizer", str(stages["tokenizer"]), "--mask",
+                        str(stages["mask"]), "--segment-guidance", "1", "--guidance-mode",
+                        "sink_ctrl", "--out", str(tmp_path / "d")], capsys)
+    assert "segment_guidance works with guidance 'cfg' only" in line
+
+
 def test_ground_cli_finds_the_true_spans_of_a_corpus_caption(tmp_path):
     from segmo.pipeline.cli import _true_spans
 

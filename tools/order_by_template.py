@@ -3,7 +3,8 @@
     python tools/order_by_template.py --model B --data data/synth \\
         --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
         [--word-text caption|segments] [--segment-timing predicted|none|truth] \\
-        [--remasking confidence|segments] [--compose FRAMES] [--reconstruction]
+        [--remasking confidence|segments] [--segment-guidance W] [--compose FRAMES]
+        [--reconstruction]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -19,7 +20,8 @@ what a words model's word keys read (`SamplingOptions.word_text`; default: the b
 head predicts, none, or "truth": each segment's true duration from the corpus (the model's
 own text segments where it finds as many as the caption has actions, else the corpus'
 segment texts), the ceiling of what predicted timing can give. --remasking: which tokens
-each decoding step masks again (`SamplingOptions.remasking`). --reconstruction also reads
+each decoding step masks again (`SamplingOptions.remasking`). --segment-guidance: the weight
+of per-segment guidance (`SamplingOptions.segment_guidance`). --reconstruction also reads
 each motion's tokenizer reconstruction (real motion → the bundle's tokenizer → decoded) and
 splits the generated accuracy by it: `reconstruction` (the tokenizer's ceiling on the same
 captions), `generated_where_reconstructed` and `generated_where_not` (the generator on the
@@ -40,7 +42,7 @@ import numpy as np
 import torch
 
 from segmo.data.layout import first_captions, read_motion
-from segmo.errors import SegmoError
+from segmo.errors import SegmoError, non_negative_float
 from segmo.evaluation.metrics import segment_bucket
 from segmo.generation.sampling import Remasking, SegmentTiming, WordText
 from segmo.models.action_classifier import collapse
@@ -173,6 +175,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--remasking", choices=get_args(Remasking), default=None,
                         help="which tokens each decoding step masks again: the least confident "
                         "of the motion or of each segment (default: the bundle's)")
+    parser.add_argument("--segment-guidance", type=non_negative_float, default=None,
+                        metavar="W", help="per-segment guidance weight, 0 = off (default: the "
+                        "bundle's)")
     parser.add_argument("--compose", type=int, default=None, metavar="FRAMES",
                         help="generate each caption segment by segment (SegMo.compose), "
                         "parts at their true shares, transitions of FRAMES frames")
@@ -192,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
             model.config.word_text = args.word_text
         if args.remasking is not None:
             model.config.remasking = args.remasking
+        if args.segment_guidance is not None:
+            model.config.segment_guidance = args.segment_guidance
         if args.segment_timing in get_args(SegmentTiming):
             model.config.segment_timing = args.segment_timing
         if args.segment_timing == "truth" and not model.mask.config.segment_timing:
@@ -218,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     timing = args.segment_timing or model.sampling.segment_timing
     print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing,
-                      "remasking": model.sampling.remasking, "compose": args.compose}))
+                      "remasking": model.sampling.remasking,
+                      "segment_guidance": model.sampling.segment_guidance, "compose": args.compose}))
     return 0
 
 

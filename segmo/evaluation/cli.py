@@ -50,6 +50,7 @@ from segmo.errors import (
     ArgumentParser,
     SegmoError,
     finite_float,
+    non_negative_float,
     non_negative_int,
     positive_int,
 )
@@ -97,7 +98,8 @@ class Generator:
         self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
         # The bundle's sampling (None), but for the options only a SamplingOptions carries.
         given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional", "word_text",
-                                                  "segment_timing", "remasking")
+                                                  "segment_timing", "remasking",
+                                                  "segment_guidance")
                  if getattr(cfg, name) is not None}
         self.sampling = replace(model.sampling, **given) if given else None
         self.motions = 0
@@ -417,6 +419,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--remasking", choices=get_args(Remasking), default=None,
                    help="which tokens each decoding step masks again: the least confident of "
                         "the motion, or of each segment (default: the bundle's)")
+    p.add_argument("--segment-guidance", type=non_negative_float, default=None,
+                   help="per-segment guidance weight of the base tokens, 0 = off (default: the "
+                        "bundle's)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

@@ -86,6 +86,7 @@ class EvaluateConfig:
     word_text: str | None = None  # "caption" | "segments"; None: the bundle's
     segment_timing: str | None = None  # "predicted" | "none"; None: the bundle's
     remasking: str | None = None  # "confidence" | "segments"; None: the bundle's
+    segment_guidance: float | None = None  # per-segment guidance weight; None: the bundle's
     grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True

@@ -16,9 +16,11 @@ import math
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from segmo import cpu
@@ -74,6 +76,51 @@ def guidance_condition(model: MaskTransformer | ResidualTransformer, sentence: t
         extra["spans"] = two(spans)
     return model.condition(torch.cat([sentence, sentence]), torch.cat([segments, segments]),
                            torch.cat([segment_mask, segment_mask]), drop, **extra)
+
+
+@dataclass
+class SegmentGuidance:
+    """Per-segment guidance's rows (`SamplingOptions.segment_guidance`): one row for each
+    segment of each caption, the caption's text with that segment hidden.
+
+    condition: the r rows' prefix (`MaskTransformer.condition` with `hidden_segments`);
+    rows: (r,) long, the batch row (caption) of each; weight: w of w·(c − c₋ⱼ).
+    """
+
+    condition: Condition
+    rows: torch.Tensor
+    weight: float
+
+
+def segment_guidance_condition(model: MaskTransformer, sentence: torch.Tensor,
+                               segments: torch.Tensor, segment_mask: torch.Tensor,
+                               weight: float, words: torch.Tensor | None = None,
+                               word_mask: torch.Tensor | None = None,
+                               spans: torch.Tensor | None = None) -> SegmentGuidance | None:
+    """The rows of per-segment guidance with weight `weight` for captions of (b, a)
+    `segment_mask` (arguments as `guidance_condition`); None when the weight is 0 or no
+    caption has a segment."""
+    rows, slots = segment_mask.bool().nonzero(as_tuple=True)
+    if not weight or rows.numel() == 0:
+        return None
+    hidden = F.one_hot(slots, segment_mask.shape[1]).bool()
+    extra = {} if model.config.text_tokens == "none" else {
+        "words": words[rows], "word_mask": word_mask[rows]}
+    if spans is not None:
+        extra["spans"] = spans[rows]
+    condition = model.condition(sentence[rows], segments[rows], segment_mask[rows],
+                                hidden_segments=hidden, **extra)
+    return SegmentGuidance(condition, rows, float(weight))
+
+
+def segment_guided(logits: torch.Tensor, without: torch.Tensor, guidance: SegmentGuidance,
+                   scale: float) -> torch.Tensor:
+    """Guidance batch logits (2b, m, v) and the logits (r, m, v) of `guidance`'s rows →
+    u + s·(c − u) + w·Σⱼ (c − c₋ⱼ), (b, m, v) float32."""
+    conditional = logits[: logits.shape[0] // 2].float()
+    difference = conditional[guidance.rows] - without.float()
+    return guided_logits(logits, scale).index_add_(0, guidance.rows, difference,
+                                                   alpha=guidance.weight)
 
 
 def segment_spans(model: MaskTransformer, segments: torch.Tensor, segment_mask: torch.Tensor,
@@ -177,10 +224,13 @@ def _sampled_positions(select: torch.Tensor) -> tuple[torch.Tensor | None, torch
 
 
 def _draw(logits: torch.Tensor, select: torch.Tensor, scale: float, options: SamplingOptions,
-          generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+          generator: torch.Generator | None, without: torch.Tensor | None = None,
+          segment_guidance: SegmentGuidance | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Guidance batch logits (2b, m, v), select (b, m) bool → tokens (k,), confidence (k,)
-    for the k selected positions (row-major order), guided with `scale`."""
-    guided = guided_logits(logits, scale)[select]
+    for the k selected positions (row-major order), guided with `scale`; with `without`,
+    the logits of `segment_guidance`'s rows, also per segment (`segment_guided`)."""
+    guided = (guided_logits(logits, scale) if without is None
+              else segment_guided(logits, without, segment_guidance, scale))[select]
     return sample_tokens(guided, options.top_k_ratio, options.temperature, options.sampler,
                          generator)
 
@@ -277,7 +327,8 @@ def _guidance_pass(model: MaskTransformer, ids: torch.Tensor, token_mask: torch.
 def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Tensor,
                   token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
                   generator: torch.Generator | None = None,
-                  spans: torch.Tensor | None = None) -> torch.Tensor:
+                  spans: torch.Tensor | None = None,
+                  segment_guidance: SegmentGuidance | None = None) -> torch.Tensor:
     """Iteratively fill the `editable` base tokens; the others stay fixed and visible.
 
     ids (b, n) long, editable (b, n) bool ⊆ token_mask (b, n) bool, condition from
@@ -285,7 +336,9 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     ⌈γ(t)·m⌉ (≥ 1) lowest-confidence editable tokens are (re-)masked and predicted with
     `options.guidance_scale`, m = editable count. A token kept at one step is final (MoMask):
     its confidence becomes +inf. With `options.remasking` "segments" and the segments'
-    token spans (b, a, 2), the count is taken per segment (`remasked`).
+    token spans (b, a, 2), the count is taken per segment (`remasked`). With
+    `segment_guidance` (`segment_guidance_condition`) every step also runs its rows and
+    guides per segment (`segment_guided`).
 
     A step whose masked input equals the previous step's reuses that pass' logits and
     draws anew (exact: the model is a function of its input). With the cosine schedule
@@ -301,22 +354,30 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     control = SinkControl(options, ids.shape, model.config.codebook_size, ids.device) \
         if options.guidance == "sink_ctrl" else None
     reuse = not is_recorded(model)
-    previous: tuple[torch.Tensor, bool, torch.Tensor] | None = None  # (ids, sink, logits)
+    previous: tuple | None = None  # (ids, sink, logits, logits of the segment rows)
     for t in torch.linspace(0, 1, options.steps).tolist():
         is_masked = remasked(scores, editable, t, groups)
         ids = ids.masked_fill(is_masked, model.mask_id)
         positions, picked = _sampled_positions(is_masked)
         sink = model.config.sink_mask_t is not None and t > model.config.sink_mask_t
         if previous is not None and previous[1] == sink and torch.equal(previous[0], ids):
-            logits = previous[2]  # the same input: the same pass
+            logits, without = previous[2:]  # the same input: the same pass
         else:
             twice = None if positions is None else torch.cat([positions, positions])
             sink_rows = mask2.new_ones(mask2.shape[0]) if sink else None
             logits = _guidance_pass(model, torch.cat([ids, ids]), mask2, condition, twice,
                                     sink_rows)
-            previous = (ids.clone(), sink, logits) if reuse else None
+            without = None
+            if segment_guidance is not None:
+                rows = segment_guidance.rows
+                without = model.forward_condition(
+                    ids[rows], token_mask[rows], segment_guidance.condition,
+                    None if positions is None else positions[rows],
+                    rows.new_ones(rows.shape, dtype=torch.bool) if sink else None).logits
+            previous = (ids.clone(), sink, logits, without) if reuse else None
         if control is None:
-            tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator)
+            tokens, confidence = _draw(logits, picked, options.guidance_scale, options, generator,
+                                       without, segment_guidance)
         else:
             guided = control.guided(logits, positions, picked)
             tokens, confidence = sample_tokens(guided, options.top_k_ratio, options.temperature,
@@ -404,9 +465,12 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
     with _inference(models, precision, sentence.device):
         condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask,
                                        options.unconditional, spans)
+        per_segment = segment_guidance_condition(
+            mask_model, sentence, segments, segment_mask, options.segment_guidance, words,
+            word_mask, spans)
         ids = indices[..., 0].masked_fill(editable, mask_model.mask_id)
         base = masked_decode(mask_model, ids, editable, token_mask, condition, options, generator,
-                             spans)
+                             spans, per_segment)
         out = indices.clone()
         out[..., 0] = torch.where(token_mask, base, -1)
         if residual_model is None:

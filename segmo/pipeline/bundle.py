@@ -61,6 +61,7 @@ class SegMoConfig:
     word_text: str = SamplingOptions.word_text
     segment_timing: str = SamplingOptions.segment_timing
     remasking: str = SamplingOptions.remasking
+    segment_guidance: float = SamplingOptions.segment_guidance
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -69,7 +70,7 @@ class SegMoConfig:
 SAMPLING_FIELDS: tuple[str, ...] = (
     "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
     "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional", "word_text",
-    "segment_timing", "remasking")
+    "segment_timing", "remasking", "segment_guidance")
 
 
 def sampling_fields(config: SegMoConfig) -> dict:
@@ -129,6 +130,7 @@ def write_bundle(directory: str | os.PathLike, config: SegMoConfig,
     the folder to the hub repository `repo_id`. Returns `directory`."""
     if push_to_hub and not repo_id:
         raise SegmoError("save_pretrained: push_to_hub needs repo_id ('owner/name')")
+    SamplingOptions(**sampling_fields(config))  # no bundle that could not be loaded back
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     for name, module in stages.items():

@@ -27,6 +27,7 @@ from segmo.errors import (
     ArgumentParser,
     SegmoError,
     finite_float,
+    non_negative_float,
     non_negative_int,
     npy_argument,
     parse_durations,
@@ -391,6 +392,9 @@ def bundle_main(argv: list[str] | None = None) -> None:
                         help="which tokens each decoding step masks again: the least confident "
                              "of the motion (default, MoMask) or of each segment (models with "
                              "segment timing)")
+    parser.add_argument("--segment-guidance", type=non_negative_float, default=None,
+                        help="default per-segment guidance weight w (0 = off, the default; mask "
+                             "transformers trained with segment_drop_prob)")
     parser.add_argument("--sink-ratio", type=finite_float, default=None,
                         help="the mask transformer's measured SinkRatio, for sink_ctrl "
                              "(tools/attention_report.py; default 0)")
@@ -427,6 +431,7 @@ def bundle_main(argv: list[str] | None = None) -> None:
                             ("guidance", "guidance_mode"), ("sink_ratio", "sink_ratio"),
                             ("unconditional", "unconditional"), ("word_text", "word_text"),
                             ("remasking", "remasking"), ("ctrl_lambda", "ctrl_lambda"),
+                            ("segment_guidance", "segment_guidance"),
                             ("ctrl_k_base", "ctrl_k_base"), ("ctrl_alpha", "ctrl_alpha")):
         if getattr(args, argument) is not None:
             setattr(model.config, field, getattr(args, argument))
