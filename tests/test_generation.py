@@ -353,18 +353,19 @@ def test_residual_guided_layers_refuses_what_it_cannot_use():
             SamplingOptions(residual_guided_layers=bad)
 
 
-def test_sink_ctrl_with_k_base_zero_is_plain_cfg_and_otherwise_changes_tokens(models):
+def three_captions(models, **options) -> torch.Tensor:
+    """Tokens of three captions (48, 32 and 20 frames), 6 steps, seed 8, under `options`."""
     mask, residual = models
-    lengths = torch.tensor([48, 32, 20])
+    return generate_tokens(mask, residual, *text(3), torch.tensor([48, 32, 20]),
+                           options=SamplingOptions(steps=6, **options),
+                           generator=torch.Generator().manual_seed(8))
 
-    def run(**options):
-        return generate_tokens(mask, residual, *text(3), lengths,
-                               options=SamplingOptions(steps=6, **options),
-                               generator=torch.Generator().manual_seed(8))
 
-    cfg = run()
-    assert torch.equal(cfg, run(guidance="sink_ctrl", ctrl_k_base=0.0))
-    assert not torch.equal(cfg[..., 0], run(guidance="sink_ctrl", ctrl_k_base=2.0)[..., 0])
+def test_sink_ctrl_with_k_base_zero_is_plain_cfg_and_otherwise_changes_tokens(models):
+    cfg = three_captions(models)
+    assert torch.equal(cfg, three_captions(models, guidance="sink_ctrl", ctrl_k_base=0.0))
+    assert not torch.equal(cfg[..., 0],
+                           three_captions(models, guidance="sink_ctrl", ctrl_k_base=2.0)[..., 0])
 
 
 def test_sink_ctrl_carries_the_corrected_difference_of_each_position():
@@ -602,16 +603,9 @@ def test_segment_guidance_adds_each_segments_own_difference(models):
 
 def test_segment_guidance_zero_is_plain_cfg_and_otherwise_changes_tokens(models):
     mask, residual = models
-    lengths = torch.tensor([48, 32, 20])
-
-    def run(**options):
-        return generate_tokens(mask, residual, *text(3), lengths,
-                               options=SamplingOptions(steps=6, **options),
-                               generator=torch.Generator().manual_seed(8))
-
-    cfg = run()
-    assert torch.equal(cfg, run(segment_guidance=0.0))
-    guided = run(segment_guidance=3.0)
+    cfg = three_captions(models)
+    assert torch.equal(cfg, three_captions(models, segment_guidance=0.0))
+    guided = three_captions(models, segment_guidance=3.0)
     assert torch.equal(guided < 0, cfg < 0)  # the same padding
     assert not torch.equal(cfg[..., 0], guided[..., 0])
     # One caption of one motion token and three segments: more guidance rows than the batch's.
