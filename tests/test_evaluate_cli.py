@@ -5,6 +5,7 @@ tool's dry run."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -423,6 +424,18 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
                       "--action-classifier", str(setup["classifier"]), "--repeats", "1",
                       "--word-text", "segments"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["word_text"] == "segments"
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+                      "--action-classifier", str(setup["classifier"]), "--repeats", "1",
+                      "--segment-guidance", "0.5"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["segment_guidance"] == 0.5
+    sink = tmp_path / "sink"  # options that clash: one line, no generation
+    shutil.copytree(setup["segmo"], sink)
+    config = json.loads((sink / "segmo.json").read_text())
+    (sink / "segmo.json").write_text(json.dumps({**config, "guidance": "sink_ctrl"}))
+    assert tool.main(["--model", str(sink), "--data", str(setup["data"]), "--split", "train",
+                      "--action-classifier", str(setup["classifier"]),
+                      "--segment-guidance", "1"]) == 2
+    assert "segment_guidance works with guidance 'cfg' only" in capsys.readouterr().err
     plain = tmp_path / "plain"
     (plain / "new_joint_vecs").mkdir(parents=True)
     assert tool.main(["--model", str(setup["segmo"]), "--data", str(plain),

@@ -201,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
             model.config.segment_guidance = args.segment_guidance
         if args.segment_timing in get_args(SegmentTiming):
             model.config.segment_timing = args.segment_timing
+        sampling = model.sampling  # the options given, checked here: one line if they clash
         if args.segment_timing == "truth" and not model.mask.config.segment_timing:
             raise SegmoError(f"--segment-timing truth: {args.model}'s mask transformer has no "
                              "segment timing")
@@ -223,10 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("reconstruction", "generated_where_reconstructed", "generated_where_not"):
         for bucket, value in result.get(name, {}).items():
             print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
-    timing = args.segment_timing or model.sampling.segment_timing
-    print(json.dumps({**result, "word_text": model.sampling.word_text, "segment_timing": timing,
-                      "remasking": model.sampling.remasking,
-                      "segment_guidance": model.sampling.segment_guidance, "compose": args.compose}))
+    timing = args.segment_timing or sampling.segment_timing
+    print(json.dumps({**result, "word_text": sampling.word_text, "segment_timing": timing,
+                      "remasking": sampling.remasking,
+                      "segment_guidance": sampling.segment_guidance, "compose": args.compose}))
     return 0
 
 

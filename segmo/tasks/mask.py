@@ -200,11 +200,11 @@ class MaskTask(TransformerTask):
         `segment_mask_prob`: the share of samples in which every token of one of their
         segments (drawn at random; spans as for `loss_weighting`) is masked besides the
         random masking (`mask_whole_segment`), so the model learns to fill a segment from
-        its text between visible neighbours. `segment_drop_prob`: in samples that keep
-        their condition, each segment slot is hidden from attention with this probability
-        (segment dropout), so the model also predicts with one segment missing, which
-        per-segment guidance compares against (`SamplingOptions.segment_guidance`). The other
-        arguments (`**kwargs`) are `TransformerTask`'s."""
+        its text between visible neighbours. `segment_drop_prob`: each segment slot of a
+        sample is hidden from attention with this probability (segment dropout; validation
+        hides none), so the model also predicts with a segment missing, which per-segment
+        guidance compares against (`SamplingOptions.segment_guidance`). The other arguments
+        (`**kwargs`) are `TransformerTask`'s."""
         super().__init__(tokenizer=tokenizer, cond_drop_prob=cond_drop_prob, **kwargs)
         if temperature is not None:  # checkpoints of this run hold the new name only
             alignment_temperature = former_temperature(temperature, alignment_temperature)
