@@ -34,8 +34,8 @@ the motions pair with the split's captions, one drawn per motion, FID alone wher
   (misnamed), or the first three mixed (--kinds picks among them): what each kind of
   error costs. A remake that leaves an action out is shorter by it, where a generator is
   given a length and fills it: the row "left out, stretched" slows each such remake evenly
-  (`segmo.synth.actions.resample_frames`) to the length of the same motion's remake without the mistake (the caption's
-  parameters row's), the other bound.
+  (`segmo.synth.actions.resample_frames`) to the length of the same motion's remake
+  without the mistake (the caption's parameters row's), the other bound.
 
 With --action-classifier (the built-in corpus' classifier behind `segmo evaluate`'s action
 order) every remade row and `itself` also report action order: the share of the split's
@@ -173,9 +173,9 @@ class Split:
             try:
                 actions = with_mistake(truth, *mistake, rng, version) if mistake else truth
                 joints = resample_motion(rng, actions, version, keep).joints
-                if stretched and len(actions) < len(truth):
-                    joints = resample_frames(joints, len(resample_motion(np.random.default_rng(key), truth, version,
-                                                                 keep).joints))
+                if stretched and len(actions) < len(truth):  # to the length without the mistake
+                    unmistaken = resample_motion(np.random.default_rng(key), truth, version, keep)
+                    joints = resample_frames(joints, len(unmistaken.joints))
             except (ValueError, KeyError, TypeError) as error:  # a ground truth the corpus cannot make
                 raise SegmoError(f"{ground_truth_file(self.data, mid)}: cannot be made again ({error!r})") from None
             features = joints_to_features(joints.astype(np.float32), self.skeleton)
