@@ -2,7 +2,7 @@
 the mask transformer, and a head that predicts the segments' durations from the text.
 
 The mask transformer is told the order of the segments but not how long each lasts; on
-the built-in corpus the actions it loses are the short ones beside long ones (README,
+the built-in corpus the actions it loses are the short ones beside long ones (docs/quality.md,
 "Segment timing"). With timing, every motion position also gets a learned embedding of
 its segment's number (1..A, the slot order), so that a motion token knows which segment
 it is in and reads that slot. Training takes the spans from the data's ground truth or

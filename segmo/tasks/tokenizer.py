@@ -5,7 +5,7 @@ positions + root_weight · SmoothL1 on the root's four features (angular velocit
 velocity, height) + commitment_weight · commitment. The root term is not MoMask's (its
 default 0 keeps the reference's loss): in the plain average the root is 4 of 263 features,
 and a tokenizer trained without it keeps a leap's pose but loses much of its forward
-velocity (README, "The tokenizer's root"). The DataModule provides z-scored motions
+velocity (docs/quality.md, "The tokenizer's root"). The DataModule provides z-scored motions
 (random windows in training, whole masked clips in validation), the normalisation
 statistics, which are copied into the model so that the exported directory is
 self-sufficient, and the skeleton, which must match the task's.
