@@ -7,6 +7,7 @@ reader."""
 from __future__ import annotations
 
 import re
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -27,7 +28,9 @@ def prose(text: str) -> str:
     return re.sub(r"^```.*?^```", "", text, flags=re.M | re.S)
 
 
+@cache
 def headings(page: Path) -> list[str]:
+    """The page's headings, read once per page however many links point into it."""
     return [line.lstrip("#").strip() for line in prose(page.read_text()).splitlines()
             if re.match(r"#{1,6} ", line)]
 
@@ -37,6 +40,11 @@ def section_names(page: Path) -> list[str]:
     text = prose(page.read_text())
     bold = re.findall(r"^\*\*(.+?)\*\*", text, flags=re.M)
     return [" ".join(name.split()).lower() for name in headings(page) + bold]
+
+
+def joined(text: str) -> str:
+    """The text with its line breaks and comment markers gone: a citation may wrap."""
+    return re.sub(r"\n\s*#*\s*", " ", text)
 
 
 def test_slug_follows_github():
@@ -69,9 +77,7 @@ def cited_files() -> list[Path]:
 def test_cited_sections_exist():
     missing = []
     for file in cited_files():
-        # A citation may wrap across comment lines: join them before matching.
-        text = re.sub(r"\n\s*#*\s*", " ", file.read_text())
-        for name, section in CITATION.findall(text):
+        for name, section in CITATION.findall(joined(file.read_text())):
             page = ROOT / ("README.md" if name == "README" else name)
             wanted = " ".join(section.rstrip("….").split()).lower()
             if not page.exists():
@@ -84,4 +90,4 @@ def test_cited_sections_exist():
 def test_citations_are_found():
     """The check above reads real citations (a regex that matched nothing would pass)."""
     text = (ROOT / "configs" / "mask" / "synthetic.yaml").read_text()
-    assert len(CITATION.findall(re.sub(r"\n\s*#*\s*", " ", text))) >= 5
+    assert len(CITATION.findall(joined(text))) >= 5
