@@ -713,3 +713,57 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and str(truth_file) in err[0] and "levitate" in err[0], err
 
+
+
+def test_order_by_stage_takes_the_stages_apart(setup, hash_text_encoder, capsys, monkeypatch):
+    tool = load_tool("order_by_stage")
+    model = SegMo.from_pretrained(setup["timed"])
+    rows = tool.multi_segment_rows(setup["data"], "train", model.max_frames)
+    answer = rows[0]["actions"]
+
+    class Reader:  # reads every motion as the first row's actions: right exactly on its rows
+        def eval(self):
+            return self
+
+        def predict_sequence(self, features):
+            return answer
+
+    right = [r["actions"] == answer for r in rows]
+    layers, kept = tool.tokenizer_layers(model, Reader(), rows, setup["data"])
+    assert kept.tolist() == right
+    for bucket, value in layers.items():
+        inside = [ok for r, ok in zip(rows, right) if bucket in tool.buckets(r["num_actions"])]
+        assert value["motions"] == len(inside)
+        assert value["sequence_accuracy"] == [sum(inside) / len(inside)] * model.tokenizer.num_quantizers
+    kept_rows = [r for r, ok in zip(rows, right) if ok]
+    result = tool.order_by_stage(model, Reader(), kept_rows, setup["data"], repeats=2, seed=0)
+    for name in ("generated", "residual"):  # every kept caption read once per repeat
+        assert {k: v["reads"] for k, v in result[name].items()} == {
+            k: 2 * sum(k in tool.buckets(r["num_actions"]) for r in kept_rows) for k in result[name]}
+        assert all(v["sequence_accuracy"] == 1.0 for v in result[name].values())
+    for bucket, value in result["fill"].items():  # every segment once per repeat, in one place and size
+        places = sum(value.get(k, {"reads": 0})["reads"] for k in ("first", "middle", "last"))
+        sizes = sum(value.get(name, {"reads": 0})["reads"] for *_, name in tool.SHARES)
+        segments = sum(r["num_actions"] for r in kept_rows if bucket in tool.buckets(r["num_actions"]))
+        assert places == sizes == value["all"]["reads"] == 2 * segments
+
+    # Drawing one segment keeps every other token; the residual draw keeps the base layer.
+    b = tool.Batch(model, kept_rows[:3], setup["data"])
+    span = b.inside[:, 0]
+    drawn = tool.draw(model, b, span, seed=0)
+    outside = b.token_mask & ~span
+    assert torch.equal(drawn[outside], b.real[outside]) and bool(span.any())
+    redrawn = tool.redraw_residual(model, b, seed=0)
+    assert torch.equal(redrawn[..., 0], b.real[..., 0])
+    assert not torch.equal(redrawn[b.token_mask][:, 1:], b.real[b.token_mask][:, 1:])
+
+    # The command: the JSON line, and one line when no reconstruction is read right.
+    monkeypatch.setattr(tool, "load_pretrained", lambda path: Reader())
+    common = ["--model", str(setup["timed"]), "--data", str(setup["data"]), "--split", "train",
+              "--action-classifier", str(setup["classifier"]), "--repeats", "1"]
+    assert tool.main(common) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["kept"] == sum(right) and set(last) >= {"tokenizer_layers", "residual", "fill", "generated"}
+    answer = ["nothing"]
+    assert tool.main(common) == 2
+    assert "no train caption's reconstruction is read right" in capsys.readouterr().err
