@@ -28,7 +28,6 @@ timing model is given). The last stdout line is the JSON object.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections import defaultdict
@@ -53,7 +52,7 @@ from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from order_by_template import multi_segment_rows, true_timing  # noqa: E402
+from order_by_template import corpus_arguments, multi_segment_rows, true_timing  # noqa: E402
 
 BATCH = 16
 SHARES = ((0.0, 0.2, "<20%"), (0.2, 0.4, "20-40%"), (0.4, float("inf"), ">=40%"))
@@ -184,13 +183,7 @@ def order_by_stage(model: SegMo, classifier, rows: list[dict], data: Path, repea
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", required=True, type=Path, help="a SegMo bundle (segmo bundle)")
-    parser.add_argument("--data", required=True, type=Path, help="the built-in corpus' folder")
-    parser.add_argument("--action-classifier", required=True, type=Path)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--repeats", type=int, default=2, help="draws per caption and reading")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = corpus_arguments(__doc__.split("\n\n")[0])
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be ≥ 1, got {args.repeats}")

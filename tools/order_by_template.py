@@ -159,14 +159,21 @@ def reconstructions_read_right(model: SegMo, classifier, rows: list[dict], data:
     return np.array(read_right, dtype=bool)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def corpus_arguments(description: str) -> argparse.ArgumentParser:
+    """The arguments every action-order tool of the built-in corpus takes: the bundle, the
+    corpus, the action classifier, the split, the draws per caption and the first seed."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--model", required=True, type=Path, help="a SegMo bundle (segmo bundle)")
     parser.add_argument("--data", required=True, type=Path, help="the built-in corpus' folder")
     parser.add_argument("--action-classifier", required=True, type=Path)
     parser.add_argument("--split", default="test")
-    parser.add_argument("--repeats", type=int, default=2, help="generations per caption (seeds)")
+    parser.add_argument("--repeats", type=int, default=2, help="draws per caption (seeds)")
     parser.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = corpus_arguments(__doc__.split("\n\n")[0])
     parser.add_argument("--word-text", choices=get_args(WordText), default=None,
                         help="what a words model's word keys read (default: the bundle's)")
     parser.add_argument("--segment-timing", choices=(*get_args(SegmentTiming), "truth"),
