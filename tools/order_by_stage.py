@@ -52,7 +52,12 @@ from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from order_by_template import corpus_arguments, multi_segment_rows, true_timing  # noqa: E402
+from order_by_template import (  # noqa: E402
+    corpus_arguments,
+    multi_segment_rows,
+    reconstruction_read_right,
+    true_timing,
+)
 
 BATCH = 16
 SHARES = ((0.0, 0.2, "<20%"), (0.2, 0.4, "20-40%"), (0.4, float("inf"), ">=40%"))
@@ -107,15 +112,8 @@ def tokenizer_layers(model: SegMo, classifier, rows: list[dict], data: Path) -> 
     """Per bucket, the accuracy of the reconstruction from the first L layers (L = 1 .. q),
     and one bool per row: is the whole reconstruction read right?"""
     q = model.tokenizer.num_quantizers
-    hits = np.zeros((len(rows), q), dtype=bool)
-    for i, row in enumerate(rows):
-        tokens = model.encode_motion(read_motion(data, row["id"])[: row["frames"]])
-        lengths = torch.tensor([tokens.shape[1] * FRAMES_PER_TOKEN], device=tokens.device)
-        for layers in range(1, q + 1):
-            out = model.decode(tokens.masked_fill(torch.arange(q, device=tokens.device) >= layers, -1),
-                               lengths, [row["text"]], [[row["text"]]])
-            hits[i, layers - 1] = classifier.predict_sequence(out.features[0].float().cpu().numpy()) \
-                == row["actions"]
+    hits = np.array([reconstruction_read_right(model, classifier, row, data, list(range(1, q + 1)))
+                     for row in rows], dtype=bool).reshape(len(rows), q)
     by: dict[str, list[int]] = defaultdict(list)
     for i, row in enumerate(rows):
         for bucket in buckets(row["num_actions"]):
@@ -185,8 +183,6 @@ def order_by_stage(model: SegMo, classifier, rows: list[dict], data: Path, repea
 def main(argv: list[str] | None = None) -> int:
     parser = corpus_arguments(__doc__.split("\n\n")[0])
     args = parser.parse_args(argv)
-    if args.repeats < 1:
-        parser.error(f"--repeats must be ≥ 1, got {args.repeats}")
     try:
         model = SegMo.from_pretrained(args.model)
         classifier = load_pretrained(args.action_classifier).eval()
