@@ -347,6 +347,41 @@ def test_unguided_residual_layers_run_the_conditional_rows_alone(models, monkeyp
     assert (none[..., 1:] >= 0).sum() == (every[..., 1:] >= 0).sum()  # same valid positions
 
 
+def test_residual_decode_draws_only_the_layers_asked_for(models):
+    """`layers` draws those residual layers and keeps the others' codes, which the layers
+    drawn above them read: layer 2 alone, drawn on the given layer 1, differs from layer 2
+    drawn on a layer 1 drawn first."""
+    from segmo.generation.generate import guided_logits, residual_decode
+
+    residual = models[1].eval()
+    token_mask = torch.tensor([[True] * 6, [True] * 4 + [False] * 2])
+    given = torch.randint(0, 16, (2, 6, 3), generator=torch.Generator().manual_seed(4))
+    condition = guidance_condition(residual, *text(2))
+    options = SamplingOptions(temperature=0.0)
+
+    def decode(layers=None):
+        return residual_decode(residual, given, token_mask, token_mask, condition, options,
+                               torch.Generator().manual_seed(5), layers)
+
+    every, second = decode(), decode([2])
+    valid = token_mask
+    assert torch.equal(second[..., :2][valid], given[..., :2][valid])  # base and layer 1 kept
+    assert not torch.equal(second[..., 2][valid], given[..., 2][valid])  # layer 2 drawn
+    assert not torch.equal(every[..., 1][valid], given[..., 1][valid])
+    # Greedy draws: layer 2 alone is the guided argmax read on the given layers 0 and 1.
+    x = residual.embed(given.masked_fill(~token_mask[..., None], -1), 2)
+    logits = residual.forward_embedded(torch.cat([x, x]), 2, torch.cat([token_mask] * 2),
+                                       condition).logits
+    expected = guided_logits(logits, options.residual_guidance_scale).argmax(-1)
+    assert torch.equal(second[..., 2][valid], expected[valid])
+    assert not torch.equal(second[..., 2][valid], every[..., 2][valid])
+    assert torch.equal(decode([1, 2]), every)
+    assert bool((second[..., 1:][~valid] == -1).all())  # padding stays padding
+    for bad in ([0], [3]):
+        with pytest.raises(ValueError, match="layers must be in 1..2"):
+            decode(bad)
+
+
 def test_residual_guided_layers_refuses_what_it_cannot_use():
     for bad in (-1, 1.5, True, "2"):
         with pytest.raises(Exception, match="residual_guided_layers"):

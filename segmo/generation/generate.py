@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Literal
@@ -390,11 +390,13 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
 
 def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerate: torch.Tensor,
                     token_mask: torch.Tensor, condition: Condition, options: SamplingOptions,
-                    generator: torch.Generator | None = None) -> torch.Tensor:
+                    generator: torch.Generator | None = None,
+                    layers: Sequence[int] | None = None) -> torch.Tensor:
     """Fill layers 1..q−1 one pass each, only where `regenerate` (b, n) is True, guided with
     `options.residual_guidance_scale` on the first `options.residual_guided_layers` layers
     (all by default); the others are drawn from the conditional rows alone, a pass over b
-    rows instead of 2b.
+    rows instead of 2b. `layers`: the residual layers to draw (None = all); the others keep
+    `indices`' codes, which the layers drawn above them read as they are.
 
     indices (b, n, q) long (layer 0 set; other layers kept where not regenerated) →
     (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
@@ -411,19 +413,24 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     x = model.embed_layer(indices[..., 0], 0)
     positions, picked = _sampled_positions(regenerate)
     twice = None if positions is None else torch.cat([positions, positions])
+    drawn = range(1, q) if layers is None else set(layers)
+    if not set(drawn) <= set(range(1, q)):
+        raise ValueError(f"residual_decode: layers must be in 1..{q - 1}, got {sorted(drawn)}")
     for layer in range(1, q):
-        if layer <= guided:
-            logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition,
-                                            twice).logits
-            tokens, _ = _draw(logits, picked, options.residual_guidance_scale, options,
-                              generator)
-        else:
-            logits = model.forward_embedded(x, layer, token_mask, conditional, positions).logits
-            tokens, _ = sample_tokens(logits.float()[picked], options.top_k_ratio,
-                                      options.temperature, options.sampler, generator)
-        codes = indices[..., layer].masked_fill(~token_mask, -1)
-        codes[regenerate] = tokens
-        indices[..., layer] = codes
+        if layer in drawn:
+            if layer <= guided:
+                logits = model.forward_embedded(torch.cat([x, x]), layer, mask2, condition,
+                                                twice).logits
+                tokens, _ = _draw(logits, picked, options.residual_guidance_scale, options,
+                                  generator)
+            else:
+                logits = model.forward_embedded(x, layer, token_mask, conditional,
+                                                positions).logits
+                tokens, _ = sample_tokens(logits.float()[picked], options.top_k_ratio,
+                                          options.temperature, options.sampler, generator)
+            codes = indices[..., layer].masked_fill(~token_mask, -1)
+            codes[regenerate] = tokens
+            indices[..., layer] = codes
         if layer < q - 1:
             x = x + model.embed_layer(indices[..., layer], layer)
     return indices
