@@ -741,6 +741,10 @@ def test_order_by_stage_takes_the_stages_apart(setup, hash_text_encoder, capsys,
         assert {k: v["reads"] for k, v in result[name].items()} == {
             k: 2 * sum(k in tool.buckets(r["num_actions"]) for r in kept_rows) for k in result[name]}
         assert all(v["sequence_accuracy"] == 1.0 for v in result[name].values())
+    q = model.residual.config.num_quantizers
+    assert list(result["residual_layers"]) == [str(j) for j in range(1, q)]  # each layer alone
+    for value in result["residual_layers"].values():
+        assert value == result["residual"]
     for bucket, value in result["fill"].items():  # every segment once per repeat, in one place and size
         places = sum(value.get(k, {"reads": 0})["reads"] for k in ("first", "middle", "last"))
         sizes = sum(value.get(name, {"reads": 0})["reads"] for *_, name in tool.SHARES)
@@ -756,6 +760,10 @@ def test_order_by_stage_takes_the_stages_apart(setup, hash_text_encoder, capsys,
     redrawn = tool.redraw_residual(model, b, seed=0)
     assert torch.equal(redrawn[..., 0], b.real[..., 0])
     assert not torch.equal(redrawn[b.token_mask][:, 1:], b.real[b.token_mask][:, 1:])
+    first = tool.redraw_residual(model, b, seed=0, layers=[1])  # layer 1 alone: the rest real
+    kept_layers = [j for j in range(q) if j != 1]
+    assert torch.equal(first[b.token_mask][:, kept_layers], b.real[b.token_mask][:, kept_layers])
+    assert not torch.equal(first[b.token_mask][:, 1], b.real[b.token_mask][:, 1])
 
     # The command: the JSON line, and one line when no reconstruction is read right.
     monkeypatch.setattr(tool, "load_pretrained", lambda path: Reader())
@@ -763,7 +771,8 @@ def test_order_by_stage_takes_the_stages_apart(setup, hash_text_encoder, capsys,
               "--action-classifier", str(setup["classifier"]), "--repeats", "1"]
     assert tool.main(common) == 0
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert last["kept"] == sum(right) and set(last) >= {"tokenizer_layers", "residual", "fill", "generated"}
+    assert last["kept"] == sum(right) and set(last) >= {"tokenizer_layers", "residual", "residual_layers",
+                                                        "fill", "generated"}
     answer = ["nothing"]
     assert tool.main(common) == 2
     assert "no train caption's reconstruction is read right" in capsys.readouterr().err

@@ -13,7 +13,8 @@ as a sequence (right or wrong), by the caption's true number of actions (2, 3, 4
 - then only on the captions whose whole reconstruction is read right (`kept`), so that
   what fails below is the transformers':
 - `residual`: the real motion's base tokens, the residual layers drawn by the residual
-  transformer (the bundle's residual guidance).
+  transformer (the bundle's residual guidance); `residual_layers`: one residual layer
+  drawn at a time, every other layer real: which layers lose the actions.
 - `fill`: the real tokens everywhere but one segment's, which the mask transformer draws
   (and the residual transformer inside it), every segment in turn: can the model make an
   action when the motion around it is given? Split by the segment's place (first, middle,
@@ -132,21 +133,23 @@ def draw(model: SegMo, b: Batch, editable: torch.Tensor, seed: int) -> torch.Ten
                        spans=b.spans if model.mask.config.segment_timing else None)
 
 
-def redraw_residual(model: SegMo, b: Batch, seed: int) -> torch.Tensor:
-    """b's real base tokens, every residual layer drawn by the residual transformer."""
+def redraw_residual(model: SegMo, b: Batch, seed: int, layers: list[int] | None = None) -> torch.Tensor:
+    """b's real base tokens, the residual `layers` (None = all) drawn by the residual
+    transformer, the others real."""
     generator = torch.Generator(device=model.device).manual_seed(seed)
     precision, _ = resolve_precision("auto", model.device)
     with torch.inference_mode(), torch.autocast(model.device.type, dtype=torch.bfloat16,
                                                 enabled=precision == "bf16"):
         condition = guidance_condition(model.residual, b.sentence, b.vectors, b.segment_mask)
         return residual_decode(model.residual, b.real, b.token_mask, b.token_mask, condition,
-                               model.sampling, generator)
+                               model.sampling, generator, layers)
 
 
 def order_by_stage(model: SegMo, classifier, rows: list[dict], data: Path, repeats: int, seed: int) -> dict:
-    """The `residual`, `fill` and `generated` readings of the module docstring over `rows`
-    (the captions the tokenizer keeps), `repeats` draws each."""
+    """The `residual`, `residual_layers`, `fill` and `generated` readings of the module
+    docstring over `rows` (the captions the tokenizer keeps), `repeats` draws each."""
     residual: dict[str, list[bool]] = defaultdict(list)
+    residual_layers: dict[int, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     generated: dict[str, list[bool]] = defaultdict(list)
     fill: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     for module in model.modules():
@@ -162,6 +165,11 @@ def order_by_stage(model: SegMo, classifier, rows: list[dict], data: Path, repea
                 for k, right in enumerate(b.read(model, classifier, redraw_residual(model, b, salt))):
                     for bucket in buckets(b.rows[k]["num_actions"]):
                         residual[bucket].append(right)
+                for layer in range(1, model.residual.config.num_quantizers):
+                    redrawn = redraw_residual(model, b, salt + layer, [layer])
+                    for k, right in enumerate(b.read(model, classifier, redrawn)):
+                        for bucket in buckets(b.rows[k]["num_actions"]):
+                            residual_layers[layer][bucket].append(right)
             for j in range(b.inside.shape[1]):
                 editable = b.inside[:, j]
                 if not bool(editable.any()):
@@ -176,7 +184,9 @@ def order_by_stage(model: SegMo, classifier, rows: list[dict], data: Path, repea
                     for bucket in buckets(b.rows[k]["num_actions"]):
                         for key in ("all", place, size):
                             fill[bucket][key].append(right)
-    return {"residual": accuracy(residual), "generated": accuracy(generated),
+    return {"residual": accuracy(residual),
+            "residual_layers": {str(k): accuracy(v) for k, v in sorted(residual_layers.items())},
+            "generated": accuracy(generated),
             "fill": {k: accuracy(v) for k, v in sorted(fill.items())}}
 
 
@@ -204,6 +214,9 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("residual", "generated"):
         for bucket, value in result[name].items():
             print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['reads']} reads)")
+    for layer, value in result["residual_layers"].items():
+        print(f"residual layer {layer} alone: " + ", ".join(
+            f"{bucket} actions {v['sequence_accuracy']:.3f}" for bucket, v in value.items()))
     for bucket, value in result["fill"].items():
         print(f"fill one segment, {bucket} actions: "
               + ", ".join(f"{k} {v['sequence_accuracy']:.3f} ({v['reads']})" for k, v in value.items()))
