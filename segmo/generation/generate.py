@@ -401,21 +401,21 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     indices (b, n, q) long (layer 0 set; other layers kept where not regenerated) →
     (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
     """
+    b, _, q = indices.shape
+    drawn = range(1, q) if layers is None else set(layers)
+    if not set(drawn) <= set(range(1, q)):
+        raise ValueError(f"residual_decode: layers must be in 1..{q - 1}, got {sorted(drawn)}")
     indices = indices.clone()
     indices[..., 1:] = indices[..., 1:].masked_fill(~token_mask[..., None], -1)
     regenerate = regenerate & token_mask
     if not bool(regenerate.any()):
         return indices
-    b, _, q = indices.shape
     guided = q - 1 if options.residual_guided_layers is None else options.residual_guided_layers
     mask2 = torch.cat([token_mask, token_mask])
     conditional = condition.rows(torch.arange(b, device=indices.device))
     x = model.embed_layer(indices[..., 0], 0)
     positions, picked = _sampled_positions(regenerate)
     twice = None if positions is None else torch.cat([positions, positions])
-    drawn = range(1, q) if layers is None else set(layers)
-    if not set(drawn) <= set(range(1, q)):
-        raise ValueError(f"residual_decode: layers must be in 1..{q - 1}, got {sorted(drawn)}")
     for layer in range(1, q):
         if layer in drawn:
             if layer <= guided:
