@@ -402,8 +402,8 @@ def residual_decode(model: ResidualTransformer, indices: torch.Tensor, regenerat
     (b, n, q), padded positions −1. The summed input embedding grows by one layer per pass.
     """
     b, _, q = indices.shape
-    drawn = range(1, q) if layers is None else set(layers)
-    if not set(drawn) <= set(range(1, q)):
+    drawn = set(range(1, q) if layers is None else layers)
+    if not drawn <= set(range(1, q)):
         raise ValueError(f"residual_decode: layers must be in 1..{q - 1}, got {sorted(drawn)}")
     indices = indices.clone()
     indices[..., 1:] = indices[..., 1:].masked_fill(~token_mask[..., None], -1)
