@@ -20,6 +20,9 @@ read, cropped and collated; no workers), the forward pass and losses, backward, 
   to its own longest clip instead of nearly the longest of the corpus;
 - with --bf16, cached_bf16 and grouped_bf16: the same under bf16-mixed autocast (what
   `--trainer.precision bf16-mixed` trains), fast only where the CPU has native bf16;
+- with --compile, grouped_compiled: grouped, on a copy of the model (same weights) whose
+  trunk blocks run under `torch.compile` (inductor, dynamic shapes); it compiles during
+  the warm-up (about a minute of one core), which the figure leaves out;
 - momask: the MoMask reference's mask-transformer step at the same sizes: the frozen
   VQ-VAE encodes the motion batch, then its post-norm `nn.TransformerEncoder`
   (`bench_generate.momask_models`, sequence-first, one condition token) predicts the
@@ -37,6 +40,7 @@ is JSON.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import statistics
 import sys
@@ -165,6 +169,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--bf16", action="store_true",
                         help="also time the cached step in bf16-mixed (torch.autocast), as "
                              "`--trainer.precision bf16-mixed` trains")
+    parser.add_argument("--compile", action="store_true",
+                        help="also time the grouped step with the trunk blocks under "
+                             "torch.compile (compiles during the warm-up)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -201,17 +208,25 @@ def main(argv: list[str] | None = None) -> dict:
                 batches[mode] = iter(modules[mode].train_dataloader())
                 return next(batches[mode])
 
+        tasks = {"eager": (task, optimizer)}
+        if args.compile:
+            compiled = copy.deepcopy(task)
+            for i, block in enumerate(compiled.model.trunk.blocks):
+                compiled.model.trunk.blocks[i] = torch.compile(block, dynamic=True)
+            tasks["compiled"] = (compiled, compiled.configure_optimizers()["optimizer"])
+
         def segmo_step(mode: str) -> dict:
             t0 = time.perf_counter()
-            batch = next_batch(mode.removesuffix("_bf16"))
+            batch = next_batch(mode.removesuffix("_bf16").removesuffix("_compiled"))
             t1 = time.perf_counter()
+            model, model_optimizer = tasks["compiled" if mode.endswith("_compiled") else "eager"]
             # bf16-mixed: what `--trainer.precision bf16-mixed` runs (torch.autocast on the CPU).
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=mode.endswith("_bf16")):
-                terms = task.step(batch)
+                terms = model.step(batch)
             t2 = time.perf_counter()
-            optimizer.zero_grad(set_to_none=True)
+            model_optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
-            optimizer.step()
+            model_optimizer.step()
             t3 = time.perf_counter()
             return {"total": t3 - t0, "data": t1 - t0, "forward": t2 - t1, "backward": t3 - t2}
 
@@ -236,6 +251,8 @@ def main(argv: list[str] | None = None) -> dict:
                 "momask": momask_step}
         if args.bf16:
             runs |= {"cached_bf16": segmo_step, "grouped_bf16": segmo_step}
+        if args.compile:
+            runs |= {"grouped_compiled": segmo_step}
         times: dict[str, list[dict]] = {name: [] for name in runs}
         for name, run in runs.items():  # warm-up
             for _ in range(2):
