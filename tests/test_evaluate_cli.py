@@ -427,7 +427,12 @@ def test_order_by_template_scores_each_caption_template(setup, hash_text_encoder
     assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
                       "--action-classifier", str(setup["classifier"]), "--repeats", "1",
                       "--segment-guidance", "0.5"]) == 0
-    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["segment_guidance"] == 0.5
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert (last["segment_guidance"], last["choice_temperature"]) == (0.5, 0.0)
+    assert tool.main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--split", "train",
+                      "--action-classifier", str(setup["classifier"]), "--repeats", "1",
+                      "--choice-temperature", "4.5"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["choice_temperature"] == 4.5
     sink = tmp_path / "sink"  # options that clash: one line, no generation
     shutil.copytree(setup["segmo"], sink)
     config = json.loads((sink / "segmo.json").read_text())
@@ -566,13 +571,13 @@ def test_sampling_options_only_a_sampling_carries_reach_generate(setup, hash_tex
     mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
     for given in ({}, {"ctrl_k_base": 0.25, "unconditional": "local", "word_text": "segments",
                        "segment_timing": "none", "remasking": "segments",
-                       "segment_guidance": 0.5}):
+                       "segment_guidance": 0.5, "choice_temperature": 2.0}):
         cfg = EvaluateConfig(data="", evaluator="", out="", progress=False, **given)
         Generator(model, cfg, mean, std)(["a person walks forward"], torch.tensor([8]), seed=0)
     assert seen[0] is None
     assert (seen[1].ctrl_k_base, seen[1].unconditional, seen[1].word_text,
-            seen[1].segment_timing, seen[1].remasking, seen[1].segment_guidance) == (
-                0.25, "local", "segments", "none", "segments", 0.5)
+            seen[1].segment_timing, seen[1].remasking, seen[1].segment_guidance,
+            seen[1].choice_temperature) == (0.25, "local", "segments", "none", "segments", 0.5, 2.0)
     assert seen[1].guidance_scale == model.sampling.guidance_scale
 
 

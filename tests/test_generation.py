@@ -658,3 +658,58 @@ def test_segment_guidance_zero_is_plain_cfg_and_otherwise_changes_tokens(models)
 def test_segment_guidance_refuses_what_it_cannot_use(bad, message):
     with pytest.raises(Exception, match=message):
         SamplingOptions(**bad)
+
+
+def test_choice_temperature_ranks_by_noisy_log_confidence():
+    scores = torch.tensor([[0.9, 0.1, float("inf"), 0.5, 0.2, 0.3]])
+    # no noise: the ranking of the confidences themselves; final tokens stay +inf
+    calm = generate_module.noisy_confidence(scores, 0.0, torch.Generator().manual_seed(0))
+    assert torch.isinf(calm[0, 2]) and torch.equal(calm.argsort(), scores.argsort())
+    # much noise: over draws the least confident position is not always the same one
+    generator = torch.Generator().manual_seed(0)
+    lowest = {int(generate_module.noisy_confidence(scores, 50.0, generator).argmin())
+              for _ in range(50)}
+    assert len(lowest) > 2 and 2 not in lowest
+    # the same generator state, the same noise
+    first, second = (generate_module.noisy_confidence(scores, 3.0, torch.Generator().manual_seed(4))
+                     for _ in range(2))
+    assert torch.equal(first, second)
+
+
+def test_choice_temperature_changes_the_remasking_only_between_the_ends(monkeypatch):
+    torch.manual_seed(0)
+    plain = MaskTransformer(MaskTransformerConfig(**TINY))
+    seen = []
+    real = generate_module.remasked
+
+    def spy(scores, editable, t, groups=None):
+        seen.append((t, scores.clone()))
+        return real(scores, editable, t, groups)
+
+    monkeypatch.setattr(generate_module, "remasked", spy)
+    lengths = torch.tensor([48, 40])
+
+    def run(tau):
+        seen.clear()
+        tokens = generate_tokens(plain, None, *text(2), lengths,
+                                 options=SamplingOptions(steps=5, choice_temperature=tau),
+                                 generator=torch.Generator().manual_seed(0))
+        return tokens, list(seen)
+
+    calm, calm_steps = run(0.0)
+    noisy, noisy_steps = run(2.0)
+    assert torch.equal(noisy, run(2.0)[0])  # reproducible from the generator
+    assert not torch.equal(calm, noisy)
+    # confidences in [0, 1] at every step without noise; with it, log-confidence plus noise
+    # in the middle steps, and the first step (all masked) and the last (no noise) as before
+    assert all(bool((s[torch.isfinite(s)] >= 0).all()) for _, s in calm_steps)
+    for t, s in noisy_steps:
+        finite = torch.isfinite(s)
+        if 0 < t < 1:
+            assert bool((s[finite] < 0).any())
+        else:
+            assert bool((s[finite] >= 0).all())
+    with pytest.raises(Exception, match="choice_temperature must be >= 0"):
+        SamplingOptions(choice_temperature=-1.0)
+    with pytest.raises(Exception, match="choice_temperature must be a finite number"):
+        SamplingOptions(choice_temperature=float("nan"))

@@ -680,7 +680,7 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
                  "--guidance", "2.5", "--steps", "6", "--residual-guided-layers", "2",
                  "--guidance-mode", "sink_ctrl", "--sink-ratio", "0.6", "--unconditional", "local",
                  "--word-text", "segments", "--ctrl-k-base", "0.25", "--ctrl-lambda", "3", "--ctrl-alpha", "0.5",
-                 "--remasking", "segments", "--out", str(out)])
+                 "--remasking", "segments", "--choice-temperature", "4.5", "--out", str(out)])
     payload = json.loads((out / "segmo.json").read_text())
     assert payload["guidance_scale"] == 2.5 and not (out / "residual").exists()
     assert payload["steps"] == 6 and payload["residual_guided_layers"] == 2
@@ -689,6 +689,7 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     assert (loaded.sampling.guidance, loaded.sampling.sink_ratio) == ("sink_ctrl", 0.6)
     assert (loaded.sampling.unconditional, loaded.sampling.word_text) == ("local", "segments")
     assert loaded.sampling.remasking == "segments"
+    assert payload["choice_temperature"] == 4.5 and loaded.sampling.choice_temperature == 4.5
     assert (loaded.sampling.ctrl_k_base, loaded.sampling.ctrl_lambda,
             loaded.sampling.ctrl_alpha) == (0.25, 3.0, 0.5)
     assert "6 decoding steps" in (out / "README.md").read_text()

@@ -3,8 +3,8 @@
     python tools/order_by_template.py --model B --data data/synth \\
         --action-classifier models/action_classifier [--split test] [--repeats 2] [--seed 0] \\
         [--word-text caption|segments] [--segment-timing predicted|none|truth] \\
-        [--remasking confidence|segments] [--segment-guidance W] [--compose FRAMES]
-        [--reconstruction]
+        [--remasking confidence|segments] [--segment-guidance W] [--choice-temperature TAU] \\
+        [--compose FRAMES] [--reconstruction]
 
 `segmo evaluate` scores action order on each motion's first caption. The corpus words its
 captions with ordering templates (`segmo.synth.captions.TEMPLATES`), two of them only in
@@ -21,7 +21,8 @@ head predicts, none, or "truth": each segment's true duration from the corpus (t
 own text segments where it finds as many as the caption has actions, else the corpus'
 segment texts), the ceiling of what predicted timing can give. --remasking: which tokens
 each decoding step masks again (`SamplingOptions.remasking`). --segment-guidance: the weight
-of per-segment guidance (`SamplingOptions.segment_guidance`). --reconstruction also reads
+of per-segment guidance (`SamplingOptions.segment_guidance`). --choice-temperature: MaskGIT's
+randomised remasking (`SamplingOptions.choice_temperature`). --reconstruction also reads
 each motion's tokenizer reconstruction (real motion → the bundle's tokenizer → decoded) and
 splits the generated accuracy by it: `reconstruction` (the tokenizer's ceiling on the same
 captions), `generated_where_reconstructed` and `generated_where_not` (the generator on the
@@ -195,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--segment-guidance", type=non_negative_float, default=None,
                         metavar="W", help="per-segment guidance weight, 0 = off (default: the "
                         "bundle's)")
+    parser.add_argument("--choice-temperature", type=non_negative_float, default=None,
+                        metavar="TAU", help="MaskGIT choice temperature of the remasking, 0 = "
+                        "off (default: the bundle's)")
     parser.add_argument("--compose", type=int, default=None, metavar="FRAMES",
                         help="generate each caption segment by segment (SegMo.compose), "
                         "parts at their true shares, transitions of FRAMES frames")
@@ -214,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
             model.config.remasking = args.remasking
         if args.segment_guidance is not None:
             model.config.segment_guidance = args.segment_guidance
+        if args.choice_temperature is not None:
+            model.config.choice_temperature = args.choice_temperature
         if args.segment_timing in get_args(SegmentTiming):
             model.config.segment_timing = args.segment_timing
         sampling = model.sampling  # the options given, checked here: one line if they clash
@@ -242,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     timing = args.segment_timing or sampling.segment_timing
     print(json.dumps({**result, "word_text": sampling.word_text, "segment_timing": timing,
                       "remasking": sampling.remasking,
-                      "segment_guidance": sampling.segment_guidance, "compose": args.compose}))
+                      "segment_guidance": sampling.segment_guidance,
+                      "choice_temperature": sampling.choice_temperature, "compose": args.compose}))
     return 0
 
 

@@ -99,7 +99,7 @@ class Generator:
         # The bundle's sampling (None), but for the options only a SamplingOptions carries.
         given = {name: getattr(cfg, name) for name in ("ctrl_k_base", "unconditional", "word_text",
                                                   "segment_timing", "remasking",
-                                                  "segment_guidance")
+                                                  "segment_guidance", "choice_temperature")
                  if getattr(cfg, name) is not None}
         self.sampling = replace(model.sampling, **given) if given else None
         self.motions = 0
@@ -422,6 +422,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--segment-guidance", type=non_negative_float, default=None,
                    help="per-segment guidance weight of the base tokens, 0 = off (default: the "
                         "bundle's)")
+    p.add_argument("--choice-temperature", type=non_negative_float, default=None,
+                   help="MaskGIT choice temperature of the decoding steps' remasking, 0 = off "
+                        "(default: the bundle's)")
     p.add_argument("--grounding-window", default="5",
                    help="sliding-window sizes in tokens of grounding's window row, e.g. 5 (the "
                         "paper's, default) or 4,8,16; auto = 0.5-2x the mean segment")

@@ -87,6 +87,7 @@ class EvaluateConfig:
     segment_timing: str | None = None  # "predicted" | "none"; None: the bundle's
     remasking: str | None = None  # "confidence" | "segments"; None: the bundle's
     segment_guidance: float | None = None  # per-segment guidance weight; None: the bundle's
+    choice_temperature: float | None = None  # MaskGIT's choice temperature; None: the bundle's
     grounding_window: str = "5"
     retrieval_motions: int = 100
     progress: bool = True

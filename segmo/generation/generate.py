@@ -291,6 +291,17 @@ def remasked(scores: torch.Tensor, editable: torch.Tensor, t: float,
     return is_masked
 
 
+def noisy_confidence(scores: torch.Tensor, temperature: float,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+    """MaskGIT's randomised choice: scores (b, n) confidences in [0, 1], +inf where final →
+    log-confidence + temperature·Gumbel noise, +inf kept (`SamplingOptions.choice_temperature`;
+    the caller anneals the temperature). One uniform draw per position from `generator`."""
+    uniform = torch.rand(scores.shape, generator=generator, device=scores.device)
+    gumbel = -torch.log(-torch.log(uniform.clamp(min=1e-20)))
+    noisy = torch.log(scores.clamp(min=1e-30)) + temperature * gumbel
+    return torch.where(torch.isinf(scores), scores, noisy)
+
+
 def token_groups(spans: torch.Tensor, n: int) -> torch.Tensor:
     """spans (b, a, 2) token spans of the segments (`segment_spans`) → (b, n) long: each
     position's segment slot, a (one group past the slots) where no span holds it."""
@@ -337,6 +348,8 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     `options.guidance_scale`, m = editable count. A token kept at one step is final (MoMask):
     its confidence becomes +inf. With `options.remasking` "segments" and the segments'
     token spans (b, a, 2), the count is taken per segment (`remasked`). With
+    `options.choice_temperature` τ > 0 the step ranks the tokens by log-confidence plus
+    τ·(1 − t)·Gumbel noise (`noisy_confidence`, MaskGIT) instead of confidence. With
     `segment_guidance` (`segment_guidance_condition`) every step also runs its rows and
     guides per segment (`segment_guided`).
 
@@ -356,7 +369,10 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
     reuse = not is_recorded(model)
     previous: tuple | None = None  # (ids, sink, logits, logits of the segment rows)
     for t in torch.linspace(0, 1, options.steps).tolist():
-        is_masked = remasked(scores, editable, t, groups)
+        ranked = scores
+        if options.choice_temperature and 0 < t < 1:  # t = 0 masks all, t = 1 no noise
+            ranked = noisy_confidence(scores, options.choice_temperature * (1 - t), generator)
+        is_masked = remasked(ranked, editable, t, groups)
         ids = ids.masked_fill(is_masked, model.mask_id)
         positions, picked = _sampled_positions(is_masked)
         sink = model.config.sink_mask_t is not None and t > model.config.sink_mask_t

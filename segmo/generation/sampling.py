@@ -77,7 +77,11 @@ class SamplingOptions:
         conditional prediction with segment j hidden, so that every segment, a short one
         beside long ones included, pushes the motion towards what it says. One more pass
         per segment and step; for mask transformers trained with segment dropout
-        (`segment_drop_prob`), with guidance "cfg".
+        (`segment_drop_prob`), with guidance "cfg";
+    choice_temperature: MaskGIT's randomised choice of the tokens a decoding step masks
+        again, τ ≥ 0 (0 = off, MoMask's choice by confidence alone): they are ranked by
+        log-confidence plus τ·(1 − t)·Gumbel noise, t the step's time in [0, 1], so early
+        steps do not fix only the tokens the model is surest of.
 
     Raises SegmoError naming the first option a generation cannot use (NaN guidance,
     0 steps...).
@@ -102,11 +106,12 @@ class SamplingOptions:
     segment_timing: SegmentTiming = "predicted"
     remasking: Remasking = "confidence"
     segment_guidance: float = 0.0
+    choice_temperature: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("guidance_scale", "residual_guidance_scale", "temperature", "top_k_ratio",
                      "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio",
-                     "segment_guidance"):
+                     "segment_guidance", "choice_temperature"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) \
                     or not math.isfinite(value):
@@ -140,6 +145,9 @@ class SamplingOptions:
         if self.segment_guidance < 0:
             raise SegmoError(f"SegMo: segment_guidance must be >= 0 (0 = off), got "
                              f"{self.segment_guidance!r}")
+        if self.choice_temperature < 0:
+            raise SegmoError(f"SegMo: choice_temperature must be >= 0 (0 = off), got "
+                             f"{self.choice_temperature!r}")
         if self.segment_guidance and self.guidance != "cfg":
             raise SegmoError("SegMo: segment_guidance works with guidance 'cfg' only, got "
                              f"guidance {self.guidance!r}")

@@ -62,6 +62,7 @@ class SegMoConfig:
     segment_timing: str = SamplingOptions.segment_timing
     remasking: str = SamplingOptions.remasking
     segment_guidance: float = SamplingOptions.segment_guidance
+    choice_temperature: float = SamplingOptions.choice_temperature
     motion_segmenter: str = "uniform"  # spans of `embed_pairs` by default
     format: int = BUNDLE_FORMAT
 
@@ -70,7 +71,7 @@ class SegMoConfig:
 SAMPLING_FIELDS: tuple[str, ...] = (
     "guidance_scale", "residual_guidance_scale", "steps", "residual_guided_layers", "guidance",
     "ctrl_lambda", "ctrl_k_base", "ctrl_alpha", "sink_ratio", "unconditional", "word_text",
-    "segment_timing", "remasking", "segment_guidance")
+    "segment_timing", "remasking", "segment_guidance", "choice_temperature")
 
 
 def sampling_fields(config: SegMoConfig) -> dict:

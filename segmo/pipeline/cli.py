@@ -395,6 +395,10 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--segment-guidance", type=non_negative_float, default=None,
                         help="default per-segment guidance weight w (0 = off, the default; mask "
                              "transformers trained with segment_drop_prob)")
+    parser.add_argument("--choice-temperature", type=non_negative_float, default=None,
+                        help="default MaskGIT choice temperature: Gumbel noise on the confidence "
+                             "that picks the tokens each decoding step masks again (0 = off, "
+                             "the default, MoMask's choice)")
     parser.add_argument("--sink-ratio", type=finite_float, default=None,
                         help="the mask transformer's measured SinkRatio, for sink_ctrl "
                              "(tools/attention_report.py; default 0)")
@@ -432,6 +436,7 @@ def bundle_main(argv: list[str] | None = None) -> None:
                             ("unconditional", "unconditional"), ("word_text", "word_text"),
                             ("remasking", "remasking"), ("ctrl_lambda", "ctrl_lambda"),
                             ("segment_guidance", "segment_guidance"),
+                            ("choice_temperature", "choice_temperature"),
                             ("ctrl_k_base", "ctrl_k_base"), ("ctrl_alpha", "ctrl_alpha")):
         if getattr(args, argument) is not None:
             setattr(model.config, field, getattr(args, argument))
