@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from segmo import cpu
-from segmo.generation.sampling import SamplingOptions, cosine_schedule, sample_tokens
+from segmo.generation.sampling import SamplingOptions, cosine_schedule, gumbel_noise, sample_tokens
 from segmo.models.attention_recorder import is_recorded
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
@@ -296,8 +296,7 @@ def noisy_confidence(scores: torch.Tensor, temperature: float,
     """MaskGIT's randomised choice: scores (b, n) confidences in [0, 1], +inf where final →
     log-confidence + temperature·Gumbel noise, +inf kept (`SamplingOptions.choice_temperature`;
     the caller anneals the temperature). One uniform draw per position from `generator`."""
-    uniform = torch.rand(scores.shape, generator=generator, device=scores.device)
-    gumbel = -torch.log(-torch.log(uniform.clamp(min=1e-20)))
+    gumbel = gumbel_noise(scores.shape, generator, scores.device)
     noisy = torch.log(scores.clamp(min=1e-30)) + temperature * gumbel
     return torch.where(torch.isinf(scores), scores, noisy)
 

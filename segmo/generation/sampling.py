@@ -17,7 +17,7 @@ from segmo.errors import SegmoError
 from segmo.models.mask_transformer import cosine_schedule
 
 __all__ = ["Guidance", "Remasking", "Sampler", "SamplingOptions", "Unconditional", "WordText",
-           "check_word_text", "cosine_schedule", "sample_tokens", "top_k_count"]
+           "check_word_text", "cosine_schedule", "gumbel_noise", "sample_tokens", "top_k_count"]
 
 Sampler = Literal["categorical", "gumbel"]
 Guidance = Literal["cfg", "sink_ctrl"]
@@ -163,6 +163,14 @@ def top_k_count(vocabulary: int, ratio: float) -> int:
     return max(1, math.ceil(ratio * vocabulary))
 
 
+def gumbel_noise(shape: torch.Size, generator: torch.Generator | None = None,
+                 device: torch.device | None = None) -> torch.Tensor:
+    """Standard Gumbel noise of `shape`, −log(−log u), one uniform draw u per element from
+    `generator` (the Gumbel-max draw of `sample_tokens`, MaskGIT's choice noise)."""
+    u = torch.rand(shape, generator=generator, device=device)
+    return -torch.log((-torch.log(u.clamp(min=1e-20))).clamp(min=1e-20))
+
+
 def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: float = 1.0,
                   sampler: Sampler = "categorical",
                   generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -197,8 +205,7 @@ def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: f
         u = torch.rand((*cdf.shape[:-1], 1), generator=generator, device=cdf.device)
         choice = torch.searchsorted(cdf, u * cdf[..., -1:], right=True).clamp(max=k - 1)
     else:
-        u = torch.rand(scaled.shape, generator=generator, device=scaled.device)
-        gumbel = -torch.log((-torch.log(u.clamp(min=1e-20))).clamp(min=1e-20))
-        choice = (scaled + gumbel).argmax(dim=-1, keepdim=True)
+        choice = (scaled + gumbel_noise(scaled.shape, generator, scaled.device)).argmax(
+            dim=-1, keepdim=True)
     tokens = choice if candidates is None else candidates.gather(-1, choice)
     return tokens[..., 0], probs.gather(-1, choice)[..., 0]
