@@ -16,6 +16,7 @@ from segmo.models.alignment import (
     paired_cosine,
     segment_similarity,
     span_mask,
+    span_max,
 )
 from segmo.pipeline.space import SegmentEmbeddings
 from segmo.segmentation import segment_batch
@@ -70,6 +71,29 @@ def test_aggregator_matches_per_span_loop():
             part = h[i, s:e]
             expected = agg.mlp(torch.cat([part.mean(0), part.amax(0)]))
             assert torch.allclose(out[i, j], expected, atol=1e-5)
+
+
+def test_span_max_matches_masking_each_span_in_values_and_gradients():
+    # Overlapping windows (as grounding scores them), spans reaching past either end, an
+    # empty slot and a row without any span: the gathered reduction must give what masking
+    # h for each span gives, and route the gradient to the same rows.
+    g = gen(3)
+    h = torch.randn(3, 7, 4, generator=g)
+    spans = torch.tensor([[[0, 3], [1, 7], [2, 3], [6, 7]],
+                          [[-2, 2], [5, 11], [0, 0], [4, 4]],
+                          [[0, 0], [3, 3], [0, 0], [0, 0]]])
+    upstream = torch.randn(3, 4, 4, generator=g)
+    fast = h.clone().requires_grad_()
+    (span_max(fast, spans) * upstream).sum().backward()
+    slow = h.clone().requires_grad_()
+    inside = span_mask(spans, 7)
+    peak = slow[:, None].masked_fill(~inside[..., None], float("-inf")).amax(dim=2)
+    expected = torch.where(inside.any(-1, keepdim=True), peak, torch.zeros_like(peak))
+    (expected * upstream).sum().backward()
+    assert torch.equal(span_max(h, spans), expected.detach())
+    assert torch.equal(fast.grad, slow.grad)
+    assert (span_max(h, spans)[2] == 0).all() and (fast.grad[2] == 0).all()
+    assert torch.equal(span_max(h, torch.zeros(3, 2, 2, dtype=torch.long)), torch.zeros(3, 2, 4))
 
 
 @pytest.mark.parametrize("method", ["in_sample", "batch", "global", "token"])
