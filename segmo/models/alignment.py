@@ -89,9 +89,11 @@ def span_max(h: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
     lengths = length[present]
     first = (start + n * torch.arange(b, device=h.device)[:, None])[present]
     # Row k of span s: first[s] + k, for k < lengths[s], spans one after another.
-    offset = torch.arange(int(lengths.sum()), device=h.device) - torch.repeat_interleave(
-        lengths.cumsum(0) - lengths, lengths)
-    rows = h.reshape(b * n, dim)[torch.repeat_interleave(first, lengths) + offset]
+    total = int(lengths.sum())
+    offset = torch.arange(total, device=h.device) - torch.repeat_interleave(
+        lengths.cumsum(0) - lengths, lengths, output_size=total)
+    rows = h.reshape(b * n, dim)[torch.repeat_interleave(first, lengths, output_size=total)
+                                 + offset]
     return peak.masked_scatter(present[..., None], torch.segment_reduce(rows, "max", lengths=lengths))
 
 
