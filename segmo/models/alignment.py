@@ -75,9 +75,10 @@ def span_max(h: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
 
     The rows of the non-empty spans are gathered one span after another and reduced by
     `torch.segment_reduce`, so the work is the spans' total length. Masking h per span
-    instead, a `(b, a, n, dim)` block, cost four times as much in a training step's
-    forward and backward (a ≤ 5 slots, most of them short or empty), and far more for the
-    many windows that grounding scores. Same values and gradients.
+    instead, a `(b, a, n, dim)` block, took 3.6 times as long in a training step's forward
+    and backward (a = 5 slots, most of them short or empty; 12.4 against 3.4 ms on one
+    Zen 3 core) and twice as long for the 1,225 windows of every length that grounding
+    scores on a 49-token motion. Same values and gradients.
     """
     b, n, dim = h.shape
     start = spans[..., 0].clamp(0, n)
