@@ -33,7 +33,7 @@ The three are interleaved (A B C A B C ...) and each figure is the median of per
 times; `throughput` gives steps per second over all timed steps (1 / mean step time) and
 the speed-ups by it. The two differ for the grouped step, whose batches are as long as
 their length group: its median is the step of the median group, its mean what an epoch
-takes (on the built-in corpus, where a tenth of the clips are 40 frames long, the mean is
+takes (on the built-in corpus, where one clip in seven is 40 frames long, the mean is
 the lower). Also printed: the share of a cached step spent on the data, on the alignment
 loss's motion side (spans), forward and backward; and how many tokens of an on-the-fly
 batch differ from the cached tokens of the same crops (the zero padding of a batch
