@@ -28,8 +28,12 @@ read, cropped and collated; no workers), the forward pass and losses, backward, 
   (`bench_generate.momask_models`, sequence-first, one condition token) predicts the
   masked tokens, cross-entropy, backward, AdamW. MoMask also runs CLIP on every caption
   every step; here it gets the cached text vectors instead (`clip_replaced_by_cache`), so
-  its figure is a lower bound of its real step time. It has no segments and no alignment.
-The three are interleaved (A B C A B C ...) and each figure is the median of per-step
+  its figure is a lower bound of its real step time. It has no segments and no alignment;
+- with --momask-grouped, momask_grouped: the same MoMask model and step on the cheap path's
+  batches (cached tokens, grouped by length), so that grouped against it is the cost of
+  this project's model per token (its text prefix of segments, its alignment loss) apart
+  from the data path.
+The variants are interleaved (A B C A B C ...) and each figure is the median of per-step
 times; `throughput` gives steps per second over all timed steps (1 / mean step time) and
 the speed-ups by it. The two differ for the grouped step, whose batches are as long as
 their length group: its median is the step of the median group, its mean what an epoch
@@ -197,6 +201,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--compile", action="store_true",
                         help="also time the grouped step with the trunk blocks under "
                              "torch.compile (compiles during the warm-up)")
+    parser.add_argument("--momask-grouped", action="store_true",
+                        help="also time the MoMask reference's model on the grouped, cached "
+                             "batches")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -261,9 +268,13 @@ def main(argv: list[str] | None = None) -> dict:
 
         def momask_step(mode: str) -> dict:
             t0 = time.perf_counter()
-            batch = next_batch("on_the_fly")
-            with torch.no_grad():
-                base = task.tokenizer.encode(batch["motion"])[..., 0]
+            if mode == "momask_grouped":  # the cheap path's batches: tokens from the cache
+                batch = next_batch("grouped")
+                base = batch["tokens"][..., 0]
+            else:
+                batch = next_batch("on_the_fly")
+                with torch.no_grad():
+                    base = task.tokenizer.encode(batch["motion"])[..., 0]
             n = base.shape[1]
             valid = torch.arange(n) < token_lengths(batch["lengths"])[:, None]
             loss = momask(base, valid, batch["sentence"])  # CLIP replaced by the cached vector
@@ -278,6 +289,8 @@ def main(argv: list[str] | None = None) -> dict:
             runs |= {"cached_bf16": segmo_step, "grouped_bf16": segmo_step}
         if args.compile:
             runs |= {"grouped_compiled": segmo_step}
+        if args.momask_grouped:
+            runs |= {"momask_grouped": momask_step}
         times: dict[str, list[dict]] = {name: [] for name in runs}
         for name, run in runs.items():  # warm-up
             for _ in range(2):
