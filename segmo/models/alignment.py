@@ -89,12 +89,12 @@ def span_max(h: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
         return peak
     lengths = length[present]
     first = (start + n * torch.arange(b, device=h.device)[:, None])[present]
-    # Row k of span s: first[s] + k, for k < lengths[s], spans one after another.
+    # Row k of span s, the spans one after another: first[s] + k for k < lengths[s], at
+    # place (lengths[:s].sum() + k) of the gathered rows.
     total = int(lengths.sum())
-    offset = torch.arange(total, device=h.device) - torch.repeat_interleave(
-        lengths.cumsum(0) - lengths, lengths, output_size=total)
-    rows = h.reshape(b * n, dim)[torch.repeat_interleave(first, lengths, output_size=total)
-                                 + offset]
+    shift = torch.repeat_interleave(first - (lengths.cumsum(0) - lengths), lengths,
+                                    output_size=total)
+    rows = h.reshape(b * n, dim)[shift + torch.arange(total, device=h.device)]
     return peak.masked_scatter(present[..., None], torch.segment_reduce(rows, "max", lengths=lengths))
 
 
