@@ -111,6 +111,12 @@ def test_compare_seeds_tool(tmp_path, capsys):
     assert tool.main(argv + ["--figure", "by_num_actions/3+/motions"]) == 2
     assert capsys.readouterr().err.strip() == (
         f"compare_seeds: {files['new'][1]}: neither the file nor its last line is a JSON object")
+    # one seed a side: a difference, but no interval to judge it by
+    assert tool.main(["--base", files["base"][0], "--new", files["new"][0],
+                      "--figure", "by_num_actions/3+/sequence_accuracy"]) == 0
+    row = capsys.readouterr().out.splitlines()[-1]
+    assert row == ("| by_num_actions/3+/sequence_accuracy | 0.500 | 0.600 | 0.100 "
+                   "| one seed: no verdict |")
     with pytest.raises(SystemExit):
         tool.main(["--base", *files["base"], "--new", *files["new"][:2]])
     assert "--base has 3 files and --new 2" in capsys.readouterr().err

@@ -12,7 +12,8 @@ mean), e.g. `generation/generated/top1`; without --figure the tool lists the fig
 file holds. The files of --base and --new are paired in the order given: list the seeds in
 the same order. Prints a Markdown table: each arm's mean ± interval (Student t over the
 seeds), the paired difference new − base with its interval, and "beyond the seeds' spread"
-where that interval leaves out zero, else "no difference".
+where that interval leaves out zero, else "no difference"; with one seed a side there is no
+interval, and the verdict says so ("one seed: no verdict").
 """
 
 from __future__ import annotations
@@ -65,6 +66,8 @@ def compare(base: list[dict], new: list[dict], names: tuple[str, str], chosen: l
         difference = differences.get(figure)
         if difference is None:  # NaN or inf in some seed's file
             verdict = "not finite in every file"
+        elif difference["seeds"] < 2:  # no interval, so neither "beyond" nor "no difference"
+            verdict = "one seed: no verdict"
         else:
             verdict = "beyond the seeds' spread" if excludes_zero(difference) else "no difference"
         lines.append(f"| {figure} | {_cell(arms[0].get(figure), digits)} | "
