@@ -1,5 +1,6 @@
 """tools/training_curves.py: plateau verdicts and the table from CSV-logger files."""
 
+import json
 from pathlib import Path
 
 from conftest import load_tool
@@ -27,8 +28,35 @@ def test_table_and_png_from_metrics_csv(tmp_path: Path, capsys):
     rows = ["epoch,step,train/loss,val/loss"] + [f"0,{s},1.0," for s in range(0, 50, 10)]
     rows += [f"0,{s},,{v}" for s, v in ((9, 3.0), (19, 2.0), (29, 1.5), (39, 1.49), (49, 1.495), (59, 1.49))]
     (run / "metrics.csv").write_text("\n".join(rows) + "\n")
-    result = curves.main(["--runs", str(tmp_path / "runs"), "--metric", "val/loss", "--out", str(tmp_path / "png")])
+    result = curves.curves(["--runs", str(tmp_path / "runs"), "--metric", "val/loss", "--out", str(tmp_path / "png")])
     assert (tmp_path / "png" / "val_loss.png").is_file()
     (row,) = result["runs"]
     assert row["points"] == 6 and row["best"] == 1.49 and row["last_step"] == 59 and row["plateau"] == "plateau"
     assert "| a | val/loss | 6 | 3 | 1.49 | 1.49 (59) | plateau |" in capsys.readouterr().out
+
+
+def test_bad_input_is_one_line_and_keeps_the_pictures_already_there(tmp_path: Path, capsys):
+    curves = load_tool("training_curves")
+    run = tmp_path / "runs" / "a" / "version_0"
+    run.mkdir(parents=True)
+    good = "epoch,step,val/loss\n0,9,3.0\n0,19,nan\n0,29,2.0\n"
+    (run / "metrics.csv").write_text(good)
+    argv = ["--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "png")]
+    assert curves.main(argv + ["--metric", "val/loss"]) == 0
+    out = capsys.readouterr().out
+    assert json.loads(out.splitlines()[-1])["runs"][0]["points"] == 2  # the NaN left out
+    picture = (tmp_path / "png" / "val_loss.png").read_bytes()
+    # a metric no run logged, beside one they did: refused before any PNG is written
+    assert curves.main(argv + ["--metric", "val/loss", "--metric", "val/lsos"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"training_curves: --metric val/lsos: no run under {tmp_path / 'runs'} logged it (a finite "
+        "value) (see `training_curves.py --help`)")
+    assert not (tmp_path / "png" / "val_lsos.png").exists()
+    (run / "metrics.csv").write_text(good + "0,oops,1.0\n")
+    assert curves.main(argv + ["--metric", "val/loss"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"training_curves: {run / 'metrics.csv'}:5: expected numbers in 'step' and 'val/loss', "
+        "got 'oops' and '1.0'")
+    assert (tmp_path / "png" / "val_loss.png").read_bytes() == picture
+    assert curves.main(argv + ["--metric", "val/loss", "--window", "0"]) == 2
+    assert "argument --window: expected a whole number >= 1" in capsys.readouterr().err

@@ -6,6 +6,8 @@ metric has reached its plateau when its last ``--window`` validation points impr
 the best before them by less than ``--tolerance`` (relative) either way ("improving" or
 "worse" otherwise). Writes one PNG per metric and
 prints a Markdown table (run, metric, first, best, last, plateau) and a final JSON line.
+NaN and inf values (a diverged run) are left out of the curves. A bad file or argument is
+one line on stderr (exit status 2), before any PNG is written; PNGs are written atomically.
 
     python tools/training_curves.py --runs runs --metric val/loss --out curves/
     python tools/training_curves.py --runs runs/mask --metric val/loss --metric val/segment_top1 \\
@@ -15,22 +17,42 @@ prints a Markdown table (run, metric, first, best, last, plateau) and a final JS
 
 from __future__ import annotations
 
-import argparse
 import csv
+import io
 import json
+import math
 import sys
 from pathlib import Path
 
+from segmo.errors import ArgumentParser, SegmoError, non_negative_float, positive_int
+from segmo.files import write_atomic
+
 
 def read_metric(path: Path, metric: str) -> list[tuple[int, float]]:
-    """(step, value) of every row of a metrics.csv that holds `metric`."""
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    """(step, value) of every row of a metrics.csv that holds `metric`; NaN and inf values (a
+    diverged run) are left out. SegmoError naming the file and line for a file that is not
+    the CSV logger's."""
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            columns = reader.fieldnames or ()
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise SegmoError(f"{path}: cannot read as a CSV file ({error})") from None
+    if metric in columns and "step" not in columns:
+        raise SegmoError(f"{path}: no 'step' column; expected the CSV logger's metrics.csv")
     out = []
-    for row in rows:
+    for line, row in enumerate(rows, start=2):  # line 1 is the header
         value = row.get(metric, "")
-        if value not in ("", None):
-            out.append((int(float(row["step"])), float(value)))
+        if value in ("", None):
+            continue
+        try:
+            step, number = int(float(row["step"])), float(value)
+        except (TypeError, ValueError, OverflowError):
+            raise SegmoError(f"{path}:{line}: expected numbers in 'step' and {metric!r}, got "
+                             f"{row['step']!r} and {value!r}") from None
+        if math.isfinite(number):
+            out.append((step, number))
     return out
 
 
@@ -66,23 +88,32 @@ def runs_under(root: Path) -> list[Path]:
     return [newest[r] for r in sorted(newest)]
 
 
-def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def curves(argv: list[str] | None = None) -> dict:
+    """Read the runs, write the PNGs, print the table and the JSON line; the JSON's object
+    is returned. SegmoError for bad arguments or files: nothing is written then."""
+    p = ArgumentParser(prog="training_curves.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", type=Path, required=True, help="folder holding the runs (searched recursively)")
     p.add_argument("--metric", action="append", required=True, help="e.g. val/loss (repeatable)")
     p.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
-    p.add_argument("--window", type=int, default=3, help="validation points that define the plateau")
-    p.add_argument("--tolerance", type=float, default=0.01, help="relative gain below which it is a plateau")
-    p.add_argument("--smooth", type=int, default=1,
+    p.add_argument("--window", type=positive_int, default=3, help="validation points that define the plateau")
+    p.add_argument("--tolerance", type=non_negative_float, default=0.01,
+                   help="relative gain below which it is a plateau")
+    p.add_argument("--smooth", type=positive_int, default=1,
                    help="moving average over this many logged points (train metrics are noisy)")
     args = p.parse_args(argv)
     if not args.runs.is_dir():
         p.error(f"--runs {args.runs}: no such folder")
-    if args.window < 1:
-        p.error(f"--window {args.window}: must be at least 1")
+    if args.out.exists() and not args.out.is_dir():
+        p.error(f"--out {args.out}: is a file; give a folder for the PNGs")
     files = runs_under(args.runs)
     if not files:
         p.error(f"--runs {args.runs}: no version_*/metrics.csv below it")
+    # Every file is read before anything is written: a bad file or a metric no run logged
+    # leaves the PNGs of an earlier call as they were.
+    points = {metric: {path: read_metric(path, metric) for path in files} for metric in args.metric}
+    missing = [metric for metric, by_run in points.items() if not any(by_run.values())]
+    if missing:
+        p.error(f"--metric {missing[0]}: no run under {args.runs} logged it (a finite value)")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,15 +121,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for metric in args.metric:
+    for metric, by_run in points.items():
         lower = not any(word in metric for word in ("top", "acc", "usage", "r@"))
         fig, ax = plt.subplots(figsize=(6, 3.5))
-        for path in files:
-            points = read_metric(path, metric)
-            if not points:
+        for path, logged in by_run.items():
+            if not logged:
                 continue
             name = path.parent.parent.name
-            steps, raw = zip(*points, strict=True)
+            steps, raw = zip(*logged, strict=True)
             values = smooth(list(raw), args.smooth)
             ax.plot(steps, values, marker="o", markersize=2, label=name)
             best = min(values) if lower else max(values)
@@ -109,10 +139,10 @@ def main(argv: list[str] | None = None) -> dict:
         ax.set_ylabel(metric)
         ax.legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(args.out / (metric.replace("/", "_") + ".png"), dpi=110)
+        picture = io.BytesIO()
+        fig.savefig(picture, format="png", dpi=110)
         plt.close(fig)
-    if not rows:
-        p.error(f"none of the runs logged {args.metric}")
+        write_atomic(args.out / (metric.replace("/", "_") + ".png"), picture.getvalue())
     print("| run | metric | points | first | best | last (step) | plateau |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
@@ -123,5 +153,14 @@ def main(argv: list[str] | None = None) -> dict:
     return result
 
 
+def main(argv: list[str] | None = None) -> int:
+    try:
+        curves(argv)
+    except (SegmoError, OSError) as error:
+        print(f"training_curves: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
 if __name__ == "__main__":
-    sys.exit(main() and 0)
+    sys.exit(main())
