@@ -321,6 +321,28 @@ def test_ablation_dry_run_with_seeds(tmp_path: Path) -> None:
                        for line in fits) == 1
 
 
+def test_ablation_paths_are_the_callers_and_a_failed_command_is_one_line(tmp_path, monkeypatch,
+                                                                          capsys) -> None:
+    grid = load_tool("ablation_grid")
+    monkeypatch.chdir(tmp_path)
+    for folder in ("D", "T", "E"):
+        (tmp_path / folder).mkdir()
+    argv = ["--data", "D", "--tokenizer", "T", "--evaluator", "E", "--variants", "none",
+            "--residual", "R", "--length", "L", "--out", "out"]
+    assert grid.main([*argv, "--dry-run"]) == 0
+    fit = next(line for line in capsys.readouterr().out.splitlines() if " fit " in line)
+    # the commands run in the repository: relative paths are the caller's, made absolute
+    assert f"--data.root {tmp_path / 'D'} " in fit and f"--runs_dir {tmp_path / 'out' / 'runs'} " in fit
+    monkeypatch.setattr(grid, "SEGMO", [sys.executable, "-c", "import sys; sys.exit(3)"])
+    assert grid.main(argv) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("ablation_grid: exit status 3, see its output above: ")
+    assert len(error.splitlines()) == 1 and not (tmp_path / "out" / "table3.md").exists()
+    assert grid.main([*argv, "--eval-args", "'unclosed"]) == 2  # refused before any training
+    assert capsys.readouterr().err.strip() == (
+        "ablation_grid: --eval-args \"'unclosed\": No closing quotation (see `ablation_grid.py --help`)")
+
+
 def test_seeds_report_has_a_table_per_bucket() -> None:
     grid = load_tool("ablation_grid")
     entry = {"mean": 0.7, "interval": 0.01}

@@ -13,7 +13,9 @@ when --steps is given), `segmo export` of its last checkpoint, `segmo bundle` wi
 shared stages, `segmo evaluate`. The residual transformer and length estimator are
 trained once when not given. Every step whose output exists is skipped, so an interrupted
 grid resumes. Writes OUT/table3.md (Real row + one row per variant, the paper's format).
---dry-run prints the commands without running anything.
+--dry-run prints the commands without running anything. Paths may be relative to where the
+tool is called from (the commands run in the repository, so they are made absolute). A
+command that fails stops the grid with one line naming it (exit 2); its own output is above.
 
 With --seeds, each variant's mask transformer is trained once per seed
 (`--seed_everything S`, runs named `mask_<variant>_s<S>`), and OUT/seeds.md holds each
@@ -35,6 +37,10 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+from segmo.errors import ArgumentParser, SegmoError, positive_int
+from segmo.evaluation.report import compare_table
+from segmo.files import write_atomic
 
 # variant → (alignment method, motion segmenter, row name in the paper's Table 3)
 VARIANTS: dict[str, tuple[str, str, str]] = {
@@ -86,7 +92,10 @@ class Grid:
         if self.args.dry_run:
             return
         start = time.perf_counter()
-        subprocess.run(command, check=True, cwd=REPO, env=self.env)
+        try:
+            subprocess.run(command, check=True, cwd=REPO, env=self.env)
+        except subprocess.CalledProcessError as error:
+            raise SegmoError(f"exit status {error.returncode}, see its output above: {line}") from None
         say(f"# {time.perf_counter() - start:.0f} s: {line[:120]}")
 
     def ckpt(self, run_name: str) -> str:
@@ -95,7 +104,7 @@ class Grid:
         found = sorted(self.runs.glob(f"*/{run_name}/version_*/checkpoints/last.ckpt"),
                        key=lambda p: p.stat().st_mtime)
         if not found:
-            raise FileNotFoundError(f"{self.runs}/*/{run_name}: no last.ckpt; did `segmo fit` fail?")
+            raise SegmoError(f"{self.runs}/*/{run_name}: no last.ckpt; did `segmo fit` fail?")
         return str(found[-1])
 
     def fit_and_export(self, stage: str, run_name: str, overrides: list[str]) -> Path:
@@ -112,14 +121,24 @@ class Grid:
         return target
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    try:
+        run_grid(argv)
+    except SegmoError as error:
+        print(f"ablation_grid: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def run_grid(argv: list[str] | None = None) -> None:
+    """Parse the arguments, run (or print) the grid and write its tables."""
+    p = ArgumentParser(prog="ablation_grid.py", description=__doc__.split("\n\n")[0],
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", required=True, help="dataset root with text segments and features")
     p.add_argument("--tokenizer", required=True, help="exported RVQ-VAE directory")
     p.add_argument("--evaluator", required=True, help="T2M evaluator directory")
     p.add_argument("--out", required=True)
-    p.add_argument("--steps", type=int, default=None, help="trainer.max_steps (default: the config's)")
+    p.add_argument("--steps", type=positive_int, default=None, help="trainer.max_steps (default: the config's)")
     p.add_argument("--variants", default=",".join(VARIANTS), help=f"subset of {','.join(VARIANTS)}")
     p.add_argument("--residual", help="exported residual transformer (default: train one)")
     p.add_argument("--length", help="exported length estimator (default: train one)")
@@ -128,24 +147,35 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--eval-args", default="", help="extra `segmo evaluate` flags, e.g. '--repeats 5'")
     p.add_argument("--seeds", help="training seeds of the mask transformer, e.g. 0,1,2 "
                    "(default: the config's seed, one run per variant)")
-    p.add_argument("--parallel", type=int, default=1, help="jobs side by side, one thread each")
+    p.add_argument("--parallel", type=positive_int, default=1, help="jobs side by side, one thread each")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     args = p.parse_args(argv)
-    variants = [v for v in args.variants.split(",") if v]
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = set(variants) - set(VARIANTS)
     if unknown:
         p.error(f"--variants: unknown {sorted(unknown)}; choose from {list(VARIANTS)}")
+    if not variants or len(set(variants)) < len(variants):
+        p.error(f"--variants {args.variants!r}: expected different variants separated by commas")
     try:
-        seeds = [None] if args.seeds is None else [int(x) for x in args.seeds.split(",") if x]
+        seeds = [None] if args.seeds is None else [int(x) for x in args.seeds.split(",") if x.strip()]
     except ValueError:
         p.error(f"--seeds {args.seeds!r}: expected whole numbers separated by commas, e.g. 0,1,2")
     if not seeds:
         p.error("--seeds: no seed given")
-    if args.parallel < 1:
-        p.error(f"--parallel {args.parallel}: must be at least 1")
+    if len(set(seeds)) < len(seeds) or any(s is not None and s < 0 for s in seeds):
+        p.error(f"--seeds {args.seeds!r}: expected different whole numbers >= 0")
+    try:
+        shlex.split(args.eval_args)  # before hours of training, not after
+    except ValueError as error:
+        p.error(f"--eval-args {args.eval_args!r}: {error}")
+    # The commands run in the repository (the configs' paths are relative to it): the
+    # user's paths, relative to where the tool was called, are made absolute.
+    for flag in ("data", "tokenizer", "evaluator", "out", "residual", "length", "action_classifier"):
+        if getattr(args, flag) is not None:
+            setattr(args, flag, str(Path(getattr(args, flag)).resolve()))
     if not args.dry_run:
         for flag in ("data", "tokenizer", "evaluator"):
-            if not Path(getattr(args, flag)).exists():
+            if not Path(getattr(args, flag)).is_dir():
                 p.error(f"--{flag} {getattr(args, flag)}: no such directory")
         for variant in variants:
             source = TEXT_SEGMENTS.get(variant)
@@ -185,20 +215,17 @@ def main(argv: list[str] | None = None) -> None:
         done = list(pool.map(lambda vs: job(*vs), jobs))
     if args.dry_run:
         return
-    sys.path.insert(0, str(REPO))
-    from segmo.evaluation.report import compare_table
-
     first = {v: path for v, s, path in done if s == seeds[0]}
     table = compare_table([(VARIANTS[v][2], json.loads(first[v].read_text())) for v in variants])
-    (grid.out / "table3.md").write_text(table + "\n")
+    write_atomic(grid.out / "table3.md", table + "\n")
     print(table)
     grid_rows = {v: json.loads(first[v].read_text()) for v in variants if v in TRAIN_SEGMENTERS}
     if len(grid_rows) > 1:
-        (grid.out / "isc_grid.md").write_text(isc_grid(grid_rows) + "\n")
+        write_atomic(grid.out / "isc_grid.md", isc_grid(grid_rows) + "\n")
         print(isc_grid(grid_rows))
     if seeds != [None]:
         runs = {v: [json.loads(path.read_text()) for vv, _, path in done if vv == v] for v in variants}
-        (grid.out / "seeds.md").write_text(seeds_report(runs) + "\n")
+        write_atomic(grid.out / "seeds.md", seeds_report(runs) + "\n")
         print(seeds_report(runs))
 
 
@@ -249,4 +276,4 @@ def seeds_report(runs: dict[str, list[dict]]) -> str:
     return "\n".join(parts)
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
