@@ -298,7 +298,23 @@ def test_ground_truth_spans_follow_the_crop(tmp_path):
     with pytest.raises(SegmoError, match=r"segments/a\.json:2: not valid JSON"):
         MotionDataset(tmp_path)
     (tmp_path / "segments" / "a.json").write_text('{"captions": [{"spans": []}, {}]}')
-    with pytest.raises(SegmoError, match=r"a\.json: not a ground-truth file .*KeyError"):
+    with pytest.raises(SegmoError, match=r"a\.json: not a ground-truth file \(captions\[0\]: "
+                                         r"expected an object with segments\)"):
+        MotionDataset(tmp_path)
+    # spans that cannot be frames of the motion: named with their place in the file
+    for caption, problem in ((
+            [{"text": "x", "segments": [{"start": 0, "end": 30}, {"start": 20, "end": 63}]}],
+            r"captions\[0\]\.segments\[1\]: start 20, end 63: expected 30 <= start < end <= "
+            r"num_frames 63"), (
+            [{"text": "x", "segments": [{"start": 0, "end": 64}]}], r"captions\[0\]\.segments\[0\]: start 0, end 64"), (
+            [{"text": "x", "segments": [{"start": 0, "end": 1.5}]}], r"captions\[0\]\.segments\[0\]: start 0, end 1\.5: "
+                                                                    r"expected whole frames"), (
+            [{"text": "x", "segments": []}], r"captions\[0\]\.segments: expected a non-empty list")):
+        (tmp_path / "segments" / "a.json").write_text(json.dumps({**gt, "captions": caption * 2}))
+        with pytest.raises(SegmoError, match=r"a\.json: not a ground-truth file \(" + problem):
+            MotionDataset(tmp_path)
+    (tmp_path / "segments" / "a.json").write_text(json.dumps({**gt, "num_frames": "x"}))
+    with pytest.raises(SegmoError, match=r"num_frames 'x': expected a whole number >= 1"):
         MotionDataset(tmp_path)
     (tmp_path / "Std.npy").write_bytes(b"garbage")
     with pytest.raises(SegmoError, match=r"Std\.npy: not a readable \.npy array"):

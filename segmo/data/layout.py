@@ -146,7 +146,60 @@ def read_ground_truth(root: str | Path, motion_id: str) -> dict[str, Any]:
         raise SegmoError(f"{path}:{error.lineno}: not valid JSON: {error.msg}") from None
     if not isinstance(record, dict):
         raise SegmoError(f"{path}: not a ground-truth file (a JSON object expected)")
+    problem = ground_truth_problem(record)
+    if problem:
+        raise SegmoError(f"{path}: not a ground-truth file ({problem})")
     return record
+
+
+def _is_frame(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def ground_truth_problem(record: dict[str, Any]) -> str | None:
+    """What is wrong with the frame spans of a ground-truth record, None when nothing is.
+
+    Checked where present (a reader asks for the keys it needs): ``num_frames`` a whole
+    number ≥ 1; each span of ``actions`` and of every caption's ``segments`` (a non-empty
+    list) whole frames with 0 ≤ start < end ≤ num_frames, in order and not overlapping, as
+    `segmo synth` writes them (docs/design.md)."""
+    frames = record.get("num_frames")
+    if "num_frames" in record and not (_is_frame(frames) and frames >= 1):
+        return f"num_frames {frames!r}: expected a whole number >= 1"
+    end_limit = frames if "num_frames" in record else None
+
+    def spans_problem(where: str, spans: Any) -> str | None:
+        if not isinstance(spans, list) or not spans:
+            return f"{where}: expected a non-empty list"
+        previous_end = 0
+        for j, span in enumerate(spans):
+            if not isinstance(span, dict):
+                return f"{where}[{j}]: expected an object"
+            start, end = span.get("start"), span.get("end")
+            if not (_is_frame(start) and _is_frame(end)):
+                return f"{where}[{j}]: start {start!r}, end {end!r}: expected whole frames"
+            if not previous_end <= start < end or (end_limit is not None and end > end_limit):
+                bound = f" <= num_frames {end_limit}" if end_limit is not None else ""
+                return (f"{where}[{j}]: start {start}, end {end}: expected {previous_end} <= start "
+                        f"< end{bound} (spans in order, not overlapping)")
+            previous_end = end
+        return None
+
+    if "actions" in record:
+        problem = spans_problem("actions", record["actions"])
+        if problem:
+            return problem
+    if "captions" in record:
+        captions = record["captions"]
+        if not isinstance(captions, list):
+            return "captions: expected a list"
+        for i, caption in enumerate(captions):
+            if not isinstance(caption, dict) or "segments" not in caption:
+                return f"captions[{i}]: expected an object with segments"
+            problem = spans_problem(f"captions[{i}].segments", caption["segments"])
+            if problem:
+                return problem
+    return None
 
 
 def first_captions(root: str | Path, split: str) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
