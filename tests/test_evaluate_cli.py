@@ -14,6 +14,8 @@ import pytest
 import torch
 from conftest import build_tokenizer, cli_failure, hash_encoder, load_tool
 
+from segmo.cli import run as run_command
+from segmo.errors import SegmoError
 from segmo.evaluation import report
 from segmo.evaluation.cli import main
 from segmo.pipeline import SegMo
@@ -329,18 +331,21 @@ def test_ablation_paths_are_the_callers_and_a_failed_command_is_one_line(tmp_pat
         (tmp_path / folder).mkdir()
     argv = ["--data", "D", "--tokenizer", "T", "--evaluator", "E", "--variants", "none",
             "--residual", "R", "--length", "L", "--out", "out"]
-    assert grid.main([*argv, "--dry-run"]) == 0
+    grid.main([*argv, "--dry-run"])
     fit = next(line for line in capsys.readouterr().out.splitlines() if " fit " in line)
     # the commands run in the repository: relative paths are the caller's, made absolute
     assert f"--data.root {tmp_path / 'D'} " in fit and f"--runs_dir {tmp_path / 'out' / 'runs'} " in fit
     monkeypatch.setattr(grid, "SEGMO", [sys.executable, "-c", "import sys; sys.exit(3)"])
-    assert grid.main(argv) == 2
+    with pytest.raises(SystemExit) as stop:  # as a command: one line, exit status 2
+        run_command("ablation_grid.py", grid.main, argv)
     error = capsys.readouterr().err.strip()
-    assert error.startswith("ablation_grid: exit status 3, see its output above: ")
-    assert len(error.splitlines()) == 1 and not (tmp_path / "out" / "table3.md").exists()
-    assert grid.main([*argv, "--eval-args", "'unclosed"]) == 2  # refused before any training
-    assert capsys.readouterr().err.strip() == (
-        "ablation_grid: --eval-args \"'unclosed\": No closing quotation (see `ablation_grid.py --help`)")
+    assert stop.value.code == 2 and len(error.splitlines()) == 1
+    assert error.startswith("ablation_grid.py: exit status 3, see its output above: ")
+    assert not (tmp_path / "out" / "table3.md").exists()
+    with pytest.raises(SegmoError) as refused:  # before any training
+        grid.main([*argv, "--eval-args", "'unclosed"])
+    assert str(refused.value) == ("--eval-args \"'unclosed\": No closing quotation "
+                                  "(see `ablation_grid.py --help`)")
 
 
 def test_seeds_report_has_a_table_per_bucket() -> None:

@@ -9,6 +9,7 @@ import pytest
 import torch
 from conftest import load_tool
 
+from segmo.errors import SegmoError
 from segmo.segmentation import (
     CPDSegmenter,
     KMeansSegmenter,
@@ -167,3 +168,18 @@ def test_boundary_error_tool_with_a_tokenizer(fake_corpus, tmp_path_factory):
     assert result["captions"] == 3
     assert all(result[m]["boundaries"] == 6 for m in ("uniform", "cpd", "kmeans"))
     assert result["uniform"]["mean"] > 0.0  # same token grid as without a tokenizer
+
+
+def test_boundary_error_tool_refuses_what_it_cannot_measure(fake_corpus):
+    tool = _load_tool()
+    with pytest.raises(SegmoError, match="argument --max-motions: expected a whole number >= 1"):
+        tool.main(["--data", str(fake_corpus), "--max-motions", "0"])
+    path = fake_corpus / "segments" / "000001.json"
+    record = json.loads(path.read_text())
+    record["captions"][0]["segments"][0]["start"] = -50  # would have read raw[-50:end]
+    path.write_text(json.dumps(record))
+    with pytest.raises(SegmoError, match=r"000001\.json: not a ground-truth file \(captions\[0\]"):
+        tool.main(["--data", str(fake_corpus)])
+    np.save(fake_corpus / "Std.npy", np.zeros(6, np.float32))
+    with pytest.raises(SegmoError, match=r"Std\.npy: the statistics must be finite, every std > 0"):
+        tool.main(["--data", str(fake_corpus)])

@@ -3,7 +3,11 @@
 import json
 from pathlib import Path
 
+import pytest
 from conftest import load_tool
+
+from segmo.cli import run
+from segmo.errors import SegmoError
 
 
 def test_plateau_verdicts():
@@ -28,7 +32,7 @@ def test_table_and_png_from_metrics_csv(tmp_path: Path, capsys):
     rows = ["epoch,step,train/loss,val/loss"] + [f"0,{s},1.0," for s in range(0, 50, 10)]
     rows += [f"0,{s},,{v}" for s, v in ((9, 3.0), (19, 2.0), (29, 1.5), (39, 1.49), (49, 1.495), (59, 1.49))]
     (run / "metrics.csv").write_text("\n".join(rows) + "\n")
-    result = curves.curves(["--runs", str(tmp_path / "runs"), "--metric", "val/loss", "--out", str(tmp_path / "png")])
+    result = curves.main(["--runs", str(tmp_path / "runs"), "--metric", "val/loss", "--out", str(tmp_path / "png")])
     assert (tmp_path / "png" / "val_loss.png").is_file()
     (row,) = result["runs"]
     assert row["points"] == 6 and row["best"] == 1.49 and row["last_step"] == 59 and row["plateau"] == "plateau"
@@ -37,26 +41,27 @@ def test_table_and_png_from_metrics_csv(tmp_path: Path, capsys):
 
 def test_bad_input_is_one_line_and_keeps_the_pictures_already_there(tmp_path: Path, capsys):
     curves = load_tool("training_curves")
-    run = tmp_path / "runs" / "a" / "version_0"
-    run.mkdir(parents=True)
+    folder = tmp_path / "runs" / "a" / "version_0"
+    folder.mkdir(parents=True)
     good = "epoch,step,val/loss\n0,9,3.0\n0,19,nan\n0,29,2.0\n"
-    (run / "metrics.csv").write_text(good)
+    (folder / "metrics.csv").write_text(good)
     argv = ["--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "png")]
-    assert curves.main(argv + ["--metric", "val/loss"]) == 0
+    curves.main(argv + ["--metric", "val/loss"])
     out = capsys.readouterr().out
     assert json.loads(out.splitlines()[-1])["runs"][0]["points"] == 2  # the NaN left out
     picture = (tmp_path / "png" / "val_loss.png").read_bytes()
     # a metric no run logged, beside one they did: refused before any PNG is written
-    assert curves.main(argv + ["--metric", "val/loss", "--metric", "val/lsos"]) == 2
-    assert capsys.readouterr().err.strip() == (
-        f"training_curves: --metric val/lsos: no run under {tmp_path / 'runs'} logged it (a finite "
-        "value) (see `training_curves.py --help`)")
+    with pytest.raises(SystemExit) as stop:  # as a command: one line, exit status 2
+        run("training_curves.py", curves.main, argv + ["--metric", "val/loss", "--metric", "val/lsos"])
+    assert stop.value.code == 2 and capsys.readouterr().err.strip() == (
+        f"training_curves.py: --metric val/lsos: no run under {tmp_path / 'runs'} logged it (a "
+        "finite value) (see `training_curves.py --help`)")
     assert not (tmp_path / "png" / "val_lsos.png").exists()
-    (run / "metrics.csv").write_text(good + "0,oops,1.0\n")
-    assert curves.main(argv + ["--metric", "val/loss"]) == 2
-    assert capsys.readouterr().err.strip() == (
-        f"training_curves: {run / 'metrics.csv'}:5: expected numbers in 'step' and 'val/loss', "
-        "got 'oops' and '1.0'")
+    (folder / "metrics.csv").write_text(good + "0,oops,1.0\n")
+    with pytest.raises(SegmoError) as error:
+        curves.main(argv + ["--metric", "val/loss"])
+    assert str(error.value) == (f"{folder / 'metrics.csv'}:5: expected numbers in 'step' and "
+                                "'val/loss', got 'oops' and '1.0'")
     assert (tmp_path / "png" / "val_loss.png").read_bytes() == picture
-    assert curves.main(argv + ["--metric", "val/loss", "--window", "0"]) == 2
-    assert "argument --window: expected a whole number >= 1" in capsys.readouterr().err
+    with pytest.raises(SegmoError, match="argument --window: expected a whole number >= 1"):
+        curves.main(argv + ["--metric", "val/loss", "--window", "0"])

@@ -38,6 +38,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from segmo.cli import run
 from segmo.errors import ArgumentParser, SegmoError, positive_int
 from segmo.evaluation.report import compare_table
 from segmo.files import write_atomic
@@ -121,16 +122,7 @@ class Grid:
         return target
 
 
-def main(argv: list[str] | None = None) -> int:
-    try:
-        run_grid(argv)
-    except SegmoError as error:
-        print(f"ablation_grid: {error}", file=sys.stderr)
-        return 2
-    return 0
-
-
-def run_grid(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> None:
     """Parse the arguments, run (or print) the grid and write its tables."""
     p = ArgumentParser(prog="ablation_grid.py", description=__doc__.split("\n\n")[0],
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -276,4 +268,4 @@ def seeds_report(runs: dict[str, list[dict]]) -> str:
     return "\n".join(parts)
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run("ablation_grid.py", main, sys.argv[1:])

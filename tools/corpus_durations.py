@@ -13,13 +13,15 @@ Prints a Markdown table and a final JSON line.
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from segmo.data.layout import has_ground_truth, read_ground_truth, read_split
+from segmo.cli import run
+from segmo.data.layout import ground_truth_file, has_ground_truth, read_ground_truth, read_split
+from segmo.errors import ArgumentParser, SegmoError
 from segmo.evaluation.grounding import grounding_metrics
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import uniform_spans
@@ -31,7 +33,11 @@ def measure(data: Path, split: str) -> dict:
     ratios, pred, truth = [], [], []
     ids = read_split(data, split)
     for motion_id in ids:
-        record = read_ground_truth(data, motion_id)
+        record = read_ground_truth(data, motion_id)  # spans checked: start < end, in the motion
+        missing = [key for key in ("actions", "num_frames", "captions") if key not in record]
+        if missing:
+            raise SegmoError(f"{ground_truth_file(data, motion_id)}: no {missing[0]!r}; not a "
+                             "ground-truth file of the built-in corpus")
         lengths = [a["end"] - a["start"] for a in record["actions"]]
         if len(lengths) >= 2:
             ratios.append(max(lengths) / min(lengths))
@@ -43,7 +49,7 @@ def measure(data: Path, split: str) -> dict:
             pred += [(FRAMES_PER_TOKEN * s, FRAMES_PER_TOKEN * e) for s, e in uniform_spans(n, len(segments))]
             truth += [(s["start"], s["end"]) for s in segments]
     if not ratios:
-        raise SystemExit(f"--data {data}: no {split} motion with ≥ 2 segments")
+        raise SegmoError(f"--data {data}: no {split} motion with ≥ 2 segments")
     r = np.asarray(ratios)
     return {"split": split, "motions": len(ids), "multi_segment_motions": len(ratios),
             "segments": len(truth),
@@ -61,7 +67,7 @@ def table(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="corpus_durations.py", description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True, type=Path, help="built-in corpus folder")
     parser.add_argument("--split", default="test")
     args = parser.parse_args(argv)
@@ -76,4 +82,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run("corpus_durations.py", main, sys.argv[1:])

@@ -26,7 +26,6 @@ decoded as a jump in place, a punch as a clap) caps every generator trained on i
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections import defaultdict
@@ -34,8 +33,10 @@ from collections import defaultdict
 import numpy as np
 import torch
 
+from segmo.cli import run
 from segmo.data import MotionWindowDataset
 from segmo.data.layout import has_ground_truth, read_actions
+from segmo.errors import ArgumentParser, positive_int
 from segmo.evaluation.action_order import frame_confusions
 from segmo.models.action_classifier import ActionClassifier, collapse
 from segmo.models.pretrained import load_pretrained
@@ -109,16 +110,24 @@ def action_fidelity(model: RVQVAE, dataset: MotionWindowDataset, classifier: Act
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(prog="eval_tokenizer.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", required=True, help="exported tokenizer directory")
     parser.add_argument("--data", required=True, help="dataset folder (HumanML3D layout)")
     parser.add_argument("--split", default="test", choices=("train", "val", "test"))
-    parser.add_argument("--batch-size", type=int, default=32)
-    parser.add_argument("--max-motions", type=int, default=None, help="first N ids of the split")
+    parser.add_argument("--batch-size", type=positive_int, default=32)
+    parser.add_argument("--max-motions", type=positive_int, default=None, help="first N ids of the split")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--action-classifier", default=None,
                         help="built-in corpus: also read the reconstructions' actions with this classifier")
     args = parser.parse_args(argv)
+    try:
+        device = torch.device(args.device)
+        torch.empty(0, device=device)  # a device this torch cannot reach fails here
+    except (RuntimeError, AssertionError) as error:
+        parser.error(f"--device {args.device}: {error}")
+    if args.action_classifier is not None and not has_ground_truth(args.data):
+        parser.error(f"--action-classifier: {args.data} has no ground-truth actions (segments/); "
+                     "only the built-in corpus (segmo synth) has them")
 
     model = RVQVAE.from_pretrained(args.model)
     if "skeleton" not in model.meta:
@@ -131,9 +140,6 @@ def main(argv: list[str] | None = None) -> dict:
     result = evaluate(model, dataset, args.batch_size, args.device)
     result.update(model=args.model, data=args.data, split=args.split)
     if args.action_classifier is not None:
-        if not has_ground_truth(args.data):
-            parser.error(f"--action-classifier: {args.data} has no ground-truth actions (segments/); "
-                         "only the built-in corpus (segmo synth) has them")
         classifier = load_pretrained(args.action_classifier)
         if not isinstance(classifier, ActionClassifier):
             parser.error(f"--action-classifier {args.action_classifier}: not an action classifier")
@@ -155,4 +161,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    run("eval_tokenizer.py", main, sys.argv[1:])

@@ -14,7 +14,6 @@ over 4 frames; with `--tokenizer DIR`, the exported tokenizer's encoder outputs 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from segmo.cli import run
 from segmo.data.layout import (
     has_ground_truth,
     read_ground_truth,
@@ -30,6 +30,7 @@ from segmo.data.layout import (
     read_split,
     stats_files,
 )
+from segmo.errors import ArgumentParser, SegmoError, positive_int
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.segmentation import boundaries, get_motion_segmenter, pool_tokens
 
@@ -45,7 +46,7 @@ def load_encoder(directory: str):
 
     model = load_pretrained(directory)
     if not hasattr(model, "encoder") or not hasattr(model, "normalize"):
-        sys.exit(f"--tokenizer {directory}: not a tokenizer (no encoder/normalize)")
+        raise SegmoError(f"--tokenizer {directory}: not a tokenizer (no encoder/normalize)")
 
     @torch.no_grad()
     def encode(raw: np.ndarray) -> np.ndarray:
@@ -70,6 +71,8 @@ def caption_cases(record: dict) -> list[tuple[int, int, list[int]]]:
 def measure(data: Path, split: str, max_motions: int | None, tokenizer: str | None) -> dict:
     ids = read_split(data, split)[:max_motions]
     mean, std = (np.load(path) for path in stats_files(data))  # any feature width
+    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise SegmoError(f"{stats_files(data)[1]}: the statistics must be finite, every std > 0")
     encode = load_encoder(tokenizer) if tokenizer else None
     errors: dict[str, list[int]] = {m: [] for m in METHODS}
     seconds = dict.fromkeys(METHODS, 0.0)
@@ -129,10 +132,10 @@ def table(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="segmenter_boundary_error.py", description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True, type=Path, help="built-in corpus folder")
     parser.add_argument("--split", default="test")
-    parser.add_argument("--max-motions", type=int, default=None)
+    parser.add_argument("--max-motions", type=positive_int, default=None)
     parser.add_argument("--tokenizer", default=None, help="exported tokenizer directory")
     args = parser.parse_args(argv)
     if not has_ground_truth(args.data):
@@ -150,4 +153,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run("segmenter_boundary_error.py", main, sys.argv[1:])

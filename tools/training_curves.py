@@ -24,6 +24,7 @@ import math
 import sys
 from pathlib import Path
 
+from segmo.cli import run
 from segmo.errors import ArgumentParser, SegmoError, non_negative_float, positive_int
 from segmo.files import write_atomic
 
@@ -88,7 +89,7 @@ def runs_under(root: Path) -> list[Path]:
     return [newest[r] for r in sorted(newest)]
 
 
-def curves(argv: list[str] | None = None) -> dict:
+def main(argv: list[str] | None = None) -> dict:
     """Read the runs, write the PNGs, print the table and the JSON line; the JSON's object
     is returned. SegmoError for bad arguments or files: nothing is written then."""
     p = ArgumentParser(prog="training_curves.py", description=__doc__.split("\n\n")[0])
@@ -153,14 +154,5 @@ def curves(argv: list[str] | None = None) -> dict:
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    try:
-        curves(argv)
-    except (SegmoError, OSError) as error:
-        print(f"training_curves: {error}", file=sys.stderr)
-        return 2
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    run("training_curves.py", main, sys.argv[1:])

@@ -17,12 +17,13 @@ exactly the ground-truth segments, and the last line is JSON.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
+from segmo.cli import run
 from segmo.data.layout import has_ground_truth, read_ground_truth
+from segmo.errors import ArgumentParser, SegmoError
 from segmo.text.captions import read_caption_lines, texts_file
 from segmo.text.extract import segment_folder
 
@@ -39,12 +40,12 @@ class TruthSegmenter:
             for caption in read_ground_truth(data, path.stem)["captions"]:
                 segments = [s["text"] for s in caption["segments"]]
                 if self.table.setdefault(caption["text"], segments) != segments:
-                    raise ValueError(f"{path}: caption {caption['text']!r} has two ground truths")
+                    raise SegmoError(f"{path}: caption {caption['text']!r} has two ground truths")
 
     def segment(self, texts: list[str]) -> list[list[str]]:
         missing = [t for t in texts if t not in self.table]
         if missing:
-            raise ValueError(f"truth: {len(missing)} caption(s) without ground truth, first {missing[0]!r}")
+            raise SegmoError(f"truth: {len(missing)} caption(s) without ground truth, first {missing[0]!r}")
         return [self.table[t] for t in texts]
 
 
@@ -56,6 +57,8 @@ def rule_agreement(data: Path, truth: TruthSegmenter) -> dict[str, float] | None
         return None
     same = same_count = total = 0
     for path in sorted(rule.glob("*.txt")):
+        if not texts_file(data, path.stem).is_file():
+            continue  # rule segments of a motion the folder no longer has
         captions = [line.caption for line in read_caption_lines(texts_file(data, path.stem))]
         answers = path.read_text(encoding="utf-8").splitlines()
         for caption, answer in zip(captions, answers, strict=False):
@@ -68,7 +71,7 @@ def rule_agreement(data: Path, truth: TruthSegmenter) -> dict[str, float] | None
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="truth_segments.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, required=True, help="a built-in corpus folder")
     p.add_argument("--overwrite", action="store_true", help="redo every file")
     args = p.parse_args(argv)
@@ -92,4 +95,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(main() and 0)
+    run("truth_segments.py", main, sys.argv[1:])
