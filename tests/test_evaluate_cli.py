@@ -717,6 +717,7 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
         "resampled, the caption's parameters, 50% of the actions wrong, a third each left out, substituted, extra"]
     plain = tmp_path / "plain"  # a folder that is no built-in corpus
     plain.mkdir()
+    mean = (setup["data"] / "Mean.npy").read_bytes()
     for argv, names in ((["--sizes", "4,x"], "--sizes"), (["--other", "test"], "--other"),
                         (["--sizes", "50"], "--other train"), (["--split", "nope"], "nope"),
                         (["--resample", "--data", str(plain)], "corpus.json"),
@@ -726,10 +727,12 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
                         (["--action-classifier", str(setup["evaluator"])], "--action-classifier"),
                         (["--action-classifier", str(tmp_path / "none")], "--action-classifier"),
                         (["--resample", "--mistakes", "0.5", "--kinds", "mixed,typo"], "--kinds"),
-                        (["--resample", "--kinds", "mixed"], "--kinds")):
+                        (["--resample", "--kinds", "mixed"], "--kinds"), (["--seed", "-1"], "--seed"),
+                        (["--out", str(setup["data"] / "Mean.npy")], "inside --data")):
         assert tool.main([*common, *argv]) == 2
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and names in err[0], err
+    assert (setup["data"] / "Mean.npy").read_bytes() == mean  # an input named as --out is left alone
     # a ground truth the corpus' generator cannot make again is named, in one line
     import shutil
 

@@ -62,7 +62,7 @@ import torch
 from torch.nn.utils.rnn import pad_sequence
 
 from segmo.data.layout import ground_truth_file, read_ground_truth
-from segmo.errors import ArgumentParser, SegmoError, positive_int
+from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.evaluation.action_order import sequence_accuracy
 from segmo.evaluation.metrics import fid, mean_and_interval, row_metrics, t2m_embedders
 from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load_batches
@@ -358,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
                              f"{','.join(MISTAKES)})")
     parser.add_argument("--action-classifier", type=Path,
                         help="also action order, read by this classifier (segmo export; the built-in corpus only)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
     try:  # the project's parser raises SegmoError: every failure is one line
         args = parser.parse_args(argv)
@@ -367,6 +367,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.out and (args.out.is_dir() or not args.out.parent.is_dir()):
             parser.error(f"--out {args.out}: " + ("is a folder; give a file name" if args.out.is_dir()
                                                    else f"its folder {args.out.parent} does not exist"))
+        inputs = [("--data", args.data), ("--evaluator", args.evaluator),
+                  ("--action-classifier", args.action_classifier)]
+        for flag, folder in inputs:
+            if args.out and folder and args.out.resolve().is_relative_to(folder.resolve()):
+                parser.error(f"--out {args.out}: inside {flag} {folder}; write the rows elsewhere")
         if args.mistakes and not args.resample:
             parser.error("--mistakes: needs --resample (they are made in the remade motions)")
         if args.kinds and not args.mistakes:
