@@ -70,6 +70,11 @@ def non_negative_float(text: str) -> float:
     return value
 
 
+# The largest whole number an argument may be: what a 64-bit integer holds (seeds, lengths
+# and counts reach torch as int64; beyond it torch fails with "Overflow when unpacking long").
+LARGEST_WHOLE_NUMBER = 2**63 - 1
+
+
 def _whole_number(text: str, minimum: int) -> int:
     try:
         value = int(text)
@@ -77,6 +82,8 @@ def _whole_number(text: str, minimum: int) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if value < minimum:
         raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
+    if value > LARGEST_WHOLE_NUMBER:
+        raise argparse.ArgumentTypeError(f"expected a whole number below 2^63, got {text!r}")
     return value
 
 

@@ -25,6 +25,9 @@ Unconditional = Literal["none", "local"]
 WordText = Literal["caption", "segments"]
 SegmentTiming = Literal["predicted", "none"]
 Remasking = Literal["confidence", "segments"]
+# The most decoding steps: far above any useful schedule (MoMask decodes in 10, the demo
+# bundle in 4), so that a typo cannot make the schedule itself take gigabytes.
+MAX_STEPS = 1000
 
 
 def check_word_text(value: object) -> None:
@@ -122,8 +125,10 @@ class SamplingOptions:
         if not 0 < self.top_k_ratio <= 1:
             raise SegmoError(f"SegMo: top_k_ratio must be in (0, 1], got {self.top_k_ratio!r}")
         steps = self.steps
-        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
-            raise SegmoError(f"SegMo: steps must be a whole number >= 1, got {steps!r}")
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) \
+                or not 1 <= steps <= MAX_STEPS:
+            raise SegmoError(f"SegMo: steps must be a whole number in [1, {MAX_STEPS}], got "
+                             f"{steps!r}")
         layers = self.residual_guided_layers
         if layers is not None and (isinstance(layers, bool) or not isinstance(layers, numbers.Integral)
                                    or layers < 0):

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from segmo.errors import SegmoError
+from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 
 
@@ -74,7 +74,11 @@ def whole_frames(lengths: Any, b: int, what: str = "SegMo") -> torch.Tensor:
     if not all(whole):
         raise SegmoError(f"{what}: lengths must be whole numbers of frames, got "
                          f"{values[whole.index(False)]!r}")
-    return torch.tensor([int(v) for v in values], dtype=torch.long)
+    frames = [int(v) for v in values]
+    huge = [v for v in frames if abs(v) > LARGEST_WHOLE_NUMBER]
+    if huge:  # torch would fail with "Overflow when unpacking long"
+        raise SegmoError(f"{what}: a length of {huge[0]!r} frames is out of range")
+    return torch.tensor(frames, dtype=torch.long)
 
 
 def frame_lengths(lengths: Any, b: int, max_frames: int, fps: float) -> torch.Tensor:
