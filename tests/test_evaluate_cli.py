@@ -282,6 +282,14 @@ def test_errors_name_the_flag(setup, tmp_path: Path, capsys) -> None:
     assert "no metrics.json" in line
     line = cli_failure([*base, "--real-only", "--evaluator", str(setup["segmo"] / "mask")], capsys)
     assert "--evaluator" in line and "'mask'" in line
+    wordless = tmp_path / "wordless"  # an evaluator without its vocabulary: refused before the work
+    shutil.copytree(setup["evaluator"], wordless)
+    config = json.loads((wordless / "config.json").read_text())
+    del config["meta"]["words"]
+    (wordless / "config.json").write_text(json.dumps(config))
+    line = cli_failure([*base, "--real-only", "--evaluator", str(wordless)], capsys)
+    assert line == (f"segmo evaluate: --evaluator {wordless}: config.json's meta has no 'words' (the "
+                    "vocabulary `segmo export` of an evaluator writes)")
     for flag, value in (("--repeats", "0"), ("--batch-size", "1"), ("--seed", "-2"),
                         ("--grounding-window", "4,x"), ("--split", "nosuch")):
         assert flag in cli_failure([*base, "--real-only", flag, value], capsys)

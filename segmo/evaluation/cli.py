@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import asdict, replace
@@ -77,6 +78,7 @@ from segmo.evaluation.sections import (
     raw_features,
     segmo_retrieval,
 )
+from segmo.files import write_atomic
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
 from segmo.generation.sampling import Remasking, SamplingOptions, SegmentTiming, WordText
@@ -85,6 +87,7 @@ from segmo.models.pretrained import load_pretrained, read_json
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.features import features_to_joints, joint_errors
 from segmo.pipeline import SegMo
+from segmo.pipeline.inputs import resolve_device
 
 # ------------------------------------------------------------------------- generation
 
@@ -234,6 +237,9 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     if getattr(evaluator, "kind", None) != "evaluator":
         raise SegmoError(f"--evaluator {cfg.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
                          "model, not a T2M evaluator (train one with configs/evaluator/)")
+    if not evaluator.meta.get("words"):  # checked before any generation, which needs it
+        raise SegmoError(f"--evaluator {cfg.evaluator}: config.json's meta has no 'words' (the "
+                         "vocabulary `segmo export` of an evaluator writes)")
     if cfg.real_only:
         model = None
     elif model is None:
@@ -364,10 +370,19 @@ def compare(paths: list[str], out: str | Path) -> str:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no metrics.json (run `segmo evaluate` first)")
         metrics = read_json(path)
-        runs.append((metrics.get("config", {}).get("name") or path.parent.name, metrics))
-    table = report.compare_table(runs)
+        config, generation = metrics.get("config", {}), metrics.get("generation", {})
+        if not isinstance(config, dict) or not isinstance(generation, dict) or not all(
+                isinstance(row, dict) for row in generation.values()):
+            raise SegmoError(f"{path}: not a metrics.json of `segmo evaluate` ('generation' must "
+                             "hold rows and 'config' be an object)")
+        runs.append((config.get("name") or path.parent.name, metrics))
+    try:
+        table = report.compare_table(runs)
+    except ValueError:
+        raise SegmoError("--compare: no metrics.json given has generation rows (real, "
+                         "reconstruction or generated)") from None
     Path(out).mkdir(parents=True, exist_ok=True)
-    (Path(out) / "compare.md").write_text(table + "\n")
+    write_atomic(Path(out) / "compare.md", table + "\n")
     return table
 
 
@@ -476,6 +491,14 @@ def main(argv: list[str] | None = None) -> None:
     unknown = set(skip) - set(SECTIONS)
     if unknown:
         parser.error(f"--skip: unknown section(s) {sorted(unknown)}; choose from {SECTIONS}")
+    try:
+        resolve_device(args.device)
+    except SegmoError as error:
+        parser.error(f"--device {args.device}: {str(error).removeprefix('SegMo: ')}")
+    cores = os.cpu_count() or 1
+    if args.threads and args.threads > 4 * cores:
+        parser.error(f"--threads {args.threads}: this machine has {cores} CPU cores; give at most "
+                     f"{4 * cores}")
     if args.threads:
         torch.set_num_threads(args.threads)
     keep_freed_memory()
