@@ -187,6 +187,10 @@ def test_edit_text_refuses_what_it_cannot_do(segmo_model):
         model.edit_text(source, mode="reweight")
     with pytest.raises(SegmoError, match="names no segment"):
         model.edit_text(source, mode="reweight", weights={"dances": 2.0})
+    with pytest.raises(SegmoError, match="finite float32 number, got 1e"):
+        model.edit_text(source, mode="reweight", weights={1: 1e308})  # inf in float32
+    with pytest.raises(SegmoError, match="weights must be a dict .* got list"):
+        model.edit_text(source, mode="reweight", weights=[(1, 2.0)])
     with pytest.raises(SegmoError, match="inject_until"):
         model.edit_text(source, "a person runs, then jumps.", inject_until=1.5)
     edit = model.edit(source, (0, 8), "a person runs")

@@ -12,6 +12,7 @@ options and hand over here; what the edits do to tokens lives in `segmo.generati
 from __future__ import annotations
 
 import numbers
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 import numpy as np
@@ -168,12 +169,16 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
 def weight_labels(weights: dict[str | int, float], segments: list[str],
                    words: bool) -> dict[str, float]:
     """`edit_text`'s weights → {key label: factor} for one caption's segments."""
+    if not isinstance(weights, Mapping):
+        raise SegmoError(f"SegMo.edit_text: weights must be a dict such as {{1: 2.0}} or "
+                         f"{{'jumps': 2.0}}, got {type(weights).__name__}")
     labels: dict[str, float] = {}
     for key, factor in weights.items():
+        # Attention weights are float32: a factor beyond its range would be inf.
         if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
-                or not np.isfinite(factor):
-            raise SegmoError(f"SegMo.edit_text: weight of {key!r} must be a finite number, "
-                             f"got {factor!r}")
+                or not np.isfinite(factor) or abs(factor) > np.finfo(np.float32).max:
+            raise SegmoError(f"SegMo.edit_text: weight of {key!r} must be a finite float32 "
+                             f"number, got {factor!r}")
         if isinstance(key, numbers.Integral) and not isinstance(key, bool):
             label = f"segment {int(key)}"
         elif isinstance(key, str) and (key.startswith("segment ") or key.startswith("word ")):
