@@ -298,8 +298,9 @@ def _summary(meta: dict, ids: list[str], out_dir: Path, manifest: SegmentManifes
 # --------------------------------------------------------------------------- command
 def _seconds(text: str) -> float:
     value = finite_float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    # A day at most: beyond what the platform's clock holds, a socket fails with OverflowError.
+    if not 0 < value <= 86400:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds in (0, 86400], got {text!r}")
     return value
 
 
