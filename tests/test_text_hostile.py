@@ -71,6 +71,13 @@ def test_empty_texts_folder(tmp_path, capsys, command):
     _fails([command, "--data", str(tmp_path)], capsys, f"{tmp_path / 'texts'} holds no <id>.txt caption files")
 
 
+def test_a_byte_order_mark_is_not_part_of_the_first_caption(tmp_path):
+    root = _data(tmp_path, {"000001": "\ufeffa man walks, then jumps#x#0#0\n".encode()})
+    segment_folder(root, RuleSegmenter(), "rule", progress=False)
+    line = (root / "text_segments" / "rule" / "000001.txt").read_text(encoding="utf-8")
+    assert line.splitlines() == ["a man walks#a man jumps"]
+
+
 @pytest.mark.parametrize("command", ["segment-texts", "encode-texts"])
 def test_texts_not_utf8(tmp_path, capsys, command):
     root = _data(tmp_path, {"000001": "a man walks#x#0#0\n", "000002": b"a man walks#x#0#0\na \xe9t\xe9#x#0#0\n"})

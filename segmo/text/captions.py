@@ -19,6 +19,7 @@ segment file stale (`segmo.text.manifest`).
 
 from __future__ import annotations
 
+import codecs
 import hashlib
 import json
 import math
@@ -58,8 +59,9 @@ def has_words(text: str) -> bool:
 
 
 def read_text(path: Path) -> str:
-    """A file's text, decoded as UTF-8; SegmoError naming the file and line otherwise."""
-    data = path.read_bytes()
+    """A file's text, decoded as UTF-8 (a leading byte-order mark, which Windows editors
+    write, left out); SegmoError naming the file and line otherwise."""
+    data = path.read_bytes().removeprefix(codecs.BOM_UTF8)
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as err:
