@@ -210,13 +210,17 @@ def test_encode_texts_bad_arguments(tmp_path, capsys, argv, expected):
 
         if torch.cuda.is_available():
             pytest.skip("this machine has a CUDA device")
-    _fails(["encode-texts", "--data", str(_data(tmp_path)), *argv], capsys, expected)
+    root = _data(tmp_path)
+    _fails(["encode-texts", "--data", str(root), *argv], capsys, expected)
+    assert not (root / "text_features").exists()  # no empty feature folder left behind
 
 
 def test_encode_texts_unknown_encoder(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    _fails(["encode-texts", "--data", str(_data(tmp_path)), "--encoder", "no-such-encoder"], capsys,
+    root = _data(tmp_path)
+    _fails(["encode-texts", "--data", str(root), "--encoder", "no-such-encoder"], capsys,
            "--encoder 'no-such-encoder': text-encoder weights 'no-such-encoder' are not available")
+    assert not (root / "text_features").exists()
 
 
 def test_encode_texts_encoder_directory_without_config(tmp_path, capsys):

@@ -268,8 +268,8 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
         all_texts = dict.fromkeys([*caption_set, *read_segments(root, segments)])
         name = encoder.name if isinstance(encoder, TextEncoder) else encoder_folder_name(encoder)
         folder = root / "text_features" / name
-        folder.mkdir(parents=True, exist_ok=True)
-        remove_temporaries(folder)  # from a killed run; never referenced
+        if folder.is_dir():
+            remove_temporaries(folder)  # from a killed run; never referenced
 
         index = _read_index(folder) if (folder / INDEX).is_file() else {"format": FORMAT, "shards": []}
         old = _read_json(folder / META, "text-feature metadata") if (folder / META).is_file() else None
@@ -282,6 +282,8 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
         if todo:
             if not isinstance(encoder, TextEncoder):
                 encoder = _load_encoder(encoder, device)
+            # Made once the encoder loads: a bad --encoder or --device leaves no empty folder.
+            folder.mkdir(parents=True, exist_ok=True)
             meta = _meta(encoder)
             if old is not None:
                 if (old.get("dim"), old.get("kind")) != (meta["dim"], meta["kind"]):
