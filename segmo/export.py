@@ -6,9 +6,16 @@ as `_class_path` in the hyper-parameters) or given with `--task`; the task is re
 `meta`) is written with `save_pretrained`. Later stages and the pipeline load the
 directory with `segmo.models.pretrained.load_pretrained`, without Lightning.
 
+The mask and residual tasks are rebuilt around the exported tokenizer they were trained
+with, at the path the checkpoint records (absolute since `segmo fit` resolves it; older
+checkpoints name it relative to the folder training ran in); `--tokenizer` names another.
+The model directory is written whole (`segmo.files.replacing_folder`); a non-empty `--out`
+that holds anything else than such a directory is refused unless `--overwrite`.
+
 A checkpoint whose tensors are not all finite (a run that diverged) is refused, naming
-the tensors; so is a file that is not a checkpoint of `segmo fit`. Each is one line
-(`SegmoError`), which `segmo export` prints with exit status 2.
+the tensors; so is a file that is not a checkpoint of `segmo fit`, and a tokenizer that
+cannot be found. Each is one line (`SegmoError`), which `segmo export` prints with exit
+status 2.
 
 Example: `segmo export runs/rvq/synthetic/version_0/checkpoints/last.ckpt --out models/rvq`
 """
@@ -22,7 +29,9 @@ from pathlib import Path
 import torch
 
 from segmo.errors import ArgumentParser, SegmoError
+from segmo.files import foreign_entries, replacing_folder
 from segmo.models.hub import portable_path
+from segmo.models.pretrained import CONFIG_FILE, WEIGHTS_FILE, read_config
 
 SHOWN = 5  # non-finite tensors named in a message
 
@@ -38,8 +47,10 @@ def task_class_path(checkpoint: dict, path: str | Path) -> str:
     return class_path
 
 
-def load_task(path: str | Path, task: str | None = None, map_location: str = "cpu"):
-    """Rebuild the LightningModule saved in checkpoint `path` (class path `task` or recorded)."""
+def load_task(path: str | Path, task: str | None = None, map_location: str = "cpu",
+              tokenizer: str | Path | None = None):
+    """Rebuild the LightningModule saved in checkpoint `path` (class path `task` or recorded;
+    a token-level task around the exported tokenizer `tokenizer` or the recorded one)."""
     # Lightning takes seconds to import: kept out of `segmo export --help` and bad arguments.
     from lightning.pytorch import LightningModule
 
@@ -61,7 +72,38 @@ def load_task(path: str | Path, task: str | None = None, map_location: str = "cp
         raise SegmoError(f"{class_path!r} is not a LightningModule")
     if not hasattr(cls, "export_model"):
         raise SegmoError(f"{class_path!r} has no export_model(); it cannot be exported")
-    return cls.load_from_checkpoint(path, map_location=map_location), class_path, checkpoint
+    arguments = tokenizer_argument(checkpoint, path, tokenizer)
+    try:
+        module = cls.load_from_checkpoint(path, map_location=map_location, **arguments)
+    except Exception as error:
+        # jsonargparse, which rebuilds tasks trained by `segmo fit`, wraps the task's own
+        # one-line error (a damaged tokenizer directory) in a page of its attempts.
+        inner = error
+        while inner is not None and not isinstance(inner, SegmoError):
+            inner = inner.__cause__ or inner.__context__
+        if inner is None:
+            raise
+        raise SegmoError(f"{path}: {inner}") from None
+    return module, class_path, checkpoint
+
+
+def tokenizer_argument(checkpoint: dict, path: str | Path, tokenizer: str | Path | None) -> dict:
+    """The tokenizer argument to rebuild the task with: {"tokenizer": `tokenizer`} (checked),
+    none for the recorded one when it is found; a SegmoError saying which to pass when not."""
+    recorded = (checkpoint.get("hyper_parameters") or {}).get("tokenizer")
+    if tokenizer is not None:
+        if recorded is None:
+            raise SegmoError(f"--tokenizer: {path} is a checkpoint of a task without a tokenizer")
+        if not (Path(tokenizer) / CONFIG_FILE).is_file():
+            raise SegmoError(f"--tokenizer {tokenizer}: not an exported tokenizer directory (no "
+                             f"{CONFIG_FILE})")
+        return {"tokenizer": str(Path(tokenizer).resolve())}
+    if recorded is None or (Path(recorded) / CONFIG_FILE).is_file():
+        return {}
+    where = ("" if Path(recorded).is_absolute() else
+             f" (relative to the folder `segmo fit` ran in, not to {Path.cwd()})")
+    raise SegmoError(f"{path}: the tokenizer it was trained with, {recorded}{where}, is not an "
+                     f"exported tokenizer directory; pass --tokenizer DIR")
 
 
 def check_finite(state_dict: dict, path: str | Path) -> None:
@@ -96,9 +138,15 @@ def training_data(hparams: dict) -> dict:
     return data
 
 
-def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None) -> Path:
-    """Write the model directory of `checkpoint_path` to `out`; returns `out`."""
-    module, class_path, checkpoint = load_task(checkpoint_path, task)
+def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None,
+           tokenizer: str | Path | None = None, overwrite: bool = False) -> Path:
+    """Write the model directory of `checkpoint_path` to `out`, replacing it whole; returns
+    `out`. Without `overwrite`, a non-empty `out` must be a model directory holding nothing
+    else (exporting again is fine)."""
+    out = Path(out)
+    if not overwrite:
+        check_replaceable(out)
+    module, class_path, checkpoint = load_task(checkpoint_path, task, tokenizer=tokenizer)
     model = module.export_model().eval()
     meta = {
         "task": class_path,
@@ -108,7 +156,27 @@ def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None
     data = training_data(checkpoint.get("datamodule_hyper_parameters") or {})
     if data:
         meta["data"] = data
-    return model.save_pretrained(out, meta=meta)
+    with replacing_folder(out) as tmp:
+        model.save_pretrained(tmp, meta=meta)
+    return out
+
+
+def check_replaceable(out: Path) -> None:
+    """Refuse an `out` whose replacement by a model directory would delete files: one that
+    is not a model directory, or one holding files of the user's besides the model."""
+    if out.exists() and not out.is_dir():
+        raise SegmoError(f"{out} exists and is not a folder")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    try:
+        read_config(out)
+    except (OSError, SegmoError):
+        raise SegmoError(f"{out} is not empty and holds no segmo model ({CONFIG_FILE}); pass "
+                         "overwrite=True (--overwrite) to replace it") from None
+    extra = foreign_entries(out, [CONFIG_FILE, WEIGHTS_FILE])
+    if extra:
+        raise SegmoError(f"{out} holds another model and {', '.join(extra)}, which the export "
+                         "would delete; pass overwrite=True (--overwrite) or choose another folder")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -121,10 +189,17 @@ def main(argv: list[str] | None = None) -> None:
         "--task", default=None,
         help="task class path, e.g. segmo.tasks.tokenizer.RVQTask (default: recorded in the checkpoint)",
     )
+    parser.add_argument(
+        "--tokenizer", default=None,
+        help="exported tokenizer of a mask or residual checkpoint (default: the one recorded "
+             "in the checkpoint)",
+    )
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a folder that holds something else than this model")
     args = parser.parse_args(argv)
     if not Path(args.checkpoint).is_file():
         raise SegmoError(f"{args.checkpoint}: no such checkpoint file")
-    print(export(args.checkpoint, args.out, args.task))
+    print(export(args.checkpoint, args.out, args.task, args.tokenizer, args.overwrite))
 
 
 if __name__ == "__main__":

@@ -7,6 +7,11 @@ new one, never a part; a killed writer leaves at most a ``.<name>.<pid>.<n>.tmp`
 which `remove_temporaries` clears under the folder's lock. Files get the permissions of a
 plain `open` (0666 minus the umask), not `mkstemp`'s 0600.
 
+`replacing_folder` writes a whole folder (a model directory, a bundle) the same way: it is
+built beside the target and renamed into its place, so no file of an earlier folder lingers
+in it; `foreign_entries` names what such a replacement would delete that its writer would
+not write back.
+
 `FolderLock` makes the "one writer per data folder" rule an enforced one: `segment-texts`,
 `encode-texts` and `synth` hold ``DIR/.segmo-writer.lock`` while they write. A second
 writer fails at once with `FolderBusyError` naming the holder's PID and command, and
@@ -23,11 +28,12 @@ import itertools
 import json
 import logging
 import os
+import shutil
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import IO, Any
 
 from segmo.errors import FolderBusyError
@@ -81,6 +87,49 @@ def remove_temporaries(folder: str | os.PathLike) -> int:
         leftover.unlink(missing_ok=True)
         removed += 1
     return removed
+
+
+@contextmanager
+def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
+    """Yield an empty temporary folder beside `folder` that takes its place whole (an
+    existing `folder` is deleted) when the block ends without an exception, and is deleted
+    when it raises. A reader finds the old folder or the new one, never a mix of both; a
+    killed writer leaves ``NAME.tmp-<pid>-<n>`` (or ``NAME.old-<pid>-<n>``) beside it."""
+    target = Path(folder).resolve()  # a symbolic link keeps pointing at the new folder
+    suffix = f"{os.getpid()}-{next(_counter)}"
+    tmp = target.with_name(f"{target.name}.tmp-{suffix}")
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+        if target.exists():
+            old = target.with_name(f"{target.name}.old-{suffix}")
+            target.rename(old)
+            tmp.rename(target)
+            shutil.rmtree(old)
+        else:
+            tmp.rename(target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def foreign_entries(folder: str | os.PathLike, expected: Iterable[str]) -> list[str]:
+    """What `folder` holds besides the `expected` files (POSIX paths relative to it), as
+    paths relative to it: a whole subfolder no expected file lies in is one entry."""
+    expected = set(expected)
+    parents = {str(parent) for path in expected for parent in PurePosixPath(path).parents} - {"."}
+    found: list[str] = []
+
+    def walk(directory: Path, prefix: str) -> None:
+        for entry in sorted(directory.iterdir()):
+            name = prefix + entry.name
+            if name in parents and entry.is_dir() and not entry.is_symlink():
+                walk(entry, name + "/")
+            elif name not in expected or not entry.is_file():
+                found.append(name)
+
+    walk(Path(folder), "")
+    return found
 
 
 class FolderLock:

@@ -7,11 +7,13 @@ network; the alignment ablations all train a step.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
+from conftest import cli_failure
 
 from segmo.models.mask_transformer import masked_token_loss
 from segmo.models.pretrained import load_pretrained
@@ -180,6 +182,68 @@ def test_export_reproduces_the_task(text_dataset, tokenizer_dir, tmp_path):
             torch.tensor([[True, True, False, False, False]] * b))
     with torch.no_grad():
         assert torch.equal(model(*args).logits, task.model(*args).logits)
+
+
+def test_export_works_from_any_folder(text_dataset, tokenizer_dir, tmp_path, monkeypatch, capsys):
+    """A fit given the tokenizer relative to its folder records it absolute, so the export
+    runs anywhere; a checkpoint naming it relative (as before) is one line there, and
+    --tokenizer names it."""
+    from segmo.export import main as export_main
+
+    config = REPO / "configs/mask/synthetic.yaml"
+    (tmp_path / "train").mkdir()
+    shutil.copytree(tokenizer_dir["t2m"], tmp_path / "train" / "rvq")
+    monkeypatch.chdir(tmp_path / "train")
+    cli = cli_main(["fit", "--config", str(config),
+                    *overrides(config, text_dataset, {"t2m": "rvq"}, tmp_path / "runs"),
+                    "--trainer.fast_dev_run=true"])
+    cli.trainer.save_checkpoint(tmp_path / "final.ckpt")
+    checkpoint = torch.load(tmp_path / "final.ckpt", weights_only=False)
+    assert checkpoint["hyper_parameters"]["tokenizer"] == str((tmp_path / "train/rvq").resolve())
+    monkeypatch.chdir(tmp_path)
+    export_main([str(tmp_path / "final.ckpt"), "--out", str(tmp_path / "mask")])
+    assert load_pretrained(tmp_path / "mask").meta["tokenizer"].endswith("rvq")
+
+    checkpoint["hyper_parameters"]["tokenizer"] = "rvq"  # as fits recorded it before
+    torch.save(checkpoint, tmp_path / "old.ckpt")
+    line = cli_failure(["export", str(tmp_path / "old.ckpt"), "--out", str(tmp_path / "m2")], capsys)
+    assert line.startswith("segmo export: ") and "rvq (relative to the folder `segmo fit` ran in" in line
+    assert "pass --tokenizer DIR" in line and not (tmp_path / "m2").exists()
+    line = cli_failure(["export", str(tmp_path / "old.ckpt"), "--out", str(tmp_path / "m2"),
+                        "--tokenizer", str(tmp_path / "train")], capsys)
+    assert "--tokenizer" in line and "not an exported tokenizer directory" in line
+    export_main([str(tmp_path / "old.ckpt"), "--out", str(tmp_path / "m2"), "--tokenizer",
+                 str(tmp_path / "train/rvq")])
+    assert load_pretrained(tmp_path / "m2").kind == "mask"
+
+
+def test_export_replaces_only_its_own_model_directory(text_dataset, tokenizer_dir, tmp_path, capsys):
+    """Exporting again into the same folder works; a folder holding anything else (the
+    user's config.json, a file beside a model) is refused without --overwrite, untouched."""
+    from segmo.export import main as export_main
+
+    config = REPO / "configs/length/synthetic.yaml"
+    cli = cli_main(["fit", "--config", str(config),
+                    *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                    "--trainer.fast_dev_run=true"])
+    ckpt = str(tmp_path / "final.ckpt")
+    cli.trainer.save_checkpoint(ckpt)
+    out = tmp_path / "out"
+    export_main([ckpt, "--out", str(out)])
+    export_main([ckpt, "--out", str(out)])
+    (out / "notes.txt").write_text("mine\n")
+    line = cli_failure(["export", ckpt, "--out", str(out)], capsys)
+    assert "holds another model and notes.txt, which the export would delete" in line
+    assert "--overwrite" in line and (out / "notes.txt").read_text() == "mine\n"
+    export_main([ckpt, "--out", str(out), "--overwrite"])
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "model.safetensors"]
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "config.json").write_text('{"mine": 1}\n')
+    line = cli_failure(["export", ckpt, "--out", str(user)], capsys)
+    assert "is not empty and holds no segmo model" in line and "--overwrite" in line
+    assert (user / "config.json").read_text() == '{"mine": 1}\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["final.ckpt", "out", "runs", "user"]
 
 
 def test_gt_token_spans_and_segment_top1():

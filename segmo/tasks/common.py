@@ -81,6 +81,8 @@ class TransformerTask(Task):
         super().__init__()
         self.save_hyperparameters()
         self.tokenizer = load_tokenizer(tokenizer)
+        # Checkpoints record it absolute: `segmo export` rebuilds the task from any folder.
+        self.hparams.tokenizer = str(Path(tokenizer).resolve())
 
     def keep_local(self, drop: Tensor) -> Tensor | None:
         """(b,) bool: the dropped samples that keep their local condition
