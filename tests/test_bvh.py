@@ -198,6 +198,16 @@ def test_bvh_target_frame_rate(tmp_path):
     assert np.abs(_read(path, "bvh")[::3] - original).max() < 1e-4  # the 20 fps frames are kept
 
 
+@pytest.mark.parametrize("rates", [{"target_fps": 1e-9}, {"target_fps": 1000}, {"fps": 1e-9},
+                                   {"fps": 20, "target_fps": float("nan")}])
+def test_bvh_refuses_a_frame_rate_out_of_range(tmp_path, rates):
+    """1e-9 fps wrote one frame, 1e7 fps asked for gigabytes: refused, naming the argument."""
+    name = "target_fps" if "target_fps" in rates else "fps"
+    with pytest.raises(ValueError, match=rf"joints_to_bvh: {name}: expected a frame rate in \[12, 480\]"):
+        joints_to_bvh(_corpus_joints(4), tmp_path / "x.bvh", foot_lock=False, **rates)
+    assert not (tmp_path / "x.bvh").exists()
+
+
 def test_bvh_rejects_wrong_shape(tmp_path):
     with pytest.raises(ValueError, match=r"\(t, 22, 3\)"):
         joints_to_bvh(np.zeros((5, 21, 3)), tmp_path / "x.bvh")

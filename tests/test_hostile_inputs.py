@@ -66,6 +66,12 @@ CLI_CASES = [
         "a negative temperature"),
     Cli("generate-bvh-fps-zero", GEN + " --text walk --bvh-fps 0", "--bvh-fps", "a BVH frame rate of 0"),
     Cli("generate-steps-zero", GEN + " --text walk --steps 0", "--steps", "0 decoding steps"),
+    Cli("generate-steps-huge", GEN + " --text walk --steps 1000000000", "steps must be a whole "
+        "number in [1, 1000]", "a billion decoding steps (took 18 GB before it was killed)"),
+    Cli("generate-seed-huge", GEN + " --text walk --seed 99999999999999999999999", "--seed",
+        "a seed beyond 64 bits (was a traceback from torch)"),
+    Cli("generate-length-huge", GEN + " --text walk --length 100000000000000000000000", "--length",
+        "a length beyond 64 bits (was a traceback from torch)"),
     Cli("generate-length-fraction", GEN + " --text walk --length 40.7", "--length",
         "`--length 40.7` (was truncated to 40)"),
     Cli("generate-length-not-multiple", GEN + " --text walk --length 30", "multiples of 4",
@@ -101,6 +107,15 @@ CLI_CASES = [
         "format 99", "a segmo.json of an unknown format"),
     Cli("generate-bundle-guidance", "generate --model {bad_guidance} --text walk --out {tmp}/g",
         "guidance_scale", "a segmo.json whose guidance scale is a string"),
+    Cli("generate-bundle-fps", "generate --model {bad_fps} --text walk --out {tmp}/g",
+        "segmo.json: 'fps' must be a frame rate", "a segmo.json whose fps is a string (failed "
+        "when the GIF was written, after the npy files)"),
+    Cli("generate-bundle-text-segmenter", "generate --model {bad_text_segmenter} --text walk "
+        "--out {tmp}/g", "segmo.json: 'text_segmenter'", "a segmo.json naming an unknown text "
+        "segmenter"),
+    Cli("generate-bundle-motion-segmenter", "generate --model {bad_motion_segmenter} --text walk "
+        "--out {tmp}/g", "segmo.json: 'motion_segmenter'", "a segmo.json whose motion segmenter "
+        "is a number"),
     Cli("generate-bundle-steps", "generate --model {bad_steps} --text walk --out {tmp}/g",
         "segmo.json: steps", "a segmo.json with 0 decoding steps"),
     Cli("generate-residual-layers", GEN + " --text walk --residual-guided-layers -1",
@@ -205,10 +220,18 @@ CLI_CASES = [
         "--out {tmp}/e --grounding-window 4,x", "--grounding-window", "a bad grounding window"),
     Cli("evaluate-evaluator-kind", "evaluate --real-only --data {corpus} --evaluator "
         "{bundle}/mask --out {tmp}/e", "--evaluator", "a mask stage as evaluator"),
+    Cli("evaluate-device", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --device toaster", "--device toaster", "a device torch does not know"),
+    Cli("evaluate-threads-huge", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --threads 100000000000000", "--threads", "10^14 threads (was a traceback)"),
     Cli("evaluate-compare-missing", "evaluate --compare {tmp}/nope --out {tmp}/e",
         "metrics.json", "`--compare` of a folder without metrics.json"),
     Cli("evaluate-compare-json", "evaluate --compare {bad_metrics} --out {tmp}/e",
         "metrics.json:1", "`--compare` of an invalid metrics.json"),
+    Cli("evaluate-compare-shape", "evaluate --compare {odd_metrics} --out {tmp}/e",
+        "odd/metrics.json: not a metrics.json", "`--compare` of a metrics.json of other shape"),
+    Cli("evaluate-compare-empty", "evaluate --compare {empty_metrics} --out {tmp}/e",
+        "no metrics.json given has generation rows", "`--compare` of a metrics.json without rows"),
     # -- segmo export, fit, validate, test (more of fit: tests/test_training_cli.py)
     Cli("export-missing", "export {tmp}/none.ckpt --out {tmp}/m", "none.ckpt",
         "a checkpoint that does not exist"),
@@ -257,6 +280,9 @@ API_CASES = [
         "`generate(lengths=[True])`"),
     Api("api-lengths-nan", lambda m, w: m.generate(["walk"], float("nan")), SegmoError, "nan",
         "`generate(lengths=nan)`"),
+    Api("api-lengths-huge", lambda m, w: m.generate(["walk"], 10**30), SegmoError,
+        "a length of 1000000000000000000000000000000 frames is out of range",
+        "`generate(lengths=10**30)` (was a traceback from torch)"),
     Api("api-lengths-count", lambda m, w: m.generate(["walk", "run"], [40, 40, 40]), SegmoError,
         "3 lengths for 2 texts", "three lengths for two texts"),
     Api("api-text-none", lambda m, w: m.generate([None], [40]), SegmoError, "text 0",
@@ -348,6 +374,12 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     (files["foreign"] / "thesis.tex").write_text("mine")
     files["bad_metrics"] = tmp / "metrics.json"
     files["bad_metrics"].write_text("{oops")
+    files["odd_metrics"] = tmp / "odd" / "metrics.json"
+    files["odd_metrics"].parent.mkdir()
+    files["odd_metrics"].write_text('{"generation": "oops", "config": 5}')
+    files["empty_metrics"] = tmp / "empty" / "metrics.json"
+    files["empty_metrics"].parent.mkdir()
+    files["empty_metrics"].write_text("{}")
     files["junk_ckpt"] = tmp / "junk.ckpt"
     files["junk_ckpt"].write_bytes(b"not a checkpoint")
     files["list_ckpt"] = tmp / "list.ckpt"
@@ -370,6 +402,11 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     variant("bad_guidance", lambda d: edit_json(d / "segmo.json",
                                                 lambda p: p.update(guidance_scale="high")))
     variant("bad_steps", lambda d: edit_json(d / "segmo.json", lambda p: p.update(steps=0)))
+    variant("bad_fps", lambda d: edit_json(d / "segmo.json", lambda p: p.update(fps="fast")))
+    variant("bad_text_segmenter", lambda d: edit_json(d / "segmo.json",
+                                                      lambda p: p.update(text_segmenter="llama")))
+    variant("bad_motion_segmenter", lambda d: edit_json(d / "segmo.json",
+                                                        lambda p: p.update(motion_segmenter=42)))
     variant("bad_config_json", lambda d: (d / "mask" / "config.json").write_text("{kind"))
     variant("extra_field", lambda d: edit_json(d / "mask" / "config.json",
                                                lambda p: p["config"].update(wings=2)))

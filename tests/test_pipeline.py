@@ -579,6 +579,27 @@ def test_cli_generate_writes_npy_gif_bvh(bundle, tmp_path, hash_text_encoder, ca
     assert "Frames: 16" in text and "Frame Time: 0.050000" in text
 
 
+@pytest.mark.parametrize("command", ["generate --text walk", "edit --source-text walk "
+                                     "--target-text run", "compose --text walk --length 40"])
+@pytest.mark.parametrize("fps", ["1e7", "1e-9", "481", "11"])
+def test_cli_bvh_fps_out_of_range_is_refused_at_parsing(bundle, tmp_path, capsys, monkeypatch,
+                                                         command, fps):
+    """1e7 fps asked for 28.8 GiB, 1e-9 fps wrote a one-frame BVH; now refused before the
+    model is loaded."""
+    monkeypatch.setattr(SegMo, "from_pretrained", lambda *a, **k: pytest.fail("model loaded"))
+    line = cli_failure([*command.split(), "--model", str(bundle), "--out", str(tmp_path / "o"),
+                        "--bvh-fps", fps], capsys)
+    assert "argument --bvh-fps: expected a frame rate in [12, 480] fps" in line, line
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("fps", [1e-9, 1000.0])
+def test_generation_output_save_refuses_a_bvh_fps_out_of_range(generated, tmp_path, fps):
+    with pytest.raises(SegmoError, match=r"GenerationOutput.save: bvh_fps: expected a frame rate"):
+        generated.save(tmp_path / "out", formats=("npy", "bvh"), bvh_fps=fps)
+    assert not (tmp_path / "out").exists()  # refused before any file is written
+
+
 def test_cli_compose_writes_one_long_motion(bundle, tmp_path, hash_text_encoder, capsys):
     from segmo.pipeline.cli import compose_main
 
@@ -627,6 +648,21 @@ def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, ca
         assert message in line
 
 
+def test_cli_edit_lists_source_and_edit_in_one_prompts_json(bundle, tmp_path, hash_text_encoder,
+                                                            capsys):
+    """The edit's save overwrote the source's prompts.json, and printed it twice."""
+    from segmo.pipeline.cli import edit_main
+
+    out = tmp_path / "edit"
+    edit_main(["--model", str(bundle), "--source-text", PROMPTS[0], "--target-text", PROMPTS[1],
+               "--length", "24", "--out", str(out), "--formats", "npy"])
+    printed = capsys.readouterr().out.split()
+    index = json.loads((out / "prompts.json").read_text())
+    assert [(e["file"], e["text"]) for e in index] == [("source_00", PROMPTS[0]),
+                                                      ("edit_00", PROMPTS[1])]
+    assert sorted(printed) == sorted(set(printed)) == sorted(str(p) for p in out.iterdir())
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),
@@ -668,6 +704,26 @@ def test_cli_ground_prints_spans(bundle, generated, tmp_path, hash_text_encoder,
     assert "--window is for --search window, not --search spans" in line
 
 
+def test_cli_ground_checks_out_before_grounding(bundle, generated, tmp_path, hash_text_encoder,
+                                                capsys, monkeypatch):
+    """--out map.txt failed in matplotlib after the grounding; --out DIR wrote DIR.png and
+    printed DIR."""
+    motion = tmp_path / "motion.npy"
+    np.save(motion, generated.motion(0))
+    ground = ["ground", "--model", str(bundle), "--text", PROMPTS[0], "--motion", str(motion)]
+    with monkeypatch.context() as patch:
+        patch.setattr(SegMo, "from_pretrained", lambda *a, **k: pytest.fail("model loaded"))
+        for out, problem in ((tmp_path / "map.txt", "name an image file ending in .png, .pdf"),
+                             (tmp_path / "map", "name an image file ending in .png, .pdf"),
+                             (tmp_path, "is a directory")):
+            line = cli_failure([*ground, "--out", str(out)], capsys)
+            assert line.startswith(f"segmo ground: --out {out}: {problem}"), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["motion.npy"]
+    ground_main([*ground[1:], "--out", str(tmp_path / "maps" / "map.SVG")])
+    assert f"similarity map: {tmp_path / 'maps' / 'map.SVG'}\n" in capsys.readouterr().out
+    assert (tmp_path / "maps" / "map.SVG").read_text().lstrip().startswith("<?xml")
+
+
 def test_generation_output_save_rejects_unknown_format(generated, tmp_path):
     assert isinstance(generated, GenerationOutput)
     with pytest.raises(ValueError, match="unknown format"):
@@ -699,6 +755,35 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     line = cli_failure(["bundle", "--tokenizer", str(tmp_path / "none"), "--mask",
                         str(stages["mask"]), "--out", str(tmp_path / "d")], capsys)
     assert "--tokenizer" in line and "no such directory" in line
+
+
+
+def test_cli_bundle_into_an_existing_folder(stages, tmp_path, capsys):
+    """Writing the same bundle again works; a folder holding what the new bundle would not
+    write back (an earlier bundle's stages, the user's files) is refused untouched without
+    --overwrite, and replaced whole with it, so no stale stage is loaded."""
+    out = tmp_path / "b"
+    two = ["--tokenizer", str(stages["tokenizer"]), "--mask", str(stages["mask"]), "--out", str(out)]
+    four = [*two, "--residual", str(stages["residual"]), "--length", str(stages["length"])]
+    bundle_main(four)
+    bundle_main(four)
+    line = cli_failure(["bundle", *two], capsys)
+    assert "holds another bundle and length, residual, which this bundle would delete" in line
+    assert "--overwrite" in line and SegMo.from_pretrained(out).residual is not None
+    bundle_main([*two, "--overwrite"])
+    assert sorted(p.name for p in out.iterdir()) == ["README.md", "mask", "segmo.json", "tokenizer"]
+    loaded = SegMo.from_pretrained(out)
+    assert loaded.residual is None and loaded.length is None
+    (out / "mask" / "notes.txt").write_text("mine\n")
+    line = cli_failure(["bundle", *two], capsys)
+    assert "mask/notes.txt" in line and (out / "mask" / "notes.txt").is_file()
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "README.md").write_text("mine\n")
+    line = cli_failure(["bundle", *two[:4], "--out", str(user)], capsys)
+    assert "is not empty and holds no segmo.json" in line and "--overwrite" in line
+    assert (user / "README.md").read_text() == "mine\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b", "user"]  # no temporary left
 
 
 def test_cli_bundle_records_segment_guidance(stages, tmp_path, hash_text_encoder, capsys):

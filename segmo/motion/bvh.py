@@ -28,10 +28,12 @@ from typing import Any, Literal
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.motion.skeleton_fit import SkeletonFit, fit_motion
 
-__all__ = ["ANIMATION_FPS", "joints_to_bvh", "euler_orders", "continuous_euler", "write_bvh"]
+__all__ = ["ANIMATION_FPS", "MAX_BVH_FPS", "MIN_BVH_FPS", "check_bvh_fps", "joints_to_bvh",
+           "euler_orders", "continuous_euler", "write_bvh"]
 
 # Frame rate of the BVH files segmo writes for animation tools (`segmo generate`, `edit`,
 # `compose`, `serve`, `GenerationOutput.save`): at the data's 20 fps a punch or a kick turns a
@@ -39,6 +41,12 @@ __all__ = ["ANIMATION_FPS", "joints_to_bvh", "euler_orders", "continuous_euler",
 # interpolation between keys cannot follow; at 60 fps (slerp between the data's frames, which
 # are kept) no channel of the corpus test split moves by more than 30 degrees a frame.
 ANIMATION_FPS = 60.0
+# The frame rates a BVH file is written at or resampled from: from 12 fps, the lowest rate
+# animation plays at, at which the shortest motion (one token, 4 frames at 20 fps: 0.15 s)
+# still has two frames, to 480 fps, above what motion capture records; beyond it the
+# resampled rotations only grow (1e7 fps asked for 28.8 GiB), below it a motion collapses
+# to one pose.
+MIN_BVH_FPS, MAX_BVH_FPS = 12.0, 480.0
 
 END_SITE_LENGTH = 0.05  # metres: the nominal tip drawn after leaf joints
 ROOT_ORDERS = ("YXZ", "YZX")  # heading (about y, up) first
@@ -115,6 +123,19 @@ def continuous_euler(rotations: np.ndarray, order: str) -> np.ndarray:
     return out.reshape(t, *batch, 3)
 
 
+def check_bvh_fps(fps: Any, name: str) -> float:
+    """`fps` as a float when it is a frame rate in [MIN_BVH_FPS, MAX_BVH_FPS]; a SegmoError
+    naming the argument `name` otherwise."""
+    try:
+        value = float(fps)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not MIN_BVH_FPS <= value <= MAX_BVH_FPS:  # NaN too
+        raise SegmoError(f"{name}: expected a frame rate in [{MIN_BVH_FPS:g}, {MAX_BVH_FPS:g}] "
+                         f"fps, got {fps!r}")
+    return value
+
+
 def _resample(fit: SkeletonFit, fps: float, target_fps: float) -> tuple[np.ndarray, np.ndarray]:
     """Root (t', 3) and local rotations (t', j, 3, 3) at `target_fps` (linear / slerp)."""
     t = len(fit.root)
@@ -135,13 +156,12 @@ def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec =
     """Write a fitted skeleton (`segmo.motion.skeleton_fit.fit_skeleton`) as a BVH file.
 
     fps: the fit's frame rate (default the skeleton's); target_fps: the file's (default
-    the same; other rates are resampled, rotations by slerp). scale multiplies lengths.
+    the same; other rates are resampled, rotations by slerp); both within [MIN_BVH_FPS,
+    MAX_BVH_FPS] (`check_bvh_fps`). scale multiplies lengths.
     """
     spec = get_skeleton(skeleton)
-    fps = float(spec.fps if fps is None else fps)
-    target_fps = fps if target_fps is None else float(target_fps)
-    if not (fps > 0 and np.isfinite(fps)) or not (target_fps > 0 and np.isfinite(target_fps)):
-        raise ValueError(f"write_bvh: fps and target_fps must be positive, got {fps} and {target_fps}")
+    fps = check_bvh_fps(spec.fps if fps is None else fps, "write_bvh: fps")
+    target_fps = fps if target_fps is None else check_bvh_fps(target_fps, "write_bvh: target_fps")
     root, local = _resample(fit, fps, target_fps)
     orders = euler_orders(local)
     angles = np.stack([np.degrees(continuous_euler(local[:, j], orders[j]))
@@ -202,11 +222,15 @@ def joints_to_bvh(
     """Write joints (t, j, 3) (numpy or torch, y up) as a BVH file and return its path.
 
     fps: the joints' frame rate, default the skeleton's (t2m: 20); target_fps: the file's
-    (default the same). scale multiplies all lengths (1 keeps the data units, metres for
-    t2m; 100 gives centimetres). foot_lock, contacts, bone_lengths: see
-    `segmo.motion.skeleton_fit.fit_motion`; `write_bvh` writes a fit made elsewhere.
+    (default the same); both within [MIN_BVH_FPS, MAX_BVH_FPS]. scale multiplies all lengths
+    (1 keeps the data units, metres for t2m; 100 gives centimetres). foot_lock, contacts,
+    bone_lengths: see `segmo.motion.skeleton_fit.fit_motion`; `write_bvh` writes a fit made
+    elsewhere.
     """
     spec = get_skeleton(skeleton)
+    for name, value in (("fps", fps), ("target_fps", target_fps)):
+        if value is not None:  # before the fit
+            check_bvh_fps(value, f"joints_to_bvh: {name}")
     if hasattr(joints, "detach"):
         joints = joints.detach().cpu().numpy()
     positions = np.asarray(joints, dtype=np.float64)

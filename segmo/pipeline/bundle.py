@@ -10,7 +10,10 @@
     DIR/length/        length estimator (optional)
 
 Each stage directory is a `segmo.models.pretrained` model directory (`segmo export`). A
-bundle is read from a folder or a Hugging Face hub id (`segmo.models.hub`).
+bundle is read from a folder or a Hugging Face hub id (`segmo.models.hub`). It is written
+whole (`segmo.files.replacing_folder`): `SegMo.from_pretrained` loads every stage folder it
+finds, so no stage of an earlier bundle may stay behind. A folder that holds anything a
+rebuild would delete (such a stage, a file of the user's) is refused without ``overwrite``.
 """
 
 from __future__ import annotations
@@ -22,19 +25,29 @@ import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import get_args
 
 import torch
 
 from segmo.errors import SegmoError
-from segmo.files import write_atomic
+from segmo.files import foreign_entries, replacing_folder, write_atomic
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.hub import FORMAT, check_format, push_folder, resolve, segmo_version
-from segmo.models.pretrained import load_pretrained, read_config, read_json
+from segmo.models.pretrained import (
+    CONFIG_FILE,
+    WEIGHTS_FILE,
+    load_pretrained,
+    read_config,
+    read_json,
+)
 from segmo.pipeline.model_card import CARD_FILE, model_card
+from segmo.segmentation import SegmenterName
 
 BUNDLE_FILE = "segmo.json"
 BUNDLE_FORMAT = FORMAT
 STAGES = {"tokenizer": "rvq", "mask": "mask", "residual": "residual", "length": "length"}
+# The text-segmenter backends a bundle may name (`segmo.text.llm.get_text_segmenter`).
+TEXT_SEGMENTERS = ("rule", "openai", "transformers")
 KIT_GUIDANCE_SCALE = 2.0  # spec §8: KIT's base-token guidance scale; HumanML3D's is the default
 
 
@@ -105,6 +118,15 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
     if not isinstance(config.text_encoder, str):
         raise SegmoError(f"{path}: 'text_encoder' must name the text encoder, got "
                          f"{config.text_encoder!r}")
+    fps = config.fps  # the frame rate of the motions, which the GIFs and BVH files play at
+    if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not 1 <= fps <= 1000:
+        raise SegmoError(f"{path}: 'fps' must be a frame rate from 1 to 1000, got {fps!r}")
+    if config.text_segmenter not in TEXT_SEGMENTERS:
+        raise SegmoError(f"{path}: 'text_segmenter' must be one of {', '.join(TEXT_SEGMENTERS)}, "
+                         f"got {config.text_segmenter!r}")
+    if config.motion_segmenter not in get_args(SegmenterName):
+        raise SegmoError(f"{path}: 'motion_segmenter' must be one of "
+                         f"{', '.join(get_args(SegmenterName))}, got {config.motion_segmenter!r}")
     for name in ("guidance_scale", "residual_guidance_scale"):
         value = getattr(config, name)
         if isinstance(value, bool) or not isinstance(value, numbers.Real) \
@@ -125,21 +147,46 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
 def write_bundle(directory: str | os.PathLike, config: SegMoConfig,
                  stages: dict[str, torch.nn.Module | None], metrics: dict | None = None,
                  push_to_hub: bool = False, repo_id: str | None = None,
-                 private: bool = False) -> Path:
+                 private: bool = False, overwrite: bool = False) -> Path:
     """Write every stage given, `segmo.json` and the model card (with `metrics`, a
-    `segmo evaluate` metrics.json, when given) to `directory`; with `push_to_hub`, upload
-    the folder to the hub repository `repo_id`. Returns `directory`."""
+    `segmo evaluate` metrics.json, when given) to `directory`, replacing it whole; with
+    `push_to_hub`, upload the folder to the hub repository `repo_id`. Returns `directory`.
+
+    Without `overwrite`, a non-empty `directory` must be a bundle holding nothing but what
+    this one writes (rewriting the same bundle is fine)."""
     if push_to_hub and not repo_id:
         raise SegmoError("save_pretrained: push_to_hub needs repo_id ('owner/name')")
     SamplingOptions(**sampling_fields(config))  # no bundle that could not be loaded back
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    for name, module in stages.items():
-        if module is not None:
-            module.save_pretrained(directory / name)
-    payload = {**dataclasses.asdict(config), "format": BUNDLE_FORMAT, "segmo_version": segmo_version()}
-    write_atomic(directory / BUNDLE_FILE, json.dumps(payload, indent=2) + "\n")
-    write_atomic(directory / CARD_FILE, model_card(config, stages, metrics))
+    given = [name for name, module in stages.items() if module is not None]
+    if not overwrite:
+        check_replaceable(directory, given)
+    with replacing_folder(directory) as tmp:
+        for name in given:
+            stages[name].save_pretrained(tmp / name)
+        payload = {**dataclasses.asdict(config), "format": BUNDLE_FORMAT,
+                   "segmo_version": segmo_version()}
+        write_atomic(tmp / BUNDLE_FILE, json.dumps(payload, indent=2) + "\n")
+        write_atomic(tmp / CARD_FILE, model_card(config, stages, metrics))
     if push_to_hub:
         push_folder(directory, repo_id, private=private)
     return directory
+
+
+def check_replaceable(directory: Path, stages: list[str]) -> None:
+    """Refuse a `directory` whose replacement by a bundle of `stages` would delete files:
+    one that is not a bundle, or a bundle with other stages or files of the user's."""
+    if directory.exists() and not directory.is_dir():
+        raise SegmoError(f"save_pretrained: {directory} exists and is not a folder")
+    if not directory.is_dir() or not any(directory.iterdir()):
+        return
+    if not (directory / BUNDLE_FILE).is_file():
+        raise SegmoError(f"save_pretrained: {directory} is not empty and holds no {BUNDLE_FILE}; "
+                         "pass overwrite=True (--overwrite) to replace it")
+    written = [BUNDLE_FILE, CARD_FILE, *(f"{name}/{file}" for name in stages
+                                         for file in (CONFIG_FILE, WEIGHTS_FILE))]
+    extra = foreign_entries(directory, written)
+    if extra:
+        raise SegmoError(f"save_pretrained: {directory} holds another bundle and "
+                         f"{', '.join(extra)}, which this bundle would delete; pass "
+                         "overwrite=True (--overwrite) or choose another folder")

@@ -31,15 +31,14 @@ from segmo.errors import (
     non_negative_int,
     npy_argument,
     parse_durations,
-    positive_float,
     positive_int,
 )
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
-from segmo.motion.bvh import ANIMATION_FPS
-from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE
+from segmo.motion.bvh import ANIMATION_FPS, MAX_BVH_FPS, MIN_BVH_FPS
+from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE, TEXT_SEGMENTERS
 from segmo.pipeline.compose import COMPOSE_TRANSITION
 from segmo.pipeline.grounding import (
     METHODS,
@@ -49,7 +48,7 @@ from segmo.pipeline.grounding import (
     plot_similarity_map,
 )
 from segmo.pipeline.model_card import read_metrics
-from segmo.pipeline.outputs import FORMATS
+from segmo.pipeline.outputs import FORMATS, save_outputs
 from segmo.pipeline.segmo import SegMo
 
 
@@ -78,6 +77,15 @@ def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
     return formats
 
 
+def _bvh_fps(text: str) -> float:
+    """argparse type of --bvh-fps: a frame rate the BVH writer takes (`check_bvh_fps`)."""
+    value = finite_float(text)
+    if not MIN_BVH_FPS <= value <= MAX_BVH_FPS:
+        raise argparse.ArgumentTypeError(f"expected a frame rate in [{MIN_BVH_FPS:g}, "
+                                         f"{MAX_BVH_FPS:g}] fps, got {text!r}")
+    return value
+
+
 def _output_arguments(parser: argparse.ArgumentParser) -> None:
     """--precision, --out, --formats, --bvh-fps and --no-foot-lock of the commands that
     write motions (generate, edit, compose)."""
@@ -86,9 +94,10 @@ def _output_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--formats", default=",".join(FORMATS),
                         help=f"comma-separated subset of {','.join(FORMATS)}")
-    parser.add_argument("--bvh-fps", type=positive_float, default=ANIMATION_FPS,
-                        help=f"frame rate of the BVH files (default {ANIMATION_FPS:g}: the motion's "
-                        "frames kept, slerp between them; 20 writes t2m motions' own frames)")
+    parser.add_argument("--bvh-fps", type=_bvh_fps, default=ANIMATION_FPS,
+                        help=f"frame rate of the BVH files, {MIN_BVH_FPS:g} to {MAX_BVH_FPS:g} "
+                        f"(default {ANIMATION_FPS:g}: the motion's frames kept, slerp between "
+                        "them; 20 writes t2m motions' own frames)")
     parser.add_argument("--no-foot-lock", action="store_true",
                         help="BVH: do not hold the feet still while they touch the ground")
 
@@ -241,10 +250,9 @@ def edit_main(argv: list[str] | None = None) -> None:
     out = model.edit_text(source, args.target_text, args.mode, weights=weights or None,
                           inject_until=args.inject_until, keep_outside=args.keep_outside,
                           precision=args.precision)
-    for prefix, motion in (("source", source), ("edit", out)):
-        for path in motion.save(args.out, formats, prefix=prefix, bvh_fps=args.bvh_fps,
-                                foot_lock=not args.no_foot_lock, progress=True):
-            print(path)
+    for path in save_outputs(args.out, {"source": source, "edit": out}, formats,
+                             bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock, progress=True):
+        print(path)
 
 
 def compose_main(argv: list[str] | None = None) -> None:
@@ -303,6 +311,26 @@ def _true_spans(motion: Path, text: str, segments: list[str]) -> list[tuple[int,
     return None
 
 
+# What `segmo ground --out` writes the similarity map as: file types matplotlib saves with
+# no more than it needs itself (pgf wants LaTeX, avif a Pillow plugin).
+MAP_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg")
+
+
+def _map_format(parser: argparse.ArgumentParser, value: str) -> str:
+    """The image format of `segmo ground --out`, from its suffix, refused before any work
+    (matplotlib would fail after the grounding, or write DIR.png for a folder)."""
+    path = Path(value)
+    if path.is_dir():
+        parser.error(f"--out {value}: is a directory; name an image file, e.g. "
+                     f"{path / 'map.png'}")
+    suffix = path.suffix.lower().removeprefix(".")
+    if suffix not in MAP_FORMATS:
+        parser.error(f"--out {value}: name an image file ending in "
+                     f"{', '.join('.' + f for f in MAP_FORMATS)}")
+    _check_output_dir(parser, "--out", str(path.parent))
+    return suffix
+
+
 def ground_main(argv: list[str] | None = None) -> None:
 
     parser = ArgumentParser(
@@ -326,7 +354,9 @@ def ground_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--method", choices=METHODS, default="similarity",
                         help="similarity (default): the learned segment space; attention: where "
                              "the mask transformer's motion tokens look")
-    parser.add_argument("--out", default=None, help="save the similarity map (e.g. map.png)")
+    parser.add_argument("--out", default=None,
+                        help=f"save the similarity map, an image file ending in "
+                             f"{', '.join('.' + f for f in MAP_FORMATS)} (e.g. map.png)")
     args = parser.parse_args(argv)
     motion = npy_argument(parser, "--motion", args.motion)
     if motion.ndim == 3:
@@ -334,8 +364,7 @@ def ground_main(argv: list[str] | None = None) -> None:
                      "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
     if args.window is not None and args.search not in (None, "window"):
         parser.error(f"--window is for --search window, not --search {args.search}")
-    if args.out:
-        _check_output_dir(parser, "--out", str(Path(args.out).parent))
+    image_format = _map_format(parser, args.out) if args.out else None
     model = _load(parser, args.model)
     segments = None if args.segments is None else [s.strip() for s in args.segments.split("#")]
     try:
@@ -356,7 +385,7 @@ def ground_main(argv: list[str] | None = None) -> None:
             print(f"true spans (frames) from the dataset's segments/: {truth}")
         ax = plot_similarity_map(out, truth=truth)
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        ax.figure.savefig(args.out, dpi=120, bbox_inches="tight")
+        ax.figure.savefig(args.out, format=image_format, dpi=120, bbox_inches="tight")
         print(f"similarity map: {args.out}")
 
 
@@ -411,6 +440,8 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
                         help="also upload the bundle to this Hugging Face hub repository")
     parser.add_argument("--out", required=True, help="bundle directory to write")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a folder that holds something else than this bundle")
     args = parser.parse_args(argv)
     _check_output_dir(parser, "--out", args.out)
     for flag in ("tokenizer", "mask", "residual", "length"):
@@ -424,8 +455,8 @@ def bundle_main(argv: list[str] | None = None) -> None:
             metrics = read_metrics(args.metrics)
         except (FileNotFoundError, OSError) as error:
             parser.error(f"--metrics {args.metrics}: {error.strerror or error}")
-    if args.segmenter not in ("rule", "openai", "transformers"):
-        parser.error(f"--segmenter {args.segmenter!r}: choose rule, openai or transformers")
+    if args.segmenter not in TEXT_SEGMENTERS:
+        parser.error(f"--segmenter {args.segmenter!r}: choose {', '.join(TEXT_SEGMENTERS)}")
     model = SegMo.from_stages(args.tokenizer, args.mask, args.residual, args.length,
                               segmenter=args.segmenter)
     # The sampling defaults the bundle records: SegMoConfig field ← argument.
@@ -441,4 +472,4 @@ def bundle_main(argv: list[str] | None = None) -> None:
         if getattr(args, argument) is not None:
             setattr(model.config, field, getattr(args, argument))
     print(model.save_pretrained(args.out, metrics=metrics, push_to_hub=args.push_to_hub is not None,
-                                repo_id=args.push_to_hub))
+                                repo_id=args.push_to_hub, overwrite=args.overwrite))

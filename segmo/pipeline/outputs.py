@@ -7,17 +7,18 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.files import write_atomic
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
-from segmo.motion.bvh import ANIMATION_FPS, write_bvh
+from segmo.motion.bvh import ANIMATION_FPS, check_bvh_fps, write_bvh
 from segmo.motion.skeleton import SkeletonSpec
 from segmo.motion.skeleton_fit import fit_motion
 from segmo.render import save_animation
@@ -76,54 +77,70 @@ class GenerationOutput:
         animation titled with the prompt; bvh: a BVH file of a fixed skeleton fitted to the joints
         (`segmo.motion.skeleton_fit.fit_motion`), at `bvh_fps` frames per second (default
         `segmo.motion.bvh.ANIMATION_FPS`, 60, resampled by slerp with the motion's frames kept;
-        None: the motion's own rate, 20 for t2m), with the feet locked while in contact unless
+        None: the motion's own rate, 20 for t2m; `check_bvh_fps` bounds it), with the feet locked while in contact unless
         `foot_lock` is False. With `fixed_skeleton` (default) the joints file and the GIF show that same skeleton, so
         that every file of a sample is one motion (the decoder's joints can stretch a bone;
         `motion_joints` keeps them); False writes the decoder's joints. spans: per sample, a
         (start, end) frame span per text segment (e.g. `SegMo.ground(method="attention")`):
         the GIF names the segment of each frame. progress: progress bars while rendering. A `prompts.json`
-        lists texts, segments and lengths. Returns the written paths.
+        lists texts, segments and lengths (`save_outputs` writes several outputs into one
+        directory with one `prompts.json`). Returns the written paths.
         """
-        unknown = set(formats) - set(FORMATS)
-        if unknown:
-            raise SegmoError(f"GenerationOutput.save: unknown format(s) {sorted(unknown)}; "
-                             f"choose from {FORMATS}")
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        written: list[Path] = []
-        spans = self.spans if spans is None else spans
-        for i, text in enumerate(self.texts):
+        output = self if spans is None else replace(self, spans=list(spans))
+        return save_outputs(directory, {prefix: output}, formats, bvh_fps=bvh_fps,
+                            foot_lock=foot_lock, progress=progress, fixed_skeleton=fixed_skeleton)
+
+
+def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
+                 formats: Sequence[str] = FORMATS, bvh_fps: float | None = ANIMATION_FPS,
+                 foot_lock: bool = True, progress: bool = False,
+                 fixed_skeleton: bool = True) -> list[Path]:
+    """Write several outputs into one directory, sample i of each as `{prefix}_{i:02d}` files
+    (`GenerationOutput.save`, whose options these are; a GIF names the segments of its
+    output's `spans`), and one `prompts.json` that lists every motion written, e.g.
+    `segmo edit`'s {"source": ..., "edit": ...}. Returns the written paths, each once.
+    """
+    unknown = set(formats) - set(FORMATS)
+    if unknown:
+        raise SegmoError(f"GenerationOutput.save: unknown format(s) {sorted(unknown)}; "
+                         f"choose from {FORMATS}")
+    if bvh_fps is not None:  # before any file is written
+        check_bvh_fps(bvh_fps, "GenerationOutput.save: bvh_fps")
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    index = []
+    for prefix, output in outputs.items():
+        for i, text in enumerate(output.texts):
             stem = directory / f"{prefix}_{i:02d}"
-            features, joints = self.motion(i), self.motion_joints(i)
+            features, joints = output.motion(i), output.motion_joints(i)
             fit = None
             if fixed_skeleton or "bvh" in formats:
-                fit = fit_motion(joints, self.skeleton, foot_lock=foot_lock)
+                fit = fit_motion(joints, output.skeleton, foot_lock=foot_lock)
                 if fixed_skeleton:
                     joints = fit.joints.astype(np.float32)
             if "npy" in formats:
-                n = int(self.lengths[i]) // FRAMES_PER_TOKEN
-                tokens = self.tokens[i, :n].cpu().numpy().astype(np.int64)
+                n = int(output.lengths[i]) // FRAMES_PER_TOKEN
+                tokens = output.tokens[i, :n].cpu().numpy().astype(np.int64)
                 for suffix, array in (("features", features.astype(np.float32)),
                                       ("joints", joints.astype(np.float32)), ("tokens", tokens)):
                     path = Path(f"{stem}_{suffix}.npy")
                     np.save(path, array)
                     written.append(path)
             if "gif" in formats:
-                labels = None
-                if spans is not None and len(spans[i]) == len(self.segments[i]):
-                    labels = [(seg, s, e) for seg, (s, e) in zip(self.segments[i], spans[i])]
-                written.append(save_animation(joints, f"{stem}.gif", skeleton=self.skeleton,
-                                              title=text, fps=self.fps, segments=labels,
+                labels, spans = None, output.spans
+                if spans is not None and len(spans[i]) == len(output.segments[i]):
+                    labels = [(seg, s, e) for seg, (s, e) in zip(output.segments[i], spans[i])]
+                written.append(save_animation(joints, f"{stem}.gif", skeleton=output.skeleton,
+                                              title=text, fps=output.fps, segments=labels,
                                               progress=progress))
             if "bvh" in formats:
-                written.append(write_bvh(fit, f"{stem}.bvh", self.skeleton, fps=self.fps,
+                written.append(write_bvh(fit, f"{stem}.bvh", output.skeleton, fps=output.fps,
                                          target_fps=bvh_fps))
-        index = [{"file": f"{prefix}_{i:02d}", "text": t, "segments": s, "frames": int(n)}
-                 for i, (t, s, n) in enumerate(zip(self.texts, self.segments, self.lengths))]
-        path = directory / "prompts.json"
-        path.write_text(json.dumps(index, indent=2) + "\n")
-        written.append(path)
-        return written
+            index.append({"file": stem.name, "text": text, "segments": output.segments[i],
+                          "frames": int(output.lengths[i])})
+    written.append(write_atomic(directory / "prompts.json", json.dumps(index, indent=2) + "\n"))
+    return written
 
 
 @dataclass

@@ -150,13 +150,16 @@ class SegMo:
 
     def save_pretrained(self, directory: str | os.PathLike, metrics: dict | None = None,
                         push_to_hub: bool = False, repo_id: str | None = None,
-                        private: bool = False) -> Path:
+                        private: bool = False, overwrite: bool = False) -> Path:
         """Write the bundle (every stage, segmo.json and the model card README.md, with
-        `metrics` from `segmo evaluate` when given) to `directory`; with `push_to_hub`,
-        upload it to the hub repository `repo_id` ("owner/name"). Returns `directory`."""
+        `metrics` from `segmo evaluate` when given) to `directory`, replacing it whole; with
+        `push_to_hub`, upload it to the hub repository `repo_id` ("owner/name"). Returns
+        `directory`. A non-empty `directory` that holds anything else than this bundle
+        (another bundle's stages, the user's files) is refused unless `overwrite`."""
         return write_bundle(directory, self.config,
                             {name: getattr(self, name) for name in STAGES}, metrics=metrics,
-                            push_to_hub=push_to_hub, repo_id=repo_id, private=private)
+                            push_to_hub=push_to_hub, repo_id=repo_id, private=private,
+                            overwrite=overwrite)
 
     def modules(self) -> list[torch.nn.Module]:
         return [m for m in (self.tokenizer, self.mask, self.residual, self.length)
