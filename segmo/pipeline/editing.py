@@ -114,6 +114,10 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
                          f"{inject_until!r}")
     b = len(source)
+    if target_text is not None and (not isinstance(target_text, (str, list, tuple)) or (
+            not isinstance(target_text, str) and not all(isinstance(t, str) for t in target_text))):
+        raise SegmoError(f"SegMo.edit_text: target_text must be a string or a list of strings, "
+                         f"got {target_text!r:.80}")
     if target_text is None:
         if mode != "reweight":
             raise SegmoError(f"SegMo.edit_text: mode {mode!r} needs a target_text")

@@ -32,6 +32,14 @@ def check_texts(texts: Any, what: str = "text") -> list[str]:
     return list(texts)
 
 
+def check_generator(generator: Any, what: str) -> None:
+    """SegmoError unless `generator` is None or a `torch.Generator` (whose state a result
+    records, so that its draws can be replayed)."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise SegmoError(f"{what}: generator must be a torch.Generator or None, got "
+                         f"{generator!r:.80}")
+
+
 def warn_truncated(encoder: Any, texts: list[str]) -> None:
     """Say so when a text is longer than the encoder reads: it encodes the start only, as
     `segmo encode-texts` did for the training captions, so the rest cannot steer the motion."""

@@ -53,6 +53,7 @@ from segmo.pipeline.bundle import (
 from segmo.pipeline.compose import COMPOSE_TRANSITION, Part
 from segmo.pipeline.conditioning import TextConditioning
 from segmo.pipeline.inputs import (
+    check_generator,
     check_texts,
     frame_lengths,
     motion_array,
@@ -230,6 +231,9 @@ class SegMo:
 
     def encode_texts(self, texts: list[str]) -> torch.Tensor:
         """texts → (n, text_dim) float32 sentence vectors on the model's device."""
+        if isinstance(texts, str) or not isinstance(texts, (list, tuple)) \
+                or not all(isinstance(text, str) for text in texts):
+            raise SegmoError(f"SegMo.encode_texts: expected a list of strings, got {texts!r:.80}")
         return self.text.encode(texts)
 
     def segment_texts(self, texts: list[str]) -> list[list[str]]:
@@ -312,6 +316,7 @@ class SegMo:
     def sample_lengths(self, texts: list[str], generator: torch.Generator | None = None
                        ) -> torch.Tensor:
         """(b,) frame lengths drawn from the bundled length estimator."""
+        check_generator(generator, "SegMo.sample_lengths")
         if self.length is None:
             raise SegmoError("SegMo: no lengths given and the bundle has no length estimator; "
                              "pass lengths=[frames, ...]")
@@ -359,8 +364,9 @@ class SegMo:
         """
         if isinstance(texts, str):
             texts = [texts]
-        if not texts:
+        if isinstance(texts, (list, tuple)) and not texts:  # other types: text_condition says
             raise SegmoError("SegMo.generate: texts is empty")
+        check_generator(generator, "SegMo.generate")
         options = self._sampling(
             sampling, guidance_scale=guidance_scale,
             residual_guidance_scale=residual_guidance_scale, steps=steps,
@@ -417,6 +423,7 @@ class SegMo:
             residual_guidance_scale=residual_guidance_scale, steps=steps,
             residual_guided_layers=residual_guided_layers, guidance=guidance,
             temperature=temperature, top_k_ratio=top_k_ratio, sampler=sampler)
+        check_generator(generator, "SegMo.edit")
         return editing.edit(self, motion, span, text, segments=segments, options=options,
                             generator=generator, precision=precision)
 
@@ -470,6 +477,7 @@ class SegMo:
         transformer trained with segment timing (`generate`'s durations; the parts without
         them are predicted).
         """
+        check_generator(generator, "SegMo.compose")
         return compose.compose(self, parts, transition, generator=generator,
                                precision=precision)
 
