@@ -170,6 +170,9 @@ CLI_CASES = [
         "--guidance nan --out {tmp}/b", "--guidance", "`--guidance nan`"),
     Cli("bundle-out-is-file", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
         "--out {file}", "--out", "`--out` naming an existing file"),
+    Cli("bundle-push-to-hub-id", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
+        "--out {tmp}/bh --push-to-hub nope", "repo_id must look like 'owner/name'",
+        "`--push-to-hub` with no repository id (was refused after the bundle was written)"),
     Cli("bundle-segmenter", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
         "--segmenter llama --out {tmp}/b", "--segmenter", "an unknown text segmenter"),
     Cli("bundle-stage-json", "bundle --tokenizer {bundle}/tokenizer --mask {bad_config_json}/mask "
@@ -322,6 +325,8 @@ API_CASES = [
         "span", "`edit(span=(0.5, 8))`"),
     Api("api-ground-nan", lambda m, w: m.ground("walk", np.load(w["nan_motion"])), SegmoError,
         "frame 5", "`ground` on a motion with a NaN frame"),
+    Api("api-ground-complex", lambda m, w: m.ground("walk", _motion(w).astype(np.complex64)),
+        SegmoError, "complex", "`ground` on a complex motion (the imaginary part was dropped)"),
     Api("api-ground-strings", lambda m, w: m.ground("walk", [["a"] * 263] * 8), SegmoError,
         "numeric", "`ground` on a list of strings"),
     Api("api-retrieve-empty", lambda m, w: m.retrieve_texts(_motion(w), []), SegmoError,

@@ -87,12 +87,18 @@ def resolve(name: str | os.PathLike, revision: str | None = None) -> Path:
         raise SegmoError(f"{text}: the hub answered {error}") from None
 
 
+def check_repo_id(repo_id: object) -> None:
+    """SegmoError unless `repo_id` looks like a hub repository id, 'owner/name': checked
+    before a folder is written for upload, not after."""
+    if not isinstance(repo_id, str) or not _HUB_ID.match(repo_id):
+        raise SegmoError(f"push_to_hub: repo_id must look like 'owner/name', got {repo_id!r}")
+
+
 def push_folder(directory: str | os.PathLike, repo_id: str, private: bool = False,
                 commit_message: str = "Upload segmo model", token: str | None = None) -> str:
     """Upload a written model folder to the hub repository `repo_id` (created if needed);
     returns the commit URL."""
-    if not _HUB_ID.match(repo_id):
-        raise SegmoError(f"push_to_hub: repo_id must look like 'owner/name', got {repo_id!r}")
+    check_repo_id(repo_id)
     from huggingface_hub import HfApi
 
     api = HfApi(token=token, library_name="segmo", library_version=segmo_version())

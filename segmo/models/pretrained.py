@@ -28,7 +28,14 @@ from safetensors.torch import load_file, save
 
 from segmo.errors import SegmoError
 from segmo.files import atomic_open, write_atomic
-from segmo.models.hub import FORMAT, check_format, push_folder, resolve, segmo_version
+from segmo.models.hub import (
+    FORMAT,
+    check_format,
+    check_repo_id,
+    push_folder,
+    resolve,
+    segmo_version,
+)
 
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
@@ -54,6 +61,8 @@ class Pretrained:
         it to the hub repository `repo_id` too."""
         if push_to_hub and not repo_id:
             raise SegmoError("save_pretrained: push_to_hub needs repo_id ('owner/name')")
+        if push_to_hub:
+            check_repo_id(repo_id)
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}

@@ -32,7 +32,14 @@ import torch
 from segmo.errors import SegmoError
 from segmo.files import foreign_entries, replacing_folder, write_atomic
 from segmo.generation.sampling import SamplingOptions
-from segmo.models.hub import FORMAT, check_format, push_folder, resolve, segmo_version
+from segmo.models.hub import (
+    FORMAT,
+    check_format,
+    check_repo_id,
+    push_folder,
+    resolve,
+    segmo_version,
+)
 from segmo.models.pretrained import (
     CONFIG_FILE,
     WEIGHTS_FILE,
@@ -156,6 +163,8 @@ def write_bundle(directory: str | os.PathLike, config: SegMoConfig,
     this one writes (rewriting the same bundle is fine)."""
     if push_to_hub and not repo_id:
         raise SegmoError("save_pretrained: push_to_hub needs repo_id ('owner/name')")
+    if push_to_hub:
+        check_repo_id(repo_id)
     SamplingOptions(**sampling_fields(config))  # no bundle that could not be loaded back
     directory = Path(directory)
     given = [name for name, module in stages.items() if module is not None]

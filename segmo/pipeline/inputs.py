@@ -107,6 +107,8 @@ def motion_array(motion: Any, feature_dim: int, max_frames: int, skeleton: str
                  ) -> tuple[torch.Tensor, int]:
     """A (t, d) motion (numpy, torch or nested lists) → float32 (t, d) tensor and the frames
     the tokenizer can use (t rounded down to a multiple of its frames per token)."""
+    if (motion.is_complex() if isinstance(motion, torch.Tensor) else np.iscomplexobj(motion)):
+        raise SegmoError("SegMo: a motion must be a real (t, d) array, got complex numbers")
     try:
         x = torch.as_tensor(np.asarray(motion, dtype=np.float32)
                             if not isinstance(motion, torch.Tensor) else motion).float()
