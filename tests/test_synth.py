@@ -362,6 +362,25 @@ def test_cli_refuses_a_foreign_folder(tmp_path, capsys):
     assert not list(tmp_path.glob("data.tmp-*")) and not list(tmp_path.glob("data.old-*"))
 
 
+def test_leftovers_of_a_killed_build_go_and_folders_named_alike_stay(tmp_path, capsys):
+    out = tmp_path / "data"
+    killed = tmp_path / "data.tmp-4242"  # what a build killed midway leaves
+    (killed / "new_joint_vecs").mkdir(parents=True)
+    (killed / "train.txt").write_text("000000\n")
+    photos = tmp_path / "data.old-photos"  # the user's, named alike
+    photos.mkdir()
+    (photos / "a.jpg").write_text("mine")
+    notes = tmp_path / "data.tmp-1"  # the user's, with a pid-like name but other contents
+    notes.mkdir()
+    (notes / "notes.txt").write_text("mine")
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
+    assert not killed.exists()
+    assert (photos / "a.jpg").read_text() == "mine" and (notes / "notes.txt").read_text() == "mine"
+    line = cli_failure(["synth", "--out", str(tmp_path / "huge"), "--num-motions", "99999999999"],
+                       capsys)
+    assert "num_motions must be in [1, 1,000,000]" in line and not (tmp_path / "huge").exists()
+
+
 def test_a_rebuild_keeps_what_the_user_added(tmp_path, capsys):
     out = tmp_path / "data"
     main(["--out", str(out), "--num-motions", "3", "--workers", "1"])

@@ -55,6 +55,9 @@ SPLITS = {"train": 0.80, "val": 0.05, "test": 0.15}
 # relative to the root) would otherwise divide by zero when z-scoring.
 STD_FLOOR = 1e-4
 _SPLIT_STREAM = 7_411  # extra seed word so the split shuffle differs from motion 0's stream
+# The most motions a corpus holds: far beyond HumanML3D's 14,616 (a million take hours of
+# two cores and tens of GB), so that a typo fails at once instead of running out of memory.
+MAX_MOTIONS = 1_000_000
 # What a corpus folder holds when `build_corpus` wrote it; anything else is the user's.
 FOLDERS = (MOTIONS, JOINTS, TEXTS, GROUND_TRUTH)
 CORPUS_ENTRIES = frozenset({*FOLDERS, *(f"{s}.txt" for s in SPLITS), *STATISTICS, "corpus.json",
@@ -125,6 +128,18 @@ def _corpus_of(path: Path) -> dict | None:
         return None
 
 
+def remove_leftovers(out: Path) -> None:
+    """Delete the folders a killed build of `out` left beside it (``OUT.tmp-<pid>``,
+    ``OUT.old-<pid>``): only folders of that exact name holding nothing but a corpus' own
+    entries, so that a folder of the user's named alike (``corpus.old-photos``) stays."""
+    for kind in ("tmp", "old"):
+        for leftover in out.parent.glob(f"{out.name}.{kind}-*"):
+            pid = leftover.name.removeprefix(f"{out.name}.{kind}-")
+            if (pid.isdigit() and leftover.is_dir() and not leftover.is_symlink()
+                    and all(p.name in CORPUS_ENTRIES for p in leftover.iterdir())):
+                shutil.rmtree(leftover, ignore_errors=True)
+
+
 def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int = 1,
                  overwrite: bool = False, progress: bool = True, version: int = VERSION) -> Path:
     """Write a corpus of `num_motions` motions (sampled as corpus `version` does) to `out`;
@@ -135,8 +150,9 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
     anything a rebuild would delete (text_segments/, text_features/, ...).
     """
     out = Path(out)
-    if num_motions < 1:
-        raise SegmoError(f"build_corpus: num_motions must be >= 1, got {num_motions}")
+    if not 1 <= num_motions <= MAX_MOTIONS:
+        raise SegmoError(f"build_corpus: num_motions must be in [1, {MAX_MOTIONS:,}], got "
+                         f"{num_motions}")
     if workers < 1:
         raise SegmoError(f"build_corpus: workers must be >= 1, got {workers}")
     if version not in VERSIONS:
@@ -145,10 +161,7 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
     if out.exists() and not out.is_dir():
         raise SegmoError(f"build_corpus: {out} exists and is not a folder")
     with FolderLock(out, "segmo synth"):
-        # Left by a killed build; only synth writes them, and it holds the lock.
-        for pattern in (f"{out.name}.tmp-*", f"{out.name}.old-*"):
-            for leftover in out.parent.glob(pattern):
-                shutil.rmtree(leftover, ignore_errors=True)
+        remove_leftovers(out)
         existing = _corpus_of(out)
         wanted = {"version": version, "seed": seed, "num_motions": num_motions}
         if existing is not None and all(existing.get(k) == v for k, v in wanted.items()):
@@ -173,9 +186,9 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool,
         shutil.rmtree(tmp)
     for sub in FOLDERS:
         (tmp / sub).mkdir(parents=True)
-    splits = split_assignment(num_motions, seed)
-    jobs = [(str(tmp), seed, i, splits[i], version) for i in range(num_motions)]
     try:
+        splits = split_assignment(num_motions, seed)
+        jobs = [(str(tmp), seed, i, splits[i], version) for i in range(num_motions)]
         if workers > 1:
             context = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
             with context.Pool(workers, initializer=_init_worker) as pool:
