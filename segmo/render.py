@@ -190,6 +190,11 @@ def plot_motion(
     return fig
 
 
+# The longest frame a GIF holds: its frame delay is a 16-bit count (of hundredths of a
+# second; Pillow takes milliseconds), so one minute is well inside it.
+GIF_LONGEST_FRAME_MS = 60_000
+
+
 def save_animation(
     motion: Any,
     path: str | Path,
@@ -223,8 +228,12 @@ def save_animation(
         raise SegmoError(f"save_animation: stride must be >= 1, got {stride}")
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise SegmoError(f"save_animation: fps must be a positive number, got {fps}")
-    joints = as_joints(motion, spec, mean, std)
     rate = (fps or spec.fps) / stride
+    if suffix == ".gif" and not 1000 / rate <= GIF_LONGEST_FRAME_MS:  # a GIF stores 16-bit ms
+        raise SegmoError(f"save_animation: a frame would last {1000 / rate:.0f} ms (fps "
+                         f"{fps or spec.fps:g} / stride {stride}); a GIF frame lasts at most "
+                         f"{GIF_LONGEST_FRAME_MS} ms: lower the stride or raise the fps")
+    joints = as_joints(motion, spec, mean, std)
     path.parent.mkdir(parents=True, exist_ok=True)
 
     footer = 0.45 if segments else 0.25  # inches under the figure for the counter (and segment)

@@ -19,6 +19,8 @@ timing head) steer a bundle trained with segment timing; they may be left out.
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -26,10 +28,19 @@ from typing import Any
 
 import torch
 
-from segmo.errors import ArgumentParser, SegmoError, parse_durations, positive_int
+from segmo.errors import (
+    LARGEST_WHOLE_NUMBER,
+    ArgumentParser,
+    SegmoError,
+    parse_durations,
+    positive_int,
+)
 
 GROUNDING_METHODS = ("attention", "similarity")
 MAX_SECONDS = 9.8  # 196 frames at 20 fps
+# A caption a person types: longer ones are cut by the text encoder anyway, and a page of
+# text tied up the queue for half a minute.
+MAX_CAPTION_CHARACTERS = 2_000
 
 
 def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance: float,
@@ -44,9 +55,21 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
 
     from segmo.pipeline.grounding import plot_similarity_map
 
-    caption = " ".join(str(caption).split())
+    if not isinstance(caption, str):
+        raise SegmoError(f"caption must be text, got {type(caption).__name__}")
+    caption = " ".join(caption.split())
     if not caption:
         raise SegmoError("type a caption first")
+    if len(caption) > MAX_CAPTION_CHARACTERS:  # the text encoder reads its start only
+        raise SegmoError(f"caption of {len(caption):,} characters; at most "
+                         f"{MAX_CAPTION_CHARACTERS:,}")
+    numbers = {"length": seconds, "seed": seed, "guidance": guidance}
+    for name, value in numbers.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise SegmoError(f"{name} must be a finite number, got {value!r}")
+    if not (0 <= seed <= LARGEST_WHOLE_NUMBER and float(seed).is_integer()):
+        raise SegmoError(f"seed must be a whole number from 0 to 2^63 - 1, got {seed!r}")
     if method not in GROUNDING_METHODS:
         raise SegmoError(f"grounding method must be one of {GROUNDING_METHODS}, got {method!r}")
     timing = None
@@ -76,6 +99,14 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
             "frames": int(result.lengths[0])}
 
 
+def _port(text: str) -> int:
+    """argparse type of --port: a TCP port, 1 to 65535 (checked before the model loads)."""
+    value = positive_int(text)
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port from 1 to 65535, got {text!r}")
+    return value
+
+
 def build_app(model: Any, workdir: str | os.PathLike | None = None):
     """The Gradio Blocks app of `model` (a `SegMo`); outputs go to `workdir` (a temporary
     folder by default), one subfolder per request."""
@@ -90,7 +121,7 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
     def run(caption: str, seconds: float, seed: float, guidance: float, method: str,
             durations: str = ""):
         try:
-            found = generate_files(model, caption, seconds, int(seed), guidance, method,
+            found = generate_files(model, caption, seconds, seed, guidance, method,
                                    root / f"{next(counter):06d}", durations)
         except SegmoError as error:
             raise gr.Error(str(error)) from None
@@ -131,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="segmo serve", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", required=True, help="bundle folder or hub id")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: all)")
-    parser.add_argument("--port", type=positive_int, default=7860)
+    parser.add_argument("--port", type=_port, default=7860)
     args = parser.parse_args(argv)
     from segmo.models.hub import is_hub_id
     from segmo.pipeline import SegMo

@@ -178,6 +178,8 @@ CLI_CASES = [
     Cli("bundle-stage-json", "bundle --tokenizer {bundle}/tokenizer --mask {bad_config_json}/mask "
         "--out {tmp}/b", "config.json:1", "a stage whose config.json is invalid JSON"),
     # -- segmo render
+    Cli("render-stride-huge", "render {motion} --out {tmp}/r.gif --stride 100000", "stride 100000",
+        "frames of 5,000 s (a 16-bit GIF delay; was a struct.error traceback)"),
     Cli("render-nan", "render {nan_motion} --out {tmp}/r.gif", "nan_motion.npy",
         "a motion with a NaN frame"),
     Cli("render-huge", "render {huge_motion} --out {tmp}/r.gif", "huge_motion.npy",

@@ -90,3 +90,30 @@ def test_segment_durations_through_the_api(served, tmp_path, tokenizer_dir):
     assert not np.array_equal(short_first, joints("4,1", "c"))
     with pytest.raises(SegmoError, match=r"durations\[0\] has 3 values, text 0 has 2 segments"):
         joints("1,1,1", "d")
+
+
+def test_a_request_out_of_range_names_its_field(served, tmp_path):
+    """What a client may send besides the page's widgets: each refused with the field it
+    names (the page shows it), before any generation."""
+    from segmo.serve import MAX_CAPTION_CHARACTERS, generate_files
+
+    _, model = served
+    caption = "a person walks forward"
+    for args, message in (
+            ((["a"], 2.4, 0, 4.0), "caption must be text, got list"),
+            ((caption, float("nan"), 0, 4.0), "length must be a finite number, got nan"),
+            ((caption, 2.4, 1e30, 4.0), r"seed must be a whole number from 0 to 2\^63 - 1"),
+            ((caption, 2.4, 2.5, 4.0), r"seed must be a whole number"),
+            ((caption, 2.4, 0, float("inf")), "guidance must be a finite number, got inf"),
+            (("walk " * MAX_CAPTION_CHARACTERS, 2.4, 0, 4.0), "characters; at most 2,000")):
+        with pytest.raises(SegmoError, match=message):
+            generate_files(model, *args, "similarity", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_serve_refuses_a_port_beyond_65535_before_loading(tmp_path, capsys):
+    from conftest import cli_failure
+
+    line = cli_failure(["serve", "--model", str(tmp_path / "nope"), "--port", "70000"], capsys)
+    assert line == ("segmo serve: argument --port: expected a TCP port from 1 to 65535, got "
+                    "'70000' (see `segmo serve --help`)")
