@@ -338,6 +338,16 @@ HOSTILE = {
                          "--ckpt_path {tmp}/junk.ckpt: not a readable checkpoint"),
     "EMA decay": (None, ["--trainer.callbacks+=segmo.training.ema.EMA", "--trainer.callbacks.decay=1.5"],
                   "EMA: decay must lie strictly between 0 and 1, got 1.5"),
+    "empty config": (None, ["--config", "{tmp}/empty.yaml"],
+                     "{tmp}/empty.yaml: an empty config; expected a mapping of keys"),
+    "negative width": (None, ["--model.init_args.width=-1"],
+                       "RVQConfig: width must be a whole number >= 1, got -1"),
+    "no quantizers": (None, ["--model.init_args.num_quantizers=0"],
+                      "RVQConfig: num_quantizers must be a whole number >= 1, got 0"),
+    "dropout above 1": (None, ["--model.init_args.dropout=5"],
+                        "RVQConfig: dropout must be a number in [0, 1), got 5"),
+    "negative max_steps": (None, ["--trainer.max_steps=-5"],
+                           "trainer: `max_steps` must be a non-negative integer or -1"),
     "default_root_dir": (None, ["--trainer.default_root_dir={tmp}/elsewhere"],
                          "--trainer.default_root_dir is not used by segmo: the run directory is "
                          "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead"),
@@ -351,6 +361,7 @@ def test_hostile_fit_input_is_one_line_with_exit_2(case, tmp_path, capsys):
     edit, extra, expected = HOSTILE[case]
     root = make_dataset(tmp_path / "data")
     (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
+    (tmp_path / "empty.yaml").write_text("# nothing here yet\n")
     yaml_path, line = _edited(tmp_path, *edit) if edit else (REPO / "configs/rvq/synthetic.yaml", 0)
     config = [] if "--config" in extra else ["--config", str(yaml_path)]
     argv = ["fit", *config, *tiny_overrides(root, tmp_path / "runs"), "--trainer.max_steps=1",

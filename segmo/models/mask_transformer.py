@@ -53,6 +53,7 @@ class MaskTransformerConfig(TransformerConfig):
     position_text: bool = False
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if isinstance(self.alignment, dict):  # read back from config.json
             self.alignment = AlignmentConfig.from_dict(self.alignment)
 

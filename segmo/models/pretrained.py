@@ -43,6 +43,21 @@ WEIGHTS_FILE = "model.safetensors"
 _REGISTRY: dict[str, type] = {}
 
 
+def check_config_numbers(config: Any, sizes: tuple[str, ...], shares: tuple[str, ...]) -> None:
+    """SegmoError naming the first field of a model config that cannot build a model: a
+    size (`sizes`: widths, depths, counts) that is not a whole number >= 1, or a share
+    (`shares`: dropout rates, decays) outside [0, 1)."""
+    name = type(config).__name__
+    for field in sizes:
+        value = getattr(config, field)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise SegmoError(f"{name}: {field} must be a whole number >= 1, got {value!r}")
+    for field in shares:
+        value = getattr(config, field)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1:
+            raise SegmoError(f"{name}: {field} must be a number in [0, 1), got {value!r}")
+
+
 class Pretrained:
     """Mixin for `nn.Module`s that save and load themselves as a model directory."""
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from segmo.models.pretrained import Pretrained
+from segmo.models.pretrained import Pretrained, check_config_numbers
 from segmo.models.quantizer import ResidualQuantizer
 
 # The encoder halves the frame rate this many times (a stride-2 convolution each), the
@@ -43,6 +43,11 @@ class RVQConfig:
     quantizer_dropout: float = 0.2
     ema_decay: float = 0.99
     dead_code_threshold: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_config_numbers(self, ("feature_dim", "width", "code_dim", "depth", "dilation_growth",
+                                    "codebook_size", "num_quantizers"),
+                             ("dropout", "quantizer_dropout", "ema_decay"))
 
 
 @dataclass

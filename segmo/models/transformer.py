@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from segmo.models.pretrained import check_config_numbers
 from segmo.models.text_prefix import Condition, EncodedPrefix, PrefixKeys, prefix_labels
 from segmo.text.rules import MAX_SEGMENTS
 
@@ -65,6 +66,10 @@ class TransformerConfig:
     # independent of the text and present in conditional and unconditional rows alike
     # (`Trunk.encode_prefix`). 0 = the model without them.
     memory_slots: int = 0
+
+    def __post_init__(self) -> None:
+        check_config_numbers(self, ("codebook_size", "text_dim", "max_segments", "max_tokens",
+                                    "dim", "depth", "heads", "ff_dim", "max_words"), ("dropout",))
 
 
 def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:

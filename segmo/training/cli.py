@@ -157,11 +157,16 @@ def _check_linked(config: Any, argv: list[str]) -> None:
 
 def _segmo_error(error: BaseException) -> SegmoError | None:
     """The `SegmoError` that ``error`` wraps and quotes (jsonargparse does so with errors
-    raised while it builds the task or the DataModule), or None."""
+    raised while it builds the task or the DataModule), or Lightning's own refusal of a
+    trainer setting (``--trainer.max_steps -5``) as one; else None."""
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
     inner, seen = error, 0
     while inner is not None and seen < 10:
         if isinstance(inner, SegmoError):
             return inner if inner is error or str(inner) in str(error) else None
+        if isinstance(inner, MisconfigurationException):
+            return SegmoError(f"trainer: {inner}")
         inner, seen = inner.__cause__ or inner.__context__, seen + 1
     return None
 

@@ -58,7 +58,10 @@ def check_config_files(argv: list[str]) -> None:
             raise SegmoError(f"{where}: not valid YAML: {problem}") from None
         except UnicodeDecodeError as error:
             raise SegmoError(f"{name}: not a text file ({error.reason})") from None
-        if data is not None and not isinstance(data, dict):
+        if data is None:  # empty, or only comments
+            raise SegmoError(f"{name}: an empty config; expected a mapping of keys (trainer:, "
+                             "model:, data:, ...)")
+        if not isinstance(data, dict):
             raise SegmoError(f"{name}: expected a mapping of keys (trainer:, model:, data:, ...), "
                              f"got a YAML {type(data).__name__}")
 
