@@ -757,7 +757,6 @@ def test_fid_floor_end_to_end_and_its_errors(setup, tmp_path: Path, capsys) -> N
     assert len(err) == 1 and str(truth_file) in err[0] and "levitate" in err[0], err
 
 
-
 def test_order_by_stage_takes_the_stages_apart(setup, hash_text_encoder, capsys, monkeypatch):
     tool = load_tool("order_by_stage")
     model = SegMo.from_pretrained(setup["timed"])

@@ -757,7 +757,6 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     assert "--tokenizer" in line and "no such directory" in line
 
 
-
 def test_cli_bundle_into_an_existing_folder(stages, tmp_path, capsys):
     """Writing the same bundle again works; a folder holding what the new bundle would not
     write back (an earlier bundle's stages, the user's files) is refused untouched without
