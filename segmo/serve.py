@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -41,6 +42,8 @@ MAX_SECONDS = 9.8  # 196 frames at 20 fps
 # A caption a person types: longer ones are cut by the text encoder anyway, and a page of
 # text tied up the queue for half a minute.
 MAX_CAPTION_CHARACTERS = 2_000
+# Request folders a server keeps in its work folder (`prune_requests`).
+KEEP_REQUESTS = 20
 
 
 def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance: float,
@@ -107,6 +110,17 @@ def _port(text: str) -> int:
     return value
 
 
+def prune_requests(root: Path, keep: int) -> None:
+    """Delete all but the newest `keep` request folders (``000123/``) under `root`: a server
+    that runs for days must not fill its disk. Gradio has served its own copies of their
+    files by then; other entries of `root` are left alone."""
+    if not root.is_dir():
+        return
+    folders = sorted(p for p in root.iterdir() if p.is_dir() and p.name.isdigit())
+    for old in folders[:max(len(folders) - keep, 0)]:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def build_app(model: Any, workdir: str | os.PathLike | None = None):
     """The Gradio Blocks app of `model` (a `SegMo`); outputs go to `workdir` (a temporary
     folder by default), one subfolder per request."""
@@ -120,6 +134,7 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
 
     def run(caption: str, seconds: float, seed: float, guidance: float, method: str,
             durations: str = ""):
+        prune_requests(root, KEEP_REQUESTS)
         try:
             found = generate_files(model, caption, seconds, seed, guidance, method,
                                    root / f"{next(counter):06d}", durations)
@@ -131,7 +146,9 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
                    f"{len(lines)} segment(s)**\n\n" + "\n".join(lines))
         return summary, str(found["gif"]), [str(found["bvh"]), str(found["joints"])], str(found["map"])
 
-    with gr.Blocks(title="segmo", analytics_enabled=False) as app:
+    # Gradio's copies of the files it served: deleted an hour after they were made, checked
+    # every hour, and when the server stops.
+    with gr.Blocks(title="segmo", analytics_enabled=False, delete_cache=(3600, 3600)) as app:
         gr.Markdown("# segmo: text to 3-D human motion\nType a caption; its text segments, "
                     "in order, condition the motion. Download the BVH for Blender or a game engine.")
         with gr.Row():

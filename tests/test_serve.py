@@ -117,3 +117,15 @@ def test_serve_refuses_a_port_beyond_65535_before_loading(tmp_path, capsys):
     line = cli_failure(["serve", "--model", str(tmp_path / "nope"), "--port", "70000"], capsys)
     assert line == ("segmo serve: argument --port: expected a TCP port from 1 to 65535, got "
                     "'70000' (see `segmo serve --help`)")
+
+
+def test_old_request_folders_are_pruned_and_other_entries_stay(tmp_path):
+    from segmo.serve import prune_requests
+
+    for i in range(6):
+        (tmp_path / f"{i:06d}").mkdir()
+        (tmp_path / f"{i:06d}" / "sample_00.gif").write_bytes(b"GIF")
+    (tmp_path / "notes").mkdir()
+    prune_requests(tmp_path, 2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["000004", "000005", "notes"]
+    prune_requests(tmp_path / "missing", 2)  # nothing served yet: nothing to do
