@@ -36,13 +36,14 @@ import torch
 from segmo.cli import run
 from segmo.data import MotionWindowDataset
 from segmo.data.layout import has_ground_truth, read_actions
-from segmo.errors import ArgumentParser, positive_int
+from segmo.errors import ArgumentParser, SegmoError, positive_int
 from segmo.evaluation.action_order import frame_confusions
 from segmo.models.action_classifier import ActionClassifier, collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import RVQVAE
 from segmo.motion.features import features_to_joints, joint_errors
 from segmo.motion.skeleton import get_skeleton
+from segmo.pipeline.inputs import resolve_device
 
 
 @torch.no_grad()
@@ -121,10 +122,9 @@ def main(argv: list[str] | None = None) -> dict:
                         help="built-in corpus: also read the reconstructions' actions with this classifier")
     args = parser.parse_args(argv)
     try:
-        device = torch.device(args.device)
-        torch.empty(0, device=device)  # a device this torch cannot reach fails here
-    except (RuntimeError, AssertionError) as error:
-        parser.error(f"--device {args.device}: {error}")
+        resolve_device(args.device)
+    except SegmoError as error:
+        parser.error(f"--device {args.device}: {str(error).removeprefix('SegMo: ')}")
     if args.action_classifier is not None and not has_ground_truth(args.data):
         parser.error(f"--action-classifier: {args.data} has no ground-truth actions (segments/); "
                      "only the built-in corpus (segmo synth) has them")

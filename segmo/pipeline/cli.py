@@ -37,7 +37,7 @@ from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
-from segmo.motion.bvh import ANIMATION_FPS, MAX_BVH_FPS, MIN_BVH_FPS
+from segmo.motion.bvh import ANIMATION_FPS, MAX_BVH_FPS, MIN_BVH_FPS, check_bvh_fps
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE, TEXT_SEGMENTERS
 from segmo.pipeline.compose import COMPOSE_TRANSITION
 from segmo.pipeline.grounding import (
@@ -79,11 +79,11 @@ def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
 
 def _bvh_fps(text: str) -> float:
     """argparse type of --bvh-fps: a frame rate the BVH writer takes (`check_bvh_fps`)."""
-    value = finite_float(text)
-    if not MIN_BVH_FPS <= value <= MAX_BVH_FPS:
-        raise argparse.ArgumentTypeError(f"expected a frame rate in [{MIN_BVH_FPS:g}, "
-                                         f"{MAX_BVH_FPS:g}] fps, got {text!r}")
-    return value
+    finite_float(text)  # NaN and inf: "expected a finite number"
+    try:
+        return check_bvh_fps(text, "--bvh-fps")
+    except SegmoError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--bvh-fps: ")) from None
 
 
 def _output_arguments(parser: argparse.ArgumentParser) -> None:
