@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import pickle
 from pathlib import Path
 
 import torch
@@ -34,6 +35,45 @@ from segmo.models.hub import portable_path
 from segmo.models.pretrained import CONFIG_FILE, WEIGHTS_FILE, read_config
 
 SHOWN = 5  # non-finite tensors named in a message
+
+
+def read_checkpoint(path: str | Path, argument: str = "", resume: bool = False) -> dict:
+    """The contents of a checkpoint written by `segmo fit`, or one `SegmoError` naming the
+    file (after ``argument``, e.g. "--ckpt_path", when given). With ``resume``, also what
+    Lightning needs to resume from it or to score it (its global step and version).
+
+    Read with ``weights_only=True``: tensors and plain values only, so that a file from
+    elsewhere cannot run code while it is read (``weights_only=False`` unpickles anything;
+    segmo's checkpoints hold nothing else, and Lightning reads them the same way), and
+    memory-mapped where the file's format allows, so that checking one reads little."""
+    where = f"{argument} {path}" if argument else str(path)
+    try:
+        try:
+            checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        except RuntimeError:  # not in the zip format, which mmap needs
+            checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the user's to fix
+        if "GLOBAL" in str(error):  # torch's refusal of a class or function in the pickle
+            raise SegmoError(f"{where}: holds Python objects other than tensors and plain values, "
+                             "which segmo does not unpickle (they could run code); not a "
+                             "checkpoint of `segmo fit`") from None
+        detail = ("not a torch file" if isinstance(error, pickle.UnpicklingError)
+                  else f"{type(error).__name__}: {(str(error).splitlines() or [''])[0]}")
+        raise SegmoError(f"{where}: not a readable checkpoint ({detail})") from None
+    if not isinstance(checkpoint, dict):
+        raise SegmoError(f"{where}: not a Lightning checkpoint (a {type(checkpoint).__name__}, "
+                         "not a dictionary)")
+    needed = [("state_dict", dict)]
+    if resume:
+        needed += [("global_step", int), ("pytorch-lightning_version", str)]
+    for key, kind in needed:
+        value = checkpoint.get(key)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise SegmoError(f"{where}: not a Lightning checkpoint (no {key})")
+    if not isinstance(checkpoint.get("hyper_parameters", {}), dict):
+        raise SegmoError(f"{where}: not a checkpoint of `segmo fit` (its hyper_parameters are "
+                         "not a dictionary)")
+    return checkpoint
 
 
 def task_class_path(checkpoint: dict, path: str | Path) -> str:
@@ -54,13 +94,7 @@ def load_task(path: str | Path, task: str | None = None, map_location: str = "cp
     # Lightning takes seconds to import: kept out of `segmo export --help` and bad arguments.
     from lightning.pytorch import LightningModule
 
-    # Our own checkpoints hold hyper-parameters and generator states, not just tensors.
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # noqa: BLE001 - any unreadable file is the user's to fix
-        raise SegmoError(f"{path}: not a readable checkpoint ({type(error).__name__}: {error})") from None
-    if not isinstance(checkpoint, dict) or not isinstance(checkpoint.get("state_dict"), dict):
-        raise SegmoError(f"{path}: not a Lightning checkpoint (no state_dict)")
+    checkpoint = read_checkpoint(path)
     check_finite(checkpoint["state_dict"], path)
     class_path = task or task_class_path(checkpoint, path)
     module_name, _, class_name = class_path.rpartition(".")

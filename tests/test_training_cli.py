@@ -167,6 +167,11 @@ def test_resuming_a_run_under_a_relative_runs_dir_updates_last_ckpt(tmp_path, mo
     cli_main(["fit", *common, "--trainer.max_steps=4", f"--ckpt_path={last}"])
     assert torch.load(last, weights_only=False)["global_step"] == 4
     assert sorted(p.name for p in last.parent.glob("last*")) == ["last.ckpt"]
+    # `--ckpt_path last` is that run's last.ckpt (Lightning looked in a new, empty
+    # version_1 and started from scratch with a warning).
+    cli_main(["fit", *common, "--trainer.max_steps=6", "--ckpt_path=last"])
+    assert torch.load(last, weights_only=False)["global_step"] == 6
+    assert [p.name for p in Path("runs/rvq/synthetic").iterdir()] == ["version_0"]
 
 
 @pytest.mark.slow
@@ -335,7 +340,7 @@ HOSTILE = {
     "missing checkpoint": (None, ["--ckpt_path={tmp}/none.ckpt"],
                            "--ckpt_path {tmp}/none.ckpt: no such checkpoint file"),
     "not a checkpoint": (None, ["--ckpt_path={tmp}/junk.ckpt"],
-                         "--ckpt_path {tmp}/junk.ckpt: not a readable checkpoint"),
+                         "--ckpt_path {tmp}/junk.ckpt: not a readable checkpoint (not a torch file)"),
     "EMA decay": (None, ["--trainer.callbacks+=segmo.training.ema.EMA", "--trainer.callbacks.decay=1.5"],
                   "EMA: decay must lie strictly between 0 and 1, got 1.5"),
     "empty config": (None, ["--config", "{tmp}/empty.yaml"],
@@ -348,6 +353,41 @@ HOSTILE = {
                         "RVQConfig: dropout must be a number in [0, 1), got 5"),
     "negative max_steps": (None, ["--trainer.max_steps=-5"],
                            "trainer: `max_steps` must be a non-negative integer or -1"),
+    "negative gamma": (None, ["--model.init_args.gamma=-1"],  # trained uphill, exit 0
+                       "RVQTask: gamma must be a number > 0 (the learning rate's factor at each "
+                       "milestone), got -1.0"),
+    "zero learning rate": (None, ["--model.init_args.lr=0"],  # trained nothing, exit 0
+                           "RVQTask: lr must be a number > 0, got 0.0"),
+    "negative learning rate": (None, ["--model.init_args.lr=-1"],
+                               "RVQTask: lr must be a number > 0, got -1.0"),
+    "betas above 1": (None, ["--model.init_args.betas=[2,0.99]"],
+                      "RVQTask: betas must be two numbers in [0, 1), got [2.0, 0.99]"),
+    "negative weight decay": (None, ["--model.init_args.weight_decay=-1"],
+                              "RVQTask: weight_decay must be a number >= 0, got -1.0"),
+    "seed beyond numpy's": (None, ["--seed_everything=5000000000"],
+                            "--seed_everything 5000000000: expected a whole number from 0 to 4294967295"),
+    "negative data seed": (None, ["--data.init_args.seed=-1"],
+                           "data.init_args.seed=-1 must be a whole number from 0 to 2^63 - 1"),
+    "data seed beyond 64 bits": (None, ["--data.init_args.seed=99999999999999999999999"],
+                                 "data.init_args.seed=99999999999999999999999 must be a whole number"),
+    "negative max_motions": (None, ["--data.init_args.max_motions=-1"],  # dropped the last motion
+                             "data.init_args.max_motions=-1 must be a whole number from 1"),
+    "negative num_workers": (None, ["--data.init_args.num_workers=-1"],
+                             "data.init_args.num_workers=-1 must be a whole number from 0"),
+    "batch beyond 64 bits": (None, ["--data.init_args.batch_size=1000000000000000000000000000000"],
+                             "data.init_args.batch_size=1000000000000000000000000000000 must be"),
+    "zero val_check_interval": (None, ["--trainer.val_check_interval=0"],
+                                "--trainer.val_check_interval 0: expected a number > 0 (or null)"),
+    "zero check_val_every_n_epoch": (None, ["--trainer.check_val_every_n_epoch=0"],
+                                     "--trainer.check_val_every_n_epoch 0: expected a number > 0"),
+    "run name outside runs_dir": (None, ["--run_name=../../escaped"],
+                                  "--run_name '../../escaped': a folder name (no '/' or '..')"),
+    "runs_dir a file": (None, ["--runs_dir={tmp}/junk.ckpt"],
+                        "--runs_dir {tmp}/junk.ckpt: exists and is not a directory"),
+    "last checkpoint of no run": (None, ["--ckpt_path=last"],
+                                  "--ckpt_path last: no last.ckpt in {tmp}/runs/rvq/synthetic/version_*"),
+    "best checkpoint of no run": (None, ["--ckpt_path=best"],
+                                  "--ckpt_path best: no best-*.ckpt in {tmp}/runs/rvq/synthetic/"),
     "default_root_dir": (None, ["--trainer.default_root_dir={tmp}/elsewhere"],
                          "--trainer.default_root_dir is not used by segmo: the run directory is "
                          "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead"),
@@ -374,7 +414,81 @@ def test_hostile_fit_input_is_one_line_with_exit_2(case, tmp_path, capsys):
     assert exit_.value.code == 2 and "Traceback" not in err and len(lines) == 1, err
     assert lines[0].startswith(f"segmo fit: {yaml_path}:" if edit else "segmo fit: ")
     assert expected.format(yaml=yaml_path, line=line, root=root, tmp=tmp_path) in lines[0]
-    assert not list((tmp_path / "runs").rglob("*.ckpt"))
+    assert not (tmp_path / "runs").exists()  # refused before a run folder was made
+
+
+def _checkpoint(path: Path, class_path: str = "segmo.tasks.tokenizer.RVQTask",
+                hparams: dict | None = None, **changes) -> Path:
+    """A file shaped as a checkpoint of `segmo fit` of the tiny tokenizer (no weights)."""
+    checkpoint = {"state_dict": {}, "global_step": 3, "pytorch-lightning_version": "2.6.6",
+                  "hyper_parameters": {"_class_path": class_path, **TINY_MODEL, **(hparams or {})}}
+    checkpoint.update(changes)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(checkpoint, path)
+    return path
+
+
+class _RunsCode:
+    """Unpickling this object runs code: it touches the file it names."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_checkpoints_that_would_train_another_model_are_refused(tmp_path, capsys):
+    """Lightning builds the model from the settings a checkpoint records: a tokenizer
+    checkpoint given to the length config trained the tokenizer (and rewrote that run's
+    last.ckpt and config.yaml), and a width given on resume was silently dropped."""
+    from segmo.cli import main as segmo_main
+
+    root = make_dataset(tmp_path / "data")
+    runs = tmp_path / "runs"
+    marker = tmp_path / "ran"
+    cases = {
+        _checkpoint(runs / "length/x/version_0/checkpoints/last.ckpt", "segmo.tasks.length.LengthTask"):
+            "a checkpoint of segmo.tasks.length.LengthTask, but the config trains "
+            "segmo.tasks.tokenizer.RVQTask; give a checkpoint of this stage",
+        _checkpoint(tmp_path / "wide.ckpt", hparams={"width": 32}):
+            "argument --model.init_args.width=16: model.init_args.width=16, but --ckpt_path "
+            f"{tmp_path / 'wide.ckpt'} was trained with 32, and the model is built from its "
+            "checkpoint's settings",
+        _checkpoint(tmp_path / "code.ckpt", callbacks=_RunsCode(marker)):
+            "holds Python objects other than tensors and plain values, which segmo does not "
+            "unpickle",
+        _checkpoint(tmp_path / "no_version.ckpt", **{"pytorch-lightning_version": None}):
+            "not a Lightning checkpoint (no pytorch-lightning_version)",
+        _checkpoint(tmp_path / "step.ckpt", global_step="abc"):
+            "not a Lightning checkpoint (no global_step)",
+    }
+    before = {path: path.read_bytes() for path in cases}
+    for path, expected in cases.items():
+        for command in ("fit", "validate"):
+            with pytest.raises(SystemExit) as exit_:
+                segmo_main([command, "--config", str(REPO / "configs/rvq/synthetic.yaml"),
+                            *tiny_overrides(root, runs), f"--ckpt_path={path}"])
+            err = capsys.readouterr().err.strip()
+            assert exit_.value.code == 2 and "\n" not in err and expected in err, err
+    assert not marker.exists()  # the pickle's code did not run
+    assert {path: path.read_bytes() for path in cases} == before
+    assert sorted(p.relative_to(runs).as_posix() for p in runs.rglob("*") if p.is_file()) == \
+        ["length/x/version_0/checkpoints/last.ckpt"]
+
+
+def test_validate_and_test_refuse_to_score_an_untrained_model(tmp_path, capsys):
+    from segmo.cli import main as segmo_main
+
+    root = make_dataset(tmp_path / "data")
+    for command in ("validate", "test"):
+        with pytest.raises(SystemExit) as exit_:
+            segmo_main([command, "--config", str(REPO / "configs/rvq/synthetic.yaml"),
+                        *tiny_overrides(root, tmp_path / "runs")])
+        err = capsys.readouterr().err.strip()
+        assert exit_.value.code == 2 and "\n" not in err, err
+        assert err.startswith(f"segmo {command}: --ckpt_path is needed: {command} scores the model "
+                              "of a checkpoint"), err
 
 
 def test_tokenizer_that_is_not_a_model_directory(text_dataset, tmp_path, capsys):

@@ -32,6 +32,7 @@ Example: `segmo fit --config configs/rvq/synthetic.yaml --data.root /tmp/c2000`.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 import warnings
@@ -43,9 +44,10 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
-from segmo.errors import SegmoError
+from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
+from segmo.export import read_checkpoint
 from segmo.training.config_errors import check_config_files, config_error, where_set
-from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step
+from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step, named_checkpoint
 from segmo.training.trainer import SegmoTrainer
 
 SUBCOMMANDS = ("fit", "validate", "test")
@@ -78,15 +80,40 @@ class SegmoCLI(LightningCLI):
         if config is None:
             return
         _check_linked(config, list(args or []))
+        trainer = config.get("trainer") or {}
+        for key in ("val_check_interval", "check_val_every_n_epoch"):
+            value = trainer.get(key)
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value <= 0:
+                # Lightning divides by it at the first validation check
+                raise SegmoError(f"--trainer.{key} {value}: expected a number > 0 (or null)")
+        for key in ("data.init_args.seed", "model.init_args.seed"):
+            value = config.get(key)  # the data's is linked to the model's, built first
+            if isinstance(value, int) and not 0 <= value <= LARGEST_WHOLE_NUMBER:
+                raise SegmoError(f"{key}={value} must be a whole number from 0 to 2^63 - 1")
+        seed = config.get("seed_everything")
+        if isinstance(seed, int) and not isinstance(seed, bool) and not 0 <= seed <= 2**32 - 1:
+            # numpy's global seed, which Lightning sets too, is 32 bits
+            raise SegmoError(f"--seed_everything {seed}: expected a whole number from 0 to "
+                             "4294967295 (or true for a random one)")
         if config.get("trainer", {}).get("default_root_dir") is not None:
             raise SegmoError(
                 "--trainer.default_root_dir is not used by segmo: the run directory is "
                 "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead")
+        if not config.get("model") or not config["model"].get("class_path"):
+            return  # Lightning says that a model is needed
+        task = _task_class(config)
+        run = _run_folder(config, task)
         ckpt_path = config.get("ckpt_path")
-        if ckpt_path is not None and ckpt_path not in ("last", "best", "hpc", "registry"):
-            if not Path(ckpt_path).is_file():
-                raise SegmoError(f"--ckpt_path {ckpt_path}: no such checkpoint file")
-            checkpoint_step(ckpt_path)  # readable, and a Lightning checkpoint
+        if ckpt_path is None:
+            return  # `validate` and `test` need one: `instantiate_trainer`, after the data
+        if ckpt_path in ("last", "best"):
+            ckpt_path = str(named_checkpoint(run, ckpt_path))
+            config["ckpt_path"] = ckpt_path
+        elif not Path(ckpt_path).is_file():
+            raise SegmoError(f"--ckpt_path {ckpt_path}: no such checkpoint file (give a file, "
+                             f"or 'last' or 'best' of the run in {run})")
+        checkpoint = read_checkpoint(ckpt_path, "--ckpt_path", resume=True)
+        _check_checkpoint_task(checkpoint, ckpt_path, config, task, list(args or []))
 
     def _run_directory(self) -> tuple[Path, str, str | None, int | None]:
         """(save_dir, name, version or None for the next free one, resume step or None)."""
@@ -96,21 +123,22 @@ class SegmoCLI(LightningCLI):
             run = checkpoint_run(ckpt_path)
             if run is not None:
                 return (*run, checkpoint_step(ckpt_path))
-        stage = getattr(self.model, "stage", type(self.model).__name__.lower())
-        name = config.get("run_name")
-        if not name:
-            files = config.get("config") or []
-            name = Path(str(files[-1])).stem if files else "default"
-        # Absolute, as a resumed run's folder is (`checkpoint_run`): Lightning compares the
-        # checkpoint folder stored in a checkpoint with its own, and on a mismatch it forgets
-        # which file is last.ckpt.
-        return Path(config.get("runs_dir") or "runs").resolve() / stage, name, None, None
+        folder = _run_folder(config, type(self.model))
+        return folder.parent, folder.name, None, None
 
     def instantiate_trainer(self, **kwargs: Any):
         if self.datamodule is not None:
             # Read and check the data (values, text features) before the Trainer prints its
             # banners, so that a refused dataset is the only thing the user sees.
             self.datamodule.setup(self.subcommand)
+        if self.subcommand != "fit" and self.config[self.subcommand].get("ckpt_path") is None:
+            run = _run_folder(self.config[self.subcommand], type(self.model))
+            raise SegmoError(f"--ckpt_path is needed: {self.subcommand} scores the model of a "
+                             f"checkpoint (a file, or 'last' or 'best' of the run in {run}); "
+                             "without one it would score an untrained model")
+        check_optimiser = getattr(self.model, "check_optimiser", None)
+        if check_optimiser is not None:
+            check_optimiser()  # before the Trainer's banners, as the data's checks
         trainer_config = self._get(self.config_init, "trainer", default={})
         save_dir, name, version, resume_step = self._run_directory()
         if trainer_config.get("logger") in (None, True):
@@ -139,6 +167,70 @@ class SegmoCLI(LightningCLI):
             )
         kwargs["callbacks"] = callbacks
         return super().instantiate_trainer(**kwargs)
+
+
+def _task_class(config: Any) -> type:
+    """The task class the parsed ``config`` names (its ``model.class_path``)."""
+    module, _, name = str(config["model"]["class_path"]).rpartition(".")
+    return getattr(importlib.import_module(module), name)
+
+
+def _run_folder(config: Any, task: type) -> Path:
+    """RUNS_DIR/STAGE/RUN_NAME, absolute (stage: the task's `stage`; name: --run_name, else
+    the last config file's stem). Absolute, as a resumed run's folder is (`checkpoint_run`):
+    Lightning compares the checkpoint folder stored in a checkpoint with its own, and on a
+    mismatch it forgets which file is last.ckpt."""
+    name = config.get("run_name")
+    if not name:
+        files = config.get("config") or []
+        name = Path(str(files[-1])).stem if files else "default"
+    elif name in (".", "..") or Path(name).name != name:
+        raise SegmoError(f"--run_name {name!r}: a folder name (no '/' or '..'); the run folder "
+                         "is RUNS_DIR/STAGE/RUN_NAME")
+    runs_dir = Path(config.get("runs_dir") or "runs")
+    if runs_dir.exists() and not runs_dir.is_dir():
+        raise SegmoError(f"--runs_dir {runs_dir}: exists and is not a directory")
+    stage = getattr(task, "stage", task.__name__.lower())
+    return runs_dir.resolve() / stage / name
+
+
+def _check_checkpoint_task(checkpoint: dict, ckpt_path: str, config: Any, task: type,
+                           argv: list[str]) -> None:
+    """A checkpoint of another task than the config's, or a model setting given (on the
+    command line or in a config file) that differs from the checkpoint's: one SegmoError.
+    Lightning builds the model from the settings a checkpoint records (they replace the
+    config's), so either would silently train or score another model than the one asked for."""
+    hparams = checkpoint.get("hyper_parameters") or {}
+    recorded = hparams.get("_class_path")
+    if recorded:
+        try:
+            same = _task_class({"model": {"class_path": recorded}}) is task
+        except (ImportError, AttributeError, ValueError):
+            same = False
+        if not same:
+            raise SegmoError(
+                f"--ckpt_path {ckpt_path}: a checkpoint of {recorded}, but the config trains "
+                f"{config['model']['class_path']}; give a checkpoint of this stage")
+    given = config["model"].get("init_args") or {}
+    for key, saved in hparams.items():
+        if key.startswith("_") or key not in given:
+            continue
+        places = where_set(f"model.init_args.{key}", argv)
+        if places and _setting(key, given[key]) != _setting(key, saved):
+            raise SegmoError(
+                f"{places[0][0]}: model.init_args.{key}={given[key]!r}, but --ckpt_path "
+                f"{ckpt_path} was trained with {saved!r}, and the model is built from its "
+                "checkpoint's settings; leave it as it was, or start a new run")
+
+
+def _setting(key: str, value: Any) -> Any:
+    """A model setting in a form that compares as the user means it: sequences as lists,
+    the tokenizer as an absolute path."""
+    if isinstance(value, (list, tuple)):
+        return [_setting(key, v) for v in value]
+    if key == "tokenizer" and isinstance(value, str):
+        return str(Path(value).resolve())
+    return value
 
 
 def _check_linked(config: Any, argv: list[str]) -> None:

@@ -16,13 +16,13 @@ import io
 from pathlib import Path
 from typing import Any
 
-import torch
 from lightning.fabric.loggers.csv_logs import _ExperimentWriter
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
 from segmo.errors import SegmoError
+from segmo.export import read_checkpoint
 from segmo.files import write_atomic
 
 
@@ -36,19 +36,24 @@ def checkpoint_run(ckpt_path: str | Path) -> tuple[Path, str, str] | None:
     return run.parent.parent, run.parent.name, run.name
 
 
+def named_checkpoint(run: Path, which: str) -> Path:
+    """``--ckpt_path last`` or ``best``: that checkpoint of the newest version of ``run``
+    (RUNS_DIR/STAGE/NAME) that has one (Lightning would look only in the new run's own,
+    empty, folder, and start from scratch with a warning)."""
+    pattern = "last.ckpt" if which == "last" else "best-*.ckpt"
+    versions = sorted((p for p in run.glob("version_*") if p.name[8:].isdigit()),
+                      key=lambda p: int(p.name[8:]), reverse=True)
+    for version in versions:
+        found = sorted((version / "checkpoints").glob(pattern), key=lambda p: p.stat().st_mtime)
+        if found:
+            return found[-1]
+    raise SegmoError(f"--ckpt_path {which}: no {pattern} in {run}/version_*/checkpoints/ "
+                     "(a run of this config and --run_name under --runs_dir)")
+
+
 def checkpoint_step(ckpt_path: str | Path) -> int:
-    """The global step a checkpoint was written at (memory-mapped: reads little)."""
-    try:
-        try:
-            checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
-        except RuntimeError:  # not in the zip format, which mmap needs
-            checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    except Exception as error:  # noqa: BLE001 - any unreadable file is the user's to fix
-        raise SegmoError(f"--ckpt_path {ckpt_path}: not a readable checkpoint "
-                         f"({type(error).__name__}: {error})") from None
-    if not isinstance(checkpoint, dict) or "global_step" not in checkpoint:
-        raise SegmoError(f"--ckpt_path {ckpt_path}: not a Lightning checkpoint (no global_step)")
-    return int(checkpoint["global_step"])
+    """The global step a checkpoint was written at (`read_checkpoint`: checked, memory-mapped)."""
+    return read_checkpoint(ckpt_path, "--ckpt_path", resume=True)["global_step"]
 
 
 class _ResumedWriter(ExperimentWriter):
