@@ -101,6 +101,7 @@ class ActionClassifierTask(Task):
             self.model = self._build(checkpoint["action_classes"])
 
     def configure_optimizers(self):
+        self.check_optimiser()
         h = self.hparams
         optimizer = torch.optim.AdamW(self.model.parameters(), lr=h.lr, weight_decay=h.weight_decay)
         schedule = torch.optim.lr_scheduler.OneCycleLR(

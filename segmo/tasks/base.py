@@ -80,6 +80,14 @@ def adamw_with_schedule(parameters, lr: float, weight_decay: float, warmup_steps
     return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
 
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def non_finite_tensors(state_dict: dict[str, Any]) -> list[str]:
     """Names of the floating-point tensors of ``state_dict`` holding NaN or inf."""
     return [name for name, value in state_dict.items()
@@ -126,7 +134,27 @@ class Task(L.LightningModule):
                 f"but the task was built for {self.skeleton.name!r}; set model.init_args.skeleton "
                 "to match")
 
+    def check_optimiser(self) -> None:
+        """One `SegmoError` naming the first optimiser setting (``lr``, ``weight_decay``,
+        ``betas``, ``warmup_steps``, ``milestones``, ``gamma``, those the task has) that
+        would train nothing, train uphill or make torch refuse the optimiser."""
+        h, name = self.hparams, type(self).__name__
+        rules = (("lr", "a number > 0", lambda v: _number(v) and v > 0),
+                 ("weight_decay", "a number >= 0", lambda v: _number(v) and v >= 0),
+                 ("gamma", "a number > 0 (the learning rate's factor at each milestone)",
+                  lambda v: _number(v) and v > 0),
+                 ("warmup_steps", "a whole number >= 0", lambda v: _whole(v) and v >= 0),
+                 ("milestones", "a list of whole numbers >= 0",
+                  lambda v: isinstance(v, (list, tuple)) and all(_whole(m) and m >= 0 for m in v)),
+                 ("betas", "two numbers in [0, 1)",
+                  lambda v: isinstance(v, (list, tuple)) and len(v) == 2
+                  and all(_number(b) and 0 <= b < 1 for b in v)))
+        for key, expected, valid in rules:
+            if key in h and not valid(h[key]):
+                raise SegmoError(f"{name}: {key} must be {expected}, got {h[key]!r}")
+
     def configure_optimizers(self):
+        self.check_optimiser()
         h = self.hparams
         return adamw_with_schedule(self.model.parameters(), h.lr, h.weight_decay, h.warmup_steps,
                                    h.milestones, h.gamma, h.get("betas", (0.9, 0.99)))

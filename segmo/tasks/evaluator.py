@@ -150,6 +150,7 @@ class EvaluatorTask(Task):
             self.model = self._build(checkpoint["evaluator_words"])
 
     def configure_optimizers(self):
+        self.check_optimiser()
         params = [p for p in self.model.parameters() if p.requires_grad]
         return torch.optim.Adam(params, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
 
