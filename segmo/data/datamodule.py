@@ -22,7 +22,7 @@ from segmo.data.humanml3d import MotionDataset
 from segmo.data.layout import load_stats, split_file
 from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
-from segmo.errors import SegmoError
+from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
@@ -85,6 +85,11 @@ class MotionDataModule(LightningDataModule):
         self.save_hyperparameters()
         if batch_size <= 0:
             raise SegmoError(f"data.init_args.batch_size={batch_size} must be positive")
+        for name, value, low in (("batch_size", batch_size, 1), ("num_workers", num_workers, 0),
+                                 ("seed", seed, 0), ("max_motions", max_motions, 1)):
+            if value is not None and not low <= value <= LARGEST_WHOLE_NUMBER:
+                raise SegmoError(f"data.init_args.{name}={value} must be a whole number from "
+                                 f"{low} to 2^63 - 1")
         if unit_length not in (None, FRAMES_PER_TOKEN):
             raise SegmoError(f"data.init_args.unit_length={unit_length}: a motion token is always "
                              f"{FRAMES_PER_TOKEN} frames (the tokenizer's fixed stride); remove the option")
