@@ -110,6 +110,29 @@ def _load(path: Path, mmap_mode: str | None = None) -> np.ndarray:
                          f"{path.parent} and run again (it is rebuilt)") from None
 
 
+def shard_problem(tokens: np.ndarray, offsets: np.ndarray, items: int, meta: dict) -> str | None:
+    """What makes a shard unusable (None when nothing): tokens that are not (L, q) whole
+    numbers in [0, codebook_size) of the tokenizer meta.json names, or offsets that do not
+    cut them into ``items`` spans from row 0 to row L. Read in full (a few MB for a
+    corpus): a truncated or overwritten file would otherwise give crops of no tokens, or
+    codes the transformer has no embedding for."""
+    codes, quantizers = meta.get("codebook_size"), meta.get("num_quantizers")
+    if tokens.ndim != 2 or not np.issubdtype(tokens.dtype, np.integer) \
+            or (isinstance(quantizers, int) and tokens.shape[1] != quantizers):
+        return (f"tokens of shape {tokens.shape} and type {tokens.dtype}, expected (rows, "
+                f"{quantizers}) whole numbers")
+    if offsets.shape != (items + 1,) or not np.issubdtype(offsets.dtype, np.integer):
+        return f"offsets of shape {offsets.shape} for {items} items"
+    if offsets[0] != 0 or offsets[-1] != len(tokens) or (np.diff(offsets) < 0).any():
+        return (f"offsets from {offsets[0]} to {offsets[-1]} (not rising from 0 to the "
+                f"{len(tokens)} rows of tokens)")
+    if len(tokens) and isinstance(codes, int):
+        low, high = int(tokens.min()), int(tokens.max())
+        if low < 0 or high >= codes:
+            return f"codes from {low} to {high}, outside the tokenizer's [0, {codes})"
+    return None
+
+
 class MotionTokenCache:
     """Read-only view of a built cache.
 
@@ -126,12 +149,15 @@ class MotionTokenCache:
         self._spans: dict[str, tuple[int, int, int]] = {}  # item -> (shard, start, end)
         for s, shard in enumerate(_read_index(self.folder)["shards"]):
             stem = self.folder / shard["name"]
-            self._tokens.append(_load(Path(f"{stem}.tokens.npy"), mmap_mode="r"))
-            offsets = _load(Path(f"{stem}.offsets.npy")).tolist()
-            if len(offsets) != len(shard["items"]) + 1:
-                raise SegmoError(f"{stem}.offsets.npy: {len(offsets)} offsets for "
-                                 f"{len(shard['items'])} items; delete {self.folder}")
-            self._spans.update((item, (s, offsets[j], offsets[j + 1]))
+            tokens = _load(Path(f"{stem}.tokens.npy"), mmap_mode="r")
+            offsets = _load(Path(f"{stem}.offsets.npy"))
+            problem = shard_problem(tokens, offsets, len(shard["items"]), self.meta)
+            if problem:
+                raise SegmoError(f"{stem}.*.npy: {problem}: a damaged motion-token cache; delete "
+                                 f"{self.folder} and run again (it is rebuilt)")
+            self._tokens.append(tokens)
+            bounds = offsets.tolist()
+            self._spans.update((item, (s, bounds[j], bounds[j + 1]))
                                for j, item in enumerate(shard["items"]))
 
     def tokens(self, clip: str, offset: int) -> torch.Tensor:
