@@ -75,6 +75,9 @@ def test_parse_text_line():
         parse_text_line("a man walks without tags", "x.txt", 7)
     with pytest.raises(ValueError, match=r"x\.txt:2: bad time tags"):
         parse_text_line("a man walks#a/DET#3.0#1.0", "x.txt", 2)
+    for tags in ("0.0#inf", "nan#inf", "-inf#2.0"):  # `inf` was an OverflowError at loading
+        with pytest.raises(ValueError, match=r"x\.txt:4: time tags must be finite"):
+            parse_text_line(f"a man walks#a/DET#{tags}", "x.txt", 4)
 
 
 def test_missing_split_file_names_path(tmp_path):
@@ -206,6 +209,44 @@ def test_non_finite_and_absurd_values_are_refused_naming_the_files(tmp_path, pre
     assert len(MotionWindowDataset(tmp_path, window=32, preload=preload)) == 6
     with pytest.raises(SegmoError, match=r"1 of 6 .*m1\.npy: frame 10 dim 5 .*max_abs_z=500"):
         MotionWindowDataset(tmp_path, window=32, preload=preload, max_abs_z=500)
+
+
+@pytest.mark.parametrize("preload", [True, False])
+def test_motions_of_other_values_than_real_numbers_are_refused_naming_them(tmp_path, preload):
+    """A complex motion trained on its real part with only a ComplexWarning; one of text
+    was a TypeError from numpy."""
+    write_dataset(tmp_path, {f"m{i}": 60 for i in range(4)})
+    np.save(tmp_path / "new_joint_vecs" / "m1.npy", np.zeros((60, D), np.complex64) + 1j)
+    np.save(tmp_path / "new_joint_vecs" / "m2.npy", np.full((60, D), "a"))
+    with pytest.raises(SegmoError) as error:
+        MotionDataset(tmp_path, preload=preload)
+    message = str(error.value)
+    assert "\n" not in message and "2 of 4 motion files" in message
+    assert "m1.npy: values of type complex64, not real numbers" in message
+    assert "m2.npy: values of type <U1, not real numbers" in message
+
+
+def test_a_header_claiming_more_frames_than_the_file_holds_is_skipped_unread(tmp_path):
+    """Such a 4 KB file made np.load ask for 1.9 TiB (MemoryError) before it failed."""
+    write_dataset(tmp_path, {"ok": 60, "liar": 60})
+    path = tmp_path / "new_joint_vecs" / "liar.npy"
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False,
+                                                 "shape": (2_000_000_000, D)})
+        f.write(b"\0" * 4096)
+    with pytest.warns(UserWarning, match=r"liar\.npy: its header claims \(2000000000, 263\)"):
+        ds = MotionDataset(tmp_path)
+    assert {s["id"] for s in ds} == {"ok"} and ds.summary["unreadable"] == 1
+
+
+def test_statistics_of_other_values_than_real_numbers_are_refused_naming_the_file(tmp_path):
+    write_dataset(tmp_path, {"a": 60})
+    np.save(tmp_path / "Std.npy", np.full(D, "a"))
+    with pytest.raises(SegmoError, match=r"Std\.npy: values of type <U1, not real numbers"):
+        load_stats(tmp_path)
+    np.save(tmp_path / "Std.npy", np.ones(D, np.complex64))
+    with pytest.raises(SegmoError, match=r"Std\.npy: values of type complex64"):
+        load_stats(tmp_path)
 
 
 @pytest.mark.skipif(not (SHARED / "fixtures" / "humanml3d").is_dir(),

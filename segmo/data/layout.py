@@ -108,6 +108,9 @@ def check_stats(mean: Any, std: Any, skeleton: str | SkeletonSpec = "t2m", mean_
     spec = get_skeleton(skeleton)
     out = []
     for name, arr in ((mean_name, mean), (std_name, std)):
+        kind = np.asarray(arr).dtype.kind
+        if kind not in "fiu":  # complex would lose its imaginary part, text fails to convert
+            raise SegmoError(f"{name}: values of type {np.asarray(arr).dtype}, not real numbers")
         arr = np.array(arr, dtype=np.float32)  # always a copy
         if arr.shape != (spec.feature_dim,):
             raise SegmoError(f"{name}: shape {arr.shape}, expected ({spec.feature_dim},) "

@@ -30,6 +30,8 @@ def value_problem(arr: np.ndarray, mean: np.ndarray, std: np.ndarray,
                   max_abs_z: float | None = MAX_ABS_Z) -> str | None:
     """Where (t, d) raw features ``arr`` are non-finite or beyond ``max_abs_z``, or None."""
     arr = np.asarray(arr)
+    if arr.dtype.kind not in "fiu":  # complex (its imaginary part would be dropped), text
+        return f"values of type {arr.dtype}, not real numbers"
     finite = np.isfinite(arr)
     if not finite.all():
         frame, dim = np.argwhere(~finite)[0]

@@ -108,6 +108,8 @@ def parse_text_line(line: str, path: str | Path = "<text>", lineno: int = 0) -> 
         raise SegmoError(f"{where}: from/to are not numbers: {parts[2]!r}, {parts[3]!r}") from None
     start = 0.0 if math.isnan(start) else start
     end = 0.0 if math.isnan(end) else end
+    if not (math.isfinite(start) and math.isfinite(end)):  # `inf` seconds: no frame
+        raise SegmoError(f"{where}: time tags must be finite seconds, got from={start} to={end}")
     if not (start == 0.0 and end == 0.0) and not (0.0 <= start < end):
         raise SegmoError(f"{where}: bad time tags from={start} to={end}")
     return Caption(caption, start, end, lineno)
