@@ -186,7 +186,7 @@ def plot_motion(
         _StickFigure(ax, joints, spec).update(index % t)
         ax.set_title(f"frame {index % t}", fontsize=9)
     if title:
-        fig.suptitle(_wrap(title, int(18 * len(indices)) + 20), fontsize=10)
+        fig.suptitle(_wrap(title, int(18 * len(indices)) + 20), fontsize=10, parse_math=False)
     return fig
 
 
@@ -243,10 +243,12 @@ def save_animation(
     fig.subplots_adjust(left=0, right=1, bottom=footer / height,
                         top=1 - (0.4 / height if title else 0.0))
     if title:
-        fig.suptitle(_wrap(title, int(10 * size)), fontsize=9)
+        fig.suptitle(_wrap(title, int(10 * size)), fontsize=9, parse_math=False)
     counter = fig.text(0.02, 0.02 + (0.2 / height if segments else 0.0), "", fontsize=8,
                        family="monospace", color="#444444")
-    active = fig.text(0.02, 0.02, "", fontsize=8, color="#1f4e9c") if segments else None
+    # Captions are plain text: "$x^$" is no formula (matplotlib's mathtext failed on it).
+    active = (fig.text(0.02, 0.02, "", fontsize=8, color="#1f4e9c", parse_math=False)
+              if segments else None)
     spans = [(str(text), int(start), int(end)) for text, start, end in (segments or [])]
     source_fps = fps or spec.fps
     figure = _StickFigure(ax, joints, spec)

@@ -663,6 +663,43 @@ def test_cli_edit_lists_source_and_edit_in_one_prompts_json(bundle, tmp_path, ha
     assert sorted(printed) == sorted(set(printed)) == sorted(str(p) for p in out.iterdir())
 
 
+def test_a_save_writes_all_of_it_or_nothing_and_keeps_earlier_entries(bundle, tmp_path, monkeypatch):
+    """A prompt holding "$x^$" failed in matplotlib's formula parser while the GIF was drawn,
+    after the npy files had replaced the user's, and prompts.json lost the entries of every
+    file an earlier save had left in the folder."""
+    import segmo.pipeline.outputs as outputs
+
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    out = tmp_path / "out"
+    first = model.generate(["walk $x^$, then jump $\\alpha^$", PROMPTS[1]], [16, 16],
+                           generator=torch.Generator().manual_seed(0))
+    first.save(out, formats=("npy", "gif"))  # plain text in the title and segment labels
+    assert (out / "sample_00.gif").stat().st_size > 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    second = model.generate([PROMPTS[0]], [16], generator=torch.Generator().manual_seed(1))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the GIF could not be drawn")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(outputs, "save_animation", broken)
+        with pytest.raises(RuntimeError):
+            second.save(out, formats=("npy", "gif"))
+        with pytest.raises(RuntimeError):
+            second.save(tmp_path / "new", formats=("npy", "gif"))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing replaced, no leftovers
+    assert not (tmp_path / "new").exists()
+    second.save(out, formats=("npy",))
+    index = json.loads((out / "prompts.json").read_text())
+    assert [(e["file"], e["text"]) for e in index] == [("sample_01", PROMPTS[1]),
+                                                      ("sample_00", PROMPTS[0])]
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # sample_01's files stay
+    (out / "prompts.json").write_text('{"mine": true}')
+    with pytest.raises(SegmoError, match=r"prompts\.json: not a prompts\.json written by segmo"):
+        second.save(out, formats=("npy",))
+    assert (out / "prompts.json").read_text() == '{"mine": true}'
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),

@@ -225,13 +225,15 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
                        color=colours[k % len(colours)], alpha=0.12)
 
     for k, text in enumerate(segments):
-        label = textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…")
+        # Legend labels are read as mathtext: a caption's "$" is escaped (plain text).
+        label = textwrap.shorten(f"{k + 1}: {text}", 48, placeholder="…").replace("$", r"\$")
         ax.plot(seconds[valid], profile[k][valid], color=colours[k % len(colours)], label=label)
     shade(ax)
     ax.set_ylabel("segment attention")
     # A long caption wraps instead of running off the figure.
     title = title or f"{m.stage} step {m.step}, block {m.block}"
-    ax.set_title("\n".join(textwrap.fill(line, 100) for line in title.splitlines()), fontsize=9)
+    ax.set_title("\n".join(textwrap.fill(line, 100) for line in title.splitlines()), fontsize=9,
+                 parse_math=False)
     ax.legend(fontsize=7, loc="best")
     if words:
         word_profile = key_profile(m, row, "word ")
@@ -241,7 +243,7 @@ def plot_segment_attention(m: AttentionMap, row: int, segments: Sequence[str], p
         ax = axes[1, 0]
         styles = ["-", "--", ":", "-."]
         for j, (index, text) in enumerate(words):
-            ax.plot(seconds[valid], word_profile[index][valid], label=text,
+            ax.plot(seconds[valid], word_profile[index][valid], label=text.replace("$", r"\$"),
                     color=colours[j % len(colours)], linestyle=styles[(j // len(colours)) % 4])
         shade(ax)
         ax.set_ylabel("word attention")

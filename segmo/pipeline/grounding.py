@@ -302,7 +302,9 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
         if first <= last:
             ax.hlines(row + 0.35, first - 0.5, last + 0.5, colors="white", linewidth=3)
     ax.set_yticks(range(len(output.segments)))
-    ax.set_yticklabels([s if len(s) <= 40 else s[:37] + "..." for s in output.segments])
+    # Captions are plain text: "$x^$" is no formula (matplotlib's mathtext fails on it).
+    ax.set_yticklabels([s if len(s) <= 40 else s[:37] + "..." for s in output.segments],
+                       parse_math=False)
     seconds = FRAMES_PER_TOKEN / (fps or output.fps)  # per token
     if by_token:
         labels = [f"{p * seconds:.1f}" for p in range(sim.shape[1])]
@@ -319,5 +321,5 @@ def plot_similarity_map(output: GroundingOutput, ax=None, title: str | None = No
     ax.set_xticks(range(0, len(labels), step))
     ax.set_xticklabels(labels[::step])
     ax.set_xlabel(xlabel)
-    ax.set_title(title if title is not None else output.text, fontsize=9)
+    ax.set_title(title if title is not None else output.text, fontsize=9, parse_math=False)
     return ax

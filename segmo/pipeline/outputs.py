@@ -7,6 +7,8 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -99,6 +101,9 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     (`GenerationOutput.save`, whose options these are; a GIF names the segments of its
     output's `spans`), and one `prompts.json` that lists every motion written, e.g.
     `segmo edit`'s {"source": ..., "edit": ...}. Returns the written paths, each once.
+
+    Nothing is written unless all of it can be: files of the same name are replaced, other
+    files stay, and so do their entries in an existing `prompts.json` (`read_prompts`).
     """
     unknown = set(formats) - set(FORMATS)
     if unknown:
@@ -107,40 +112,77 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     if bvh_fps is not None:  # before any file is written
         check_bvh_fps(bvh_fps, "GenerationOutput.save: bvh_fps")
     directory = Path(directory)
+    earlier = read_prompts(directory)  # before any work: a prompts.json not ours is refused
+    created = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
+    # Everything is rendered into a folder of its own first, and only moved beside what the
+    # directory holds once all of it is written: a sample that fails (a GIF that cannot be
+    # drawn, a full disk) leaves the directory as it was.
+    stage = directory / f".save.tmp-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir()
     written: list[Path] = []
     index = []
-    for prefix, output in outputs.items():
-        for i, text in enumerate(output.texts):
-            stem = directory / f"{prefix}_{i:02d}"
-            features, joints = output.motion(i), output.motion_joints(i)
-            fit = None
-            if fixed_skeleton or "bvh" in formats:
-                fit = fit_motion(joints, output.skeleton, foot_lock=foot_lock)
-                if fixed_skeleton:
-                    joints = fit.joints.astype(np.float32)
-            if "npy" in formats:
-                n = int(output.lengths[i]) // FRAMES_PER_TOKEN
-                tokens = output.tokens[i, :n].cpu().numpy().astype(np.int64)
-                for suffix, array in (("features", features.astype(np.float32)),
-                                      ("joints", joints.astype(np.float32)), ("tokens", tokens)):
-                    path = Path(f"{stem}_{suffix}.npy")
-                    np.save(path, array)
-                    written.append(path)
-            if "gif" in formats:
-                labels, spans = None, output.spans
-                if spans is not None and len(spans[i]) == len(output.segments[i]):
-                    labels = [(seg, s, e) for seg, (s, e) in zip(output.segments[i], spans[i])]
-                written.append(save_animation(joints, f"{stem}.gif", skeleton=output.skeleton,
-                                              title=text, fps=output.fps, segments=labels,
-                                              progress=progress))
-            if "bvh" in formats:
-                written.append(write_bvh(fit, f"{stem}.bvh", output.skeleton, fps=output.fps,
-                                         target_fps=bvh_fps))
-            index.append({"file": stem.name, "text": text, "segments": output.segments[i],
-                          "frames": int(output.lengths[i])})
+    try:
+        for prefix, output in outputs.items():
+            for i, text in enumerate(output.texts):
+                stem = stage / f"{prefix}_{i:02d}"
+                features, joints = output.motion(i), output.motion_joints(i)
+                fit = None
+                if fixed_skeleton or "bvh" in formats:
+                    fit = fit_motion(joints, output.skeleton, foot_lock=foot_lock)
+                    if fixed_skeleton:
+                        joints = fit.joints.astype(np.float32)
+                if "npy" in formats:
+                    n = int(output.lengths[i]) // FRAMES_PER_TOKEN
+                    tokens = output.tokens[i, :n].cpu().numpy().astype(np.int64)
+                    for suffix, array in (("features", features.astype(np.float32)),
+                                          ("joints", joints.astype(np.float32)), ("tokens", tokens)):
+                        path = Path(f"{stem}_{suffix}.npy")
+                        np.save(path, array)
+                        written.append(path)
+                if "gif" in formats:
+                    labels, spans = None, output.spans
+                    if spans is not None and len(spans[i]) == len(output.segments[i]):
+                        labels = [(seg, s, e) for seg, (s, e) in zip(output.segments[i], spans[i])]
+                    written.append(save_animation(joints, f"{stem}.gif", skeleton=output.skeleton,
+                                                  title=text, fps=output.fps, segments=labels,
+                                                  progress=progress))
+                if "bvh" in formats:
+                    written.append(write_bvh(fit, f"{stem}.bvh", output.skeleton, fps=output.fps,
+                                             target_fps=bvh_fps))
+                index.append({"file": stem.name, "text": text, "segments": output.segments[i],
+                              "frames": int(output.lengths[i])})
+        for path in written:
+            os.replace(path, directory / path.name)
+    except BaseException:
+        shutil.rmtree(directory if created else stage, ignore_errors=True)
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+    written = [directory / path.name for path in written]
+    # An earlier save's entries stay listed, except those of the files written now.
+    rewritten = {entry["file"] for entry in index}
+    index = [entry for entry in earlier if entry["file"] not in rewritten] + index
     written.append(write_atomic(directory / "prompts.json", json.dumps(index, indent=2) + "\n"))
     return written
+
+
+def read_prompts(directory: str | Path) -> list[dict]:
+    """The entries of ``directory/prompts.json`` (none when there is none), or one
+    `SegmoError` when it is not a list that `save_outputs` wrote: a file of the user's
+    that a save would replace."""
+    path = Path(directory) / "prompts.json"
+    if not path.is_file():
+        return []
+    try:
+        entries = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        entries = error
+    if not (isinstance(entries, list) and all(isinstance(e, dict) and isinstance(e.get("file"), str)
+                                              for e in entries)):
+        raise SegmoError(f"{path}: not a prompts.json written by segmo (a list of "
+                         "{\"file\": ...} entries); move it away or write elsewhere")
+    return entries
 
 
 @dataclass
