@@ -97,6 +97,16 @@ CLI_CASES = [
         "an unknown output format"),
     Cli("generate-out-is-file", "generate --model {bundle} --text walk --out {file}",
         "--out", "`--out` naming an existing file"),
+    Cli("generate-out-through-file", "generate --model {bundle} --text walk --out {file}/sub",
+        "is a file, not a directory", "`--out` inside a file (was refused after the generation)"),
+    Cli("generate-out-foreign-prompts", "generate --model {bundle} --text walk --out {theirs}",
+        "not a prompts.json written by segmo", "`--out` holding a prompts.json of the user's"),
+    Cli("edit-weight-with-swap", "edit --model {bundle} --source-text walk --target-text run "
+        "--weight 2=2 --out {tmp}/e", "--weight is for --mode reweight",
+        "`--weight` with `--mode swap` (was ignored)"),
+    Cli("edit-weight-superscript", "edit --model {bundle} --source-text walk --mode reweight "
+        "--weight ²=2 --out {tmp}/e", "weights key '²'",
+        "`--weight ²=2`, a digit int() refuses (was a traceback)"),
     Cli("generate-model-missing", "generate --model {tmp}/nope --text walk --out {tmp}/g",
         "--model", "a model folder that does not exist"),
     Cli("generate-model-is-stage", "generate --model {bundle}/mask --text walk --out {tmp}/g",
@@ -325,6 +335,28 @@ API_CASES = [
         "span", "`edit(span=(40, 8))`"),
     Api("api-edit-span-fraction", lambda m, w: m.edit(_motion(w), (0.5, 8), "run"), SegmoError,
         "span", "`edit(span=(0.5, 8))`"),
+    Api("api-generate-not-unicode", lambda m, w: m.generate(["walk \udcff then run"], [40]),
+        SegmoError, "not valid Unicode", "a prompt with bytes that are not UTF-8 (was a "
+        "TypeError from the tokenizer)"),
+    Api("api-edit-text-weights-with-swap",
+        lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), "walk, then jump",
+                                 weights={2: 2.0}),
+        SegmoError, "weights are for mode 'reweight'", "weights with mode swap (were ignored)"),
+    Api("api-edit-text-ambiguous-key",
+        lambda m, w: m.edit_text(m.generate(["a man walks, then a man runs"], [40]),
+                                 mode="reweight", weights={"a": 2.0}),
+        SegmoError, "is part of segments [1, 2]", "a weights key found in two segments (took "
+        "the first)"),
+    Api("api-edit-text-empty-key",
+        lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), mode="reweight",
+                                 weights={"": 2.0}),
+        SegmoError, "names no segment", "an empty weights key (took segment 1)"),
+    Api("api-compose-no-context",
+        lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
+        "too little room for context", "a transition that leaves one token of context (was a "
+        "RuntimeError)"),
+    Api("api-compose-too-long", lambda m, w: m.compose([("walk", 196)] * 200), SegmoError,
+        "more than 20 minutes", "200 parts of 196 frames (time and memory grow without bound)"),
     Api("api-ground-nan", lambda m, w: m.ground("walk", np.load(w["nan_motion"])), SegmoError,
         "frame 5", "`ground` on a motion with a NaN frame"),
     Api("api-ground-complex", lambda m, w: m.ground("walk", _motion(w).astype(np.complex64)),
@@ -392,6 +424,9 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     files["foreign"] = tmp / "foreign"
     files["foreign"].mkdir()
     (files["foreign"] / "thesis.tex").write_text("mine")
+    files["theirs"] = tmp / "theirs"
+    files["theirs"].mkdir()
+    (files["theirs"] / "prompts.json").write_text('{"my": "prompts"}')
     files["bad_metrics"] = tmp / "metrics.json"
     files["bad_metrics"].write_text("{oops")
     files["odd_metrics"] = tmp / "odd" / "metrics.json"

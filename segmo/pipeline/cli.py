@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from pathlib import Path
 from typing import get_args
 
@@ -48,7 +49,7 @@ from segmo.pipeline.grounding import (
     plot_similarity_map,
 )
 from segmo.pipeline.model_card import read_metrics
-from segmo.pipeline.outputs import FORMATS, save_outputs
+from segmo.pipeline.outputs import FORMATS, read_prompts, save_outputs
 from segmo.pipeline.segmo import SegMo
 
 
@@ -62,11 +63,24 @@ def _load(parser: argparse.ArgumentParser, directory: str):
         raise SegmoError(f"--model {directory}: {error}") from error
 
 
-def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str) -> None:
-    """Refuse an output path that cannot become a directory before any work is done."""
+def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str,
+                      motions: bool = True) -> None:
+    """Refuse an output path that cannot become a directory before any work is done (and,
+    for the commands that write motions, one whose prompts.json `save_outputs` would not
+    add to)."""
     path = Path(value)
+    if path.is_symlink() and not path.exists():
+        parser.error(f"{flag} {value}: a symbolic link to {os.readlink(path)}, which does not exist")
     if path.exists() and not path.is_dir():
         parser.error(f"{flag} {value}: exists and is not a directory")
+    above = next((p for p in path.absolute().parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        parser.error(f"{flag} {value}: {above} is a file, not a directory")
+    try:
+        if motions:
+            read_prompts(path)  # a prompts.json that is not segmo's would be replaced
+    except SegmoError as error:
+        parser.error(f"{flag}: {error}")
 
 
 def _formats(parser: argparse.ArgumentParser, value: str) -> tuple[str, ...]:
@@ -206,7 +220,7 @@ def _weight(parser: argparse.ArgumentParser, value: str) -> tuple[str | int, flo
     if not sep or not key.strip() or number is None or not math.isfinite(number):
         parser.error(f"--weight {value!r}: expected SEGMENT=FACTOR, e.g. 2=1.5 or jumps=-1")
     key = key.strip()
-    return (int(key) if key.isdigit() else key), number
+    return (int(key) if key.isdecimal() and key.isascii() else key), number
 
 
 def edit_main(argv: list[str] | None = None) -> None:
@@ -235,6 +249,8 @@ def edit_main(argv: list[str] | None = None) -> None:
     formats = _formats(parser, args.formats)
     if args.mode == "reweight" and not args.weight:
         parser.error("--mode reweight needs --weight SEGMENT=FACTOR")
+    if args.mode != "reweight" and args.weight:  # it would be ignored without a word
+        parser.error(f"--weight is for --mode reweight; --mode {args.mode} takes none")
     if args.mode != "reweight" and args.target_text is None:
         parser.error(f"--mode {args.mode} needs --target-text")
     if not 0.0 <= args.inject_until <= 1.0:
@@ -327,7 +343,7 @@ def _map_format(parser: argparse.ArgumentParser, value: str) -> str:
     if suffix not in MAP_FORMATS:
         parser.error(f"--out {value}: name an image file ending in "
                      f"{', '.join('.' + f for f in MAP_FORMATS)}")
-    _check_output_dir(parser, "--out", str(path.parent))
+    _check_output_dir(parser, "--out", str(path.parent), motions=False)
     return suffix
 
 

@@ -29,6 +29,11 @@ COMPOSE_TRANSITION = 20
 COMPOSE_BLEND = 8
 # The shortest part of a composition of two or more: a cross-fade at each end and a token.
 COMPOSE_MIN_PART = 2 * COMPOSE_BLEND + FRAMES_PER_TOKEN
+# The context a transition window keeps of each part, at least: the tokens of a cross-fade.
+COMPOSE_MIN_CONTEXT = -(-COMPOSE_BLEND // FRAMES_PER_TOKEN)
+# The longest composition (its memory and time grow with it: 100 parts of 196 frames,
+# 16 minutes, took 2 GB and two minutes on two cores; a thousand were killed after 8).
+COMPOSE_MAX_SECONDS = 20 * 60
 
 
 def valid_transition(frames: object) -> bool:
@@ -62,9 +67,15 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
                          f"{shortest} frames, got {frames}")
     t = int(transition) // FRAMES_PER_TOKEN
     max_tokens = model.mask.config.max_tokens
-    if t > max_tokens - 2:
-        raise SegmoError(f"SegMo.compose: transition {transition} frames leaves no room "
-                         f"for context in the model's {model.max_frames} frames")
+    if t > max_tokens - 2 * COMPOSE_MIN_CONTEXT:
+        raise SegmoError(f"SegMo.compose: transition {transition} frames leaves too little "
+                         f"room for context in the model's {model.max_frames} frames (at most "
+                         f"{(max_tokens - 2 * COMPOSE_MIN_CONTEXT) * FRAMES_PER_TOKEN})")
+    total = sum(f for f in frames if isinstance(f, numbers.Integral)) + transition * (len(parts) - 1)
+    if total > COMPOSE_MAX_SECONDS * model.fps:
+        raise SegmoError(f"SegMo.compose: {len(parts)} parts make {total} frames, more than "
+                         f"{COMPOSE_MAX_SECONDS // 60} minutes at {model.fps:g} fps; compose "
+                         "fewer parts at a time")
     out = model.generate(texts, frames, generator=generator, precision=precision,
                          durations=durations)
     if len(parts) == 1:

@@ -118,6 +118,9 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
             not isinstance(target_text, str) and not all(isinstance(t, str) for t in target_text))):
         raise SegmoError(f"SegMo.edit_text: target_text must be a string or a list of strings, "
                          f"got {target_text!r:.80}")
+    if weights and mode != "reweight":  # they would be ignored without a word
+        raise SegmoError(f"SegMo.edit_text: weights are for mode 'reweight'; mode {mode!r} "
+                         "takes none")
     if target_text is None:
         if mode != "reweight":
             raise SegmoError(f"SegMo.edit_text: mode {mode!r} needs a target_text")
@@ -189,8 +192,13 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
             label = key
         elif isinstance(key, str) and key in segments:
             label = f"segment {segments.index(key) + 1}"
-        elif isinstance(key, str) and [s for s in segments if key in s]:
-            label = f"segment {[i for i, s in enumerate(segments) if key in s][0] + 1}"
+        elif isinstance(key, str) and any(c.isalnum() for c in key) \
+                and len(found := [i for i, s in enumerate(segments) if key in s]) == 1:
+            label = f"segment {found[0] + 1}"
+        elif isinstance(key, str) and any(c.isalnum() for c in key) and found:
+            raise SegmoError(f"SegMo.edit_text: weights key {key!r} is part of segments "
+                             f"{[i + 1 for i in found]} of {segments!r}; give one's number or "
+                             "whole text")
         else:
             raise SegmoError(f"SegMo.edit_text: weights key {key!r} names no segment of "
                              f"{segments!r} (give its number, its text, or 'segment k')")

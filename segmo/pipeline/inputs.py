@@ -27,6 +27,12 @@ def check_texts(texts: Any, what: str = "text") -> list[str]:
     for i, text in enumerate(texts):
         if not isinstance(text, str):
             raise SegmoError(f"SegMo: {what} {i} is a {type(text).__name__}, not a string")
+        if not text.isascii():
+            try:
+                text.encode("utf-8")
+            except UnicodeEncodeError as error:  # a lone surrogate: bytes that were not UTF-8
+                raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) is not valid Unicode at "
+                                 f"character {error.start} (bytes that are not UTF-8?)") from None
         if not any(c.isalnum() for c in text):
             raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) holds no words; describe a motion")
     return list(texts)
