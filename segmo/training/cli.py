@@ -11,6 +11,10 @@ stage uses this same entry point. On top of Lightning's defaults it adds
   (the same version directory; `segmo.training.runs`) with the data order, the loader's
   place in the epoch and the random states of the interrupted run, so it logs the losses
   an uninterrupted run logs (`segmo.data.sampling`, `segmo.tasks.base`);
+  ``--ckpt_path last`` / ``best`` name that checkpoint of the run's newest version;
+- a checkpoint is read without unpickling code (`segmo.export.read_checkpoint`), and one
+  of another task, or a model setting given that differs from the one it records (from
+  which Lightning rebuilds the model), is refused; `validate` and `test` need one;
 - `--trainer.default_root_dir` is refused: the run directory is set by `--runs_dir` and
   `--run_name`, and Lightning would use default_root_dir only where no logger is given,
   which segmo always gives, so it would be silently ignored;
