@@ -388,6 +388,10 @@ HOSTILE = {
                                   "--ckpt_path last: no last.ckpt in {tmp}/runs/rvq/synthetic/version_*"),
     "best checkpoint of no run": (None, ["--ckpt_path=best"],
                                   "--ckpt_path best: no best-*.ckpt in {tmp}/runs/rvq/synthetic/"),
+    "every motion shorter than the window": (None, ["--data.init_args.window=100000"],
+                                             "train.txt: no usable samples"),
+    "no training batches": (None, ["--trainer.limit_train_batches=0"],  # exit 0, no checkpoint
+                            "--trainer.limit_train_batches 0: trains nothing"),
     "default_root_dir": (None, ["--trainer.default_root_dir={tmp}/elsewhere"],
                          "--trainer.default_root_dir is not used by segmo: the run directory is "
                          "RUNS_DIR/STAGE/RUN_NAME/version_K; set --runs_dir (and --run_name) instead"),
@@ -489,6 +493,23 @@ def test_validate_and_test_refuse_to_score_an_untrained_model(tmp_path, capsys):
         assert exit_.value.code == 2 and "\n" not in err, err
         assert err.startswith(f"segmo {command}: --ckpt_path is needed: {command} scores the model "
                               "of a checkpoint"), err
+
+
+def test_a_transformer_shorter_than_the_data_is_refused_before_training(text_dataset,
+                                                                        tokenizer_dir, tmp_path,
+                                                                        capsys):
+    """It was a ValueError at the first batch holding a longer motion."""
+    from segmo.cli import main as segmo_main
+
+    with pytest.raises(SystemExit) as exit_:
+        segmo_main(["fit", "--config", str(REPO / "configs/mask/synthetic.yaml"),
+                    f"--data.root={text_dataset['t2m']}", f"--runs_dir={tmp_path / 'runs'}",
+                    f"--model.init_args.tokenizer={tokenizer_dir['t2m']}",
+                    "--model.init_args.max_tokens=2", "--trainer.enable_progress_bar=false"])
+    err = capsys.readouterr().err.strip()
+    assert exit_.value.code == 2 and "\n" not in err, err
+    assert err.startswith("segmo fit: model.init_args.max_tokens=2: the data's longest motion is ")
+    assert not (tmp_path / "runs").exists()
 
 
 def test_tokenizer_that_is_not_a_model_directory(text_dataset, tmp_path, capsys):

@@ -177,6 +177,15 @@ class MotionDataModule(LightningDataModule):
                   "predict": ("test",), None: ("train", "val", "test")}[stage]
         for split in splits:
             self._check_texts(split, self.dataset(split))
+        # The split a stage cannot do without, before the Trainer prints its banners and
+        # makes a run folder (validation may be switched off: its loader says so on use).
+        self._check_not_empty({"fit": "train"}.get(stage, splits[0]))
+
+    def _check_not_empty(self, split: str) -> None:
+        ds = self.dataset(split)
+        if len(ds) == 0:
+            raise SegmoError(f"{split_file(self.root, split)}: no usable samples "
+                             f"(summary: {getattr(ds, 'summary', {})})")
 
     def _check_texts(self, split: str, ds: Dataset) -> None:
         """Every caption and segment of ``split`` is in the text-feature cache, or one error."""
@@ -192,10 +201,8 @@ class MotionDataModule(LightningDataModule):
                 f"`segmo encode-texts --data {self.root} --encoder {self.text_features}{segments}`")
 
     def _loader(self, split: str, train: bool = False) -> DataLoader:
+        self._check_not_empty(split)
         ds = self.dataset(split)
-        if len(ds) == 0:
-            raise SegmoError(f"{split_file(self.root, split)}: no usable samples "
-                             f"(summary: {getattr(ds, 'summary', {})})")
         common = dict(batch_size=self.batch_size, num_workers=self.num_workers,
                       persistent_workers=self.num_workers > 0, collate_fn=collate,
                       # Seeds the workers; without it the loader draws from the global RNG,

@@ -134,6 +134,12 @@ class Task(L.LightningModule):
                 f"but the task was built for {self.skeleton.name!r}; set model.init_args.skeleton "
                 "to match")
 
+    def check_before_training(self, datamodule: Any) -> None:
+        """What `segmo fit` checks once the data is read, before the Trainer starts (its
+        banners, its run folder): one `SegmoError` for a setting that cannot train. The
+        stages add theirs; the same checks run again in the Trainer's hooks for API use."""
+        self.check_optimiser()
+
     def check_optimiser(self) -> None:
         """One `SegmoError` naming the first optimiser setting (``lr``, ``weight_decay``,
         ``betas``, ``warmup_steps``, ``milestones``, ``gamma``, those the task has) that

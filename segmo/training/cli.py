@@ -94,6 +94,9 @@ class SegmoCLI(LightningCLI):
             value = config.get(key)  # the data's is linked to the model's, built first
             if isinstance(value, int) and not 0 <= value <= LARGEST_WHOLE_NUMBER:
                 raise SegmoError(f"{key}={value} must be a whole number from 0 to 2^63 - 1")
+        if self.config["subcommand"] == "fit" and trainer.get("limit_train_batches") in (0, 0.0):
+            raise SegmoError("--trainer.limit_train_batches 0: trains nothing (and writes no "
+                             "checkpoint); give a number > 0")
         seed = config.get("seed_everything")
         if isinstance(seed, int) and not isinstance(seed, bool) and not 0 <= seed <= 2**32 - 1:
             # numpy's global seed, which Lightning sets too, is 32 bits
@@ -140,9 +143,9 @@ class SegmoCLI(LightningCLI):
             raise SegmoError(f"--ckpt_path is needed: {self.subcommand} scores the model of a "
                              f"checkpoint (a file, or 'last' or 'best' of the run in {run}); "
                              "without one it would score an untrained model")
-        check_optimiser = getattr(self.model, "check_optimiser", None)
-        if check_optimiser is not None:
-            check_optimiser()  # before the Trainer's banners, as the data's checks
+        check = getattr(self.model, "check_before_training", None)
+        if check is not None:
+            check(self.datamodule)  # before the Trainer's banners, as the data's checks
         trainer_config = self._get(self.config_init, "trainer", default={})
         save_dir, name, version, resume_step = self._run_directory()
         if trainer_config.get("logger") in (None, True):
