@@ -495,17 +495,18 @@ def test_validate_and_test_refuse_to_score_an_untrained_model(tmp_path, capsys):
                               "of a checkpoint"), err
 
 
-def test_a_transformer_shorter_than_the_data_is_refused_before_training(text_dataset,
-                                                                        tokenizer_dir, tmp_path,
-                                                                        capsys):
+@pytest.mark.parametrize("stage", ["mask", "length"])
+def test_a_model_shorter_than_the_data_is_refused_before_training(stage, text_dataset,
+                                                                   tokenizer_dir, tmp_path, capsys):
     """It was a ValueError at the first batch holding a longer motion."""
     from segmo.cli import main as segmo_main
 
+    tokenizer = [f"--model.init_args.tokenizer={tokenizer_dir['t2m']}"] if stage == "mask" else []
     with pytest.raises(SystemExit) as exit_:
-        segmo_main(["fit", "--config", str(REPO / "configs/mask/synthetic.yaml"),
+        segmo_main(["fit", "--config", str(REPO / f"configs/{stage}/synthetic.yaml"),
                     f"--data.root={text_dataset['t2m']}", f"--runs_dir={tmp_path / 'runs'}",
-                    f"--model.init_args.tokenizer={tokenizer_dir['t2m']}",
-                    "--model.init_args.max_tokens=2", "--trainer.enable_progress_bar=false"])
+                    *tokenizer, "--model.init_args.max_tokens=2",
+                    "--trainer.enable_progress_bar=false"])
     err = capsys.readouterr().err.strip()
     assert exit_.value.code == 2 and "\n" not in err, err
     assert err.startswith("segmo fit: model.init_args.max_tokens=2: the data's longest motion is ")

@@ -98,27 +98,13 @@ class TransformerTask(Task):
 
     def setup(self, stage: str) -> None:
         check_text_features(self)
-        self.check_motion_lengths(self.datamodule)
+        check_max_tokens(self.datamodule, self.hparams.max_tokens)
         if self.hparams.motion_tokens == "cached" and self.datamodule is not None:
             attach_motion_tokens(self)
 
     def check_before_training(self, datamodule: Any) -> None:
         super().check_before_training(datamodule)
-        self.check_motion_lengths(datamodule)
-
-    def check_motion_lengths(self, datamodule: Any) -> None:
-        """The longest motion `datamodule` has set up fits the transformer's ``max_tokens``,
-        or one `SegmoError` (it failed at the first batch holding one, with a ValueError)."""
-        datasets = [ds for ds in getattr(datamodule, "datasets", {}).values()
-                    if isinstance(ds, MotionDataset) and len(ds)]
-        if not datasets:
-            return
-        frames = max(ds.crop_length(i) for ds in datasets for i in range(len(ds)))
-        limit = self.hparams.max_tokens
-        if frames // FRAMES_PER_TOKEN > limit:
-            raise SegmoError(f"model.init_args.max_tokens={limit}: the data's longest motion is "
-                             f"{frames // FRAMES_PER_TOKEN} tokens ({frames} frames); give at "
-                             "least that")
+        check_max_tokens(datamodule, self.hparams.max_tokens)
 
     @torch.no_grad()
     def batch_tokens(self, batch: dict) -> Tensor:
@@ -128,6 +114,20 @@ class TransformerTask(Task):
             return batch["tokens"]
         self.tokenizer.eval()
         return self.tokenizer.encode(batch["motion"])
+
+
+def check_max_tokens(datamodule: Any, max_tokens: int) -> None:
+    """The longest motion `datamodule` has set up fits a model of ``max_tokens`` tokens, or
+    one `SegmoError` (it failed at the first batch holding one, with a ValueError)."""
+    datasets = [ds for ds in getattr(datamodule, "datasets", {}).values()
+                if isinstance(ds, MotionDataset) and len(ds)]
+    if not datasets:
+        return
+    frames = max(ds.crop_length(i) for ds in datasets for i in range(len(ds)))
+    if frames // FRAMES_PER_TOKEN > max_tokens:
+        raise SegmoError(f"model.init_args.max_tokens={max_tokens}: the data's longest motion "
+                         f"is {frames // FRAMES_PER_TOKEN} tokens ({frames} frames); give at "
+                         "least that")
 
 
 def attach_motion_tokens(task: TransformerTask) -> None:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from segmo.models.length_estimator import LengthEstimator, LengthEstimatorConfig
 from segmo.tasks.base import Task
-from segmo.tasks.common import check_text_features, token_lengths
+from segmo.tasks.common import check_max_tokens, check_text_features, token_lengths
 
 
 class LengthTask(Task):
@@ -42,8 +42,13 @@ class LengthTask(Task):
         self.model = LengthEstimator(LengthEstimatorConfig(
             text_dim=text_dim, hidden=hidden, max_tokens=max_tokens, dropout=dropout))
 
+    def check_before_training(self, datamodule) -> None:
+        super().check_before_training(datamodule)
+        check_max_tokens(datamodule, self.hparams.max_tokens)
+
     def setup(self, stage: str) -> None:
         check_text_features(self)
+        check_max_tokens(self.datamodule, self.hparams.max_tokens)
 
     def step(self, batch: dict) -> dict[str, Tensor]:
         logits = self.model(batch["sentence"])
