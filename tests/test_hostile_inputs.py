@@ -355,6 +355,10 @@ API_CASES = [
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
         "RuntimeError)"),
+    Api("api-edit-composition",
+        lambda m, w: m.edit(m.compose([("walk", 120), ("run", 120)]), (0, 8), "wave"), SegmoError,
+        "more than the 196 the model reads at once", "`edit` of a composition longer than the "
+        "model's frames (was a ValueError about the 'Trunk')"),
     Api("api-compose-too-long", lambda m, w: m.compose([("walk", 196)] * 200), SegmoError,
         "more than 20 minutes", "200 parts of 196 frames (time and memory grow without bound)"),
     Api("api-ground-nan", lambda m, w: m.ground("walk", np.load(w["nan_motion"])), SegmoError,

@@ -127,7 +127,7 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
     features = torch.cat(pieces)[None]
     total = torch.tensor([features.shape[1]], device=features.device)
     joints = features_to_joints(features, model.skeleton).float()
-    text = " Then ".join(x.rstrip(". ") for x in texts) + "."
+    text = ". Then ".join(x.rstrip(". ") for x in texts) + "."
     return GenerationOutput(features=features.float(), joints=joints,
                             tokens=torch.cat(all_tokens)[None], lengths=total.long(),
                             texts=[text], segments=[list(texts)], skeleton=model.skeleton,

@@ -77,6 +77,10 @@ def edit(model: EditingModel, motion: GenerationOutput | Any, span: tuple[int, i
         lengths = torch.tensor([tokens.shape[1] * FRAMES_PER_TOKEN], device=model.device)
     q = model.residual.config.num_quantizers if model.residual is not None else 1
     tokens = tokens[..., :q]
+    if tokens.shape[1] > model.mask.config.max_tokens:  # a composition, say
+        raise SegmoError(f"SegMo.edit: the motion has {tokens.shape[1] * FRAMES_PER_TOKEN} "
+                         f"frames, more than the {model.max_frames} the model reads at once; "
+                         "edit one part of a composition before composing")
     if not (isinstance(span, (tuple, list)) and len(span) == 2
             and all(isinstance(v, numbers.Integral) and not isinstance(v, bool)
                     for v in span)):
