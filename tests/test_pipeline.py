@@ -694,6 +694,27 @@ def test_a_save_writes_all_of_it_or_nothing_and_keeps_earlier_entries(bundle, tm
     assert [(e["file"], e["text"]) for e in index] == [("sample_01", PROMPTS[1]),
                                                       ("sample_00", PROMPTS[0])]
     assert sorted(p.name for p in out.iterdir()) == sorted(before)  # sample_01's files stay
+    # A move that fails half-way puts back every file it had replaced.
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    moves, real_replace = [], os.replace
+
+    def failing_replace(source, target):
+        moves.append(source)
+        if len(moves) == 4:
+            raise OSError("disk full")
+        return real_replace(source, target)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(outputs.os, "replace", failing_replace)
+        with pytest.raises(OSError, match="disk full"):
+            model.generate([PROMPTS[1]], [16]).save(out, formats=("npy",))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # A folder where a file goes is refused before any work (it failed after the first moves).
+    (out / "sample_00.bvh").mkdir()
+    with pytest.raises(SegmoError, match=r"sample_00\.bvh: a folder where the save writes a file"):
+        second.save(out, formats=("npy", "bvh"))
+    (out / "sample_00.bvh").rmdir()
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     (out / "prompts.json").write_text('{"mine": true}')
     with pytest.raises(SegmoError, match=r"prompts\.json: not a prompts\.json written by segmo"):
         second.save(out, formats=("npy",))

@@ -113,6 +113,15 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
         check_bvh_fps(bvh_fps, "GenerationOutput.save: bvh_fps")
     directory = Path(directory)
     earlier = read_prompts(directory)  # before any work: a prompts.json not ours is refused
+    suffixes = {"npy": ("_features.npy", "_joints.npy", "_tokens.npy"), "gif": (".gif",),
+                "bvh": (".bvh",)}
+    names = ["prompts.json"] + [f"{prefix}_{i:02d}{suffix}" for prefix, output in outputs.items()
+                                for i in range(len(output.texts))
+                                for kind in formats for suffix in suffixes[kind]]
+    blocked = [name for name in names if (directory / name).is_dir()]
+    if blocked:
+        raise SegmoError(f"{directory / blocked[0]}: a folder where the save writes a file; move "
+                         "it away or write elsewhere")
     created = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     # Everything is rendered into a folder of its own first, and only moved beside what the
@@ -153,8 +162,7 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
                                              target_fps=bvh_fps))
                 index.append({"file": stem.name, "text": text, "segments": output.segments[i],
                               "frames": int(output.lengths[i])})
-        for path in written:
-            os.replace(path, directory / path.name)
+        _move_in(written, directory, stage)
     except BaseException:
         shutil.rmtree(directory if created else stage, ignore_errors=True)
         raise
@@ -167,6 +175,28 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     return written
 
 
+def _move_in(files: list[Path], directory: Path, stage: Path) -> None:
+    """Move ``files`` (in ``stage``) into ``directory``, all or none: a file they replace
+    is kept in ``stage`` until every move is done, and put back if one fails."""
+    kept: list[tuple[Path, Path]] = []
+    moved: list[Path] = []
+    try:
+        for path in files:
+            target = directory / path.name
+            if target.exists() or target.is_symlink():
+                backup = stage / f".replaced-{path.name}"
+                os.replace(target, backup)
+                kept.append((backup, target))
+            os.replace(path, target)
+            moved.append(target)
+    except BaseException:
+        for target in moved:
+            target.unlink(missing_ok=True)
+        for backup, target in kept:
+            os.replace(backup, target)
+        raise
+
+
 def read_prompts(directory: str | Path) -> list[dict]:
     """The entries of ``directory/prompts.json`` (none when there is none), or one
     `SegmoError` when it is not a list that `save_outputs` wrote: a file of the user's
@@ -176,7 +206,7 @@ def read_prompts(directory: str | Path) -> list[dict]:
         return []
     try:
         entries = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: JSON, UTF-8
         entries = error
     if not (isinstance(entries, list) and all(isinstance(e, dict) and isinstance(e.get("file"), str)
                                               for e in entries)):
