@@ -355,6 +355,11 @@ API_CASES = [
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
         "RuntimeError)"),
+    Api("api-edit-text-inject-bool",
+        lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), "walk, then jump",
+                                 inject_until=True),
+        SegmoError, "inject_until must be in [0, 1], got True", "`inject_until=True` (was read "
+        "as 1.0)"),
     Api("api-edit-composition",
         lambda m, w: m.edit(m.compose([("walk", 120), ("run", 120)]), (0, 8), "wave"), SegmoError,
         "more than the 196 the model reads at once", "`edit` of a composition longer than the "

@@ -162,6 +162,10 @@ def read_json(path: str | os.PathLike) -> dict:
         raise SegmoError(f"{path}: not UTF-8 text ({error.reason})") from None
     except json.JSONDecodeError as error:
         raise SegmoError(f"{path}:{error.lineno}: not valid JSON ({error.msg})") from None
+    except RecursionError:
+        raise SegmoError(f"{path}: not a segmo JSON file (nested too deeply to read)") from None
+    except ValueError as error:  # e.g. an integer of more than 4300 digits
+        raise SegmoError(f"{path}: not a segmo JSON file ({str(error).split(';')[0]})") from None
     if not isinstance(payload, dict):
         raise SegmoError(f"{path}: expected a JSON object, got {type(payload).__name__}")
     return payload

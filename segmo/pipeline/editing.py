@@ -114,7 +114,8 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
     if mode not in EDIT_MODES:
         raise SegmoError(f"SegMo.edit_text: mode must be one of {', '.join(EDIT_MODES)}, "
                          f"got {mode!r}")
-    if not (isinstance(inject_until, numbers.Real) and 0.0 <= inject_until <= 1.0):
+    if isinstance(inject_until, bool) or not (isinstance(inject_until, numbers.Real)
+                                              and 0.0 <= inject_until <= 1.0):
         raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
                          f"{inject_until!r}")
     b = len(source)
