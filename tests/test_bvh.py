@@ -215,6 +215,32 @@ def test_bvh_rejects_wrong_shape(tmp_path):
         joints_to_bvh(np.full((5, 22, 3), np.nan), tmp_path / "x.bvh", foot_lock=False)
 
 
+@pytest.mark.parametrize("scale", [float("nan"), 0.0, -1.0, "100", True])
+def test_bvh_refuses_a_scale_that_is_not_a_positive_number(tmp_path, scale):
+    """NaN wrote 'nan' into the file, 0 collapsed every bone, -1 mirrored the motion
+    through the origin, and "100" failed in numpy after the whole fit."""
+    with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+        joints_to_bvh(_corpus_joints(), tmp_path / "x.bvh", scale=scale)
+    assert not (tmp_path / "x.bvh").exists()
+
+
+def test_bvh_refuses_joints_in_other_units_than_the_skeletons(tmp_path):
+    """Centimetre joints got the reference's metre bones under a root that moved 100 times
+    as far (a read-back error of 95 units): a BVH of another motion."""
+    joints = _corpus_joints()
+    for wrong, ratio in ((joints * 100, "100 times"), (joints * 0.0 + joints[:, :1], "0 times")):
+        with pytest.raises(ValueError, match=f"bones are {ratio} as long as the 't2m' skeleton's"):
+            joints_to_bvh(wrong, tmp_path / "x.bvh")
+    with pytest.raises(ValueError, match="complex numbers"):
+        joints_to_bvh(joints + 0j, tmp_path / "x.bvh")
+    assert not (tmp_path / "x.bvh").exists()
+    # The motion's own bones, in its own units, are what bone_lengths="motion" is for.
+    written = joints_to_bvh(joints * 100, tmp_path / "cm.bvh", bone_lengths="motion",
+                            foot_lock=False)
+    error = np.linalg.norm(_read(written, "bvh") - joints * 100, axis=-1)
+    assert error.max() < 1.0  # within a centimetre
+
+
 def test_a_bone_swinging_past_opposite_its_rest_direction_does_not_flip_its_twist():
     """A shin (rest: down) swung round through straight up in 4-degree steps: the fitted
     rotation turns about 4 degrees a frame too (the shortest arc from the rest direction

@@ -21,6 +21,8 @@ child's position is parent + R_parent_world @ offset.
 
 from __future__ import annotations
 
+import math
+import numbers
 import warnings
 from pathlib import Path
 from typing import Any, Literal
@@ -30,7 +32,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from segmo.errors import SegmoError
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
-from segmo.motion.skeleton_fit import SkeletonFit, fit_motion
+from segmo.motion.skeleton_fit import SkeletonFit, check_bone_scale, fit_motion
 
 __all__ = ["ANIMATION_FPS", "MAX_BVH_FPS", "MIN_BVH_FPS", "check_bvh_fps", "joints_to_bvh",
            "euler_orders", "continuous_euler", "write_bvh"]
@@ -150,6 +152,14 @@ def _resample(fit: SkeletonFit, fps: float, target_fps: float) -> tuple[np.ndarr
     return root, local
 
 
+def check_scale(scale: Any, where: str) -> None:
+    """A BVH's length scale must be a finite number > 0 (0 collapses every bone, a negative
+    one mirrors the motion through the origin, NaN writes 'nan' into the file)."""
+    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) \
+            or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"{where}: scale must be a finite number > 0, got {scale!r}")
+
+
 def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec = "t2m",
               fps: float | None = None, target_fps: float | None = None,
               scale: float = 1.0) -> Path:
@@ -160,6 +170,7 @@ def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec =
     MAX_BVH_FPS] (`check_bvh_fps`). scale multiplies lengths.
     """
     spec = get_skeleton(skeleton)
+    check_scale(scale, "write_bvh")
     fps = check_bvh_fps(spec.fps if fps is None else fps, "write_bvh: fps")
     target_fps = fps if target_fps is None else check_bvh_fps(target_fps, "write_bvh: target_fps")
     root, local = _resample(fit, fps, target_fps)
@@ -228,17 +239,24 @@ def joints_to_bvh(
     elsewhere.
     """
     spec = get_skeleton(skeleton)
+    check_scale(scale, "joints_to_bvh")  # before the fit
     for name, value in (("fps", fps), ("target_fps", target_fps)):
         if value is not None:  # before the fit
             check_bvh_fps(value, f"joints_to_bvh: {name}")
     if hasattr(joints, "detach"):
         joints = joints.detach().cpu().numpy()
+    if np.iscomplexobj(joints):  # np.asarray would drop the imaginary part
+        raise ValueError("joints_to_bvh: joints are complex numbers; expected real positions")
     positions = np.asarray(joints, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[1:] != (spec.num_joints, 3) or len(positions) < 1:
         raise ValueError(
             f"joints_to_bvh: joints must be (t, {spec.num_joints}, 3) for skeleton {spec.name!r}, "
             f"got {positions.shape}"
         )
+    if not np.isfinite(positions).all():
+        raise ValueError("joints_to_bvh: joints hold NaN or inf")
+    if bone_lengths in (None, "skeleton"):
+        check_bone_scale(positions, spec, "joints_to_bvh")
     fit = fit_motion(positions, spec, foot_lock=foot_lock, contacts=contacts, bone_lengths=bone_lengths)
     return write_bvh(fit, path, spec, fps=fps, target_fps=target_fps, scale=scale)
 

@@ -201,6 +201,8 @@ def fit_skeleton(joints: Any, skeleton: str | SkeletonSpec = "t2m",
     spec = get_skeleton(skeleton)
     if hasattr(joints, "detach"):
         joints = joints.detach().cpu().numpy()
+    if np.iscomplexobj(joints):  # np.asarray would drop the imaginary part
+        raise ValueError("fit_skeleton: joints are complex numbers; expected real positions")
     positions = np.asarray(joints, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[1:] != (spec.num_joints, 3) or len(positions) < 1:
         raise ValueError(f"fit_skeleton: joints must be (t, {spec.num_joints}, 3) for skeleton "
@@ -273,6 +275,30 @@ def _refine(fit: SkeletonFit, target: np.ndarray, children: list[list[int]], ite
     with torch.no_grad():
         local, root = pose()
     return SkeletonFit(fit.offsets, root.numpy(), local.numpy(), fit.parents)
+
+
+# How far (a factor) the bones of joints from elsewhere may be from the skeleton's
+# reference lengths when those are used: captured motions are within a few per cent.
+MAX_BONE_RATIO = 2.0
+
+
+def check_bone_scale(positions: np.ndarray, skeleton: str | SkeletonSpec, where: str) -> None:
+    """ValueError when the bones of `positions` (t, j, 3) are more than MAX_BONE_RATIO times
+    longer or shorter than the skeleton's reference lengths: joints in centimetres, or no
+    skeleton at all, would get the reference's bones under a root that moves in other
+    units, a BVH of another motion. (A model's own joints are fitted to the reference
+    whatever their bones; this is for joints given from elsewhere.)"""
+    spec = get_skeleton(skeleton)
+    if spec.reference_bone_lengths is None:
+        return
+    reference = np.asarray(spec.reference_bone_lengths, dtype=np.float64) / spec.unit
+    measured = np.median(measure_bone_lengths(torch.from_numpy(positions), spec.parents).numpy(), 0)
+    ratio = float(measured.sum() / reference.sum())
+    if not 1 / MAX_BONE_RATIO <= ratio <= MAX_BONE_RATIO:
+        raise ValueError(f"{where}: the joints' bones are {ratio:.3g} times as long as the "
+                         f"{spec.name!r} skeleton's: positions in other units than the "
+                         "skeleton's, or not this skeleton? Convert them, or pass "
+                         "bone_lengths='motion'")
 
 
 def fit_motion(joints: Any, skeleton: str | SkeletonSpec = "t2m", foot_lock: bool = True,
