@@ -111,6 +111,8 @@ CLI_CASES = [
         "--model", "a model folder that does not exist"),
     Cli("generate-model-is-stage", "generate --model {bundle}/mask --text walk --out {tmp}/g",
         "segmo.json", "a single stage instead of a bundle"),
+    Cli("generate-bundle-deep-json", "generate --model {deep_bundle_json} --text walk --out "
+        "{tmp}/g", "nested too deeply", "a segmo.json of 200,000 '[' (was a RecursionError)"),
     Cli("generate-bundle-json", "generate --model {bad_bundle_json} --text walk --out {tmp}/g",
         "segmo.json:2", "invalid JSON in segmo.json"),
     Cli("generate-bundle-format", "generate --model {bad_format} --text walk --out {tmp}/g",
@@ -460,6 +462,7 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
         path.write_text(json.dumps(payload))
 
     variant("bad_bundle_json", lambda d: (d / "segmo.json").write_text('{"format": 1,\n'))
+    variant("deep_bundle_json", lambda d: (d / "segmo.json").write_text("[" * 200_000))
     variant("bad_format", lambda d: edit_json(d / "segmo.json", lambda p: p.update(format=99)))
     variant("newer_stage", lambda d: edit_json(d / "mask" / "config.json",
                                                lambda p: p.update(format=2, segmo_version="9.0")))
