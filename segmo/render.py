@@ -14,8 +14,10 @@ CLI: `segmo render FILE.npy --out OUT.gif [--title T] [--skeleton t2m] [--fps N]
 
 from __future__ import annotations
 
+import math
 import shutil
 import textwrap
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -193,6 +195,13 @@ def plot_motion(
 # The longest frame a GIF holds: its frame delay is a 16-bit count (of hundredths of a
 # second; Pillow takes milliseconds), so one minute is well inside it.
 GIF_LONGEST_FRAME_MS = 60_000
+# The fastest a GIF plays: delays are whole hundredths, and browsers show a delay under
+# two as ten (a 60 fps GIF played 6 times too slowly). Faster motions draw every k-th frame.
+GIF_FASTEST_FPS = 50
+# The most frames a GIF is drawn with: each is held in memory until the file is written
+# (0.2 MB a frame; a 20-minute composition would take 4.5 GB). Longer motions draw every
+# k-th frame; the npy and BVH files keep them all.
+GIF_MAX_FRAMES = 3000
 
 
 def save_animation(
@@ -229,11 +238,20 @@ def save_animation(
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise SegmoError(f"save_animation: fps must be a positive number, got {fps}")
     rate = (fps or spec.fps) / stride
-    if suffix == ".gif" and not 1000 / rate <= GIF_LONGEST_FRAME_MS:  # a GIF stores 16-bit ms
+    if suffix == ".gif" and not 1000 / rate <= GIF_LONGEST_FRAME_MS:
         raise SegmoError(f"save_animation: a frame would last {1000 / rate:.0f} ms (fps "
                          f"{fps or spec.fps:g} / stride {stride}); a GIF frame lasts at most "
                          f"{GIF_LONGEST_FRAME_MS} ms: lower the stride or raise the fps")
     joints = as_joints(motion, spec, mean, std)
+    if suffix == ".gif":
+        needed = max(stride, math.ceil((fps or spec.fps) / GIF_FASTEST_FPS),
+                     math.ceil(len(joints) / GIF_MAX_FRAMES))
+        if needed > stride:
+            warnings.warn(f"save_animation: {path.name}: one frame in {needed} is drawn (a GIF "
+                          f"plays at most {GIF_FASTEST_FPS} frames a second and is drawn with at "
+                          f"most {GIF_MAX_FRAMES} frames)", stacklevel=2)
+            stride = needed
+            rate = (fps or spec.fps) / stride
     path.parent.mkdir(parents=True, exist_ok=True)
 
     footer = 0.45 if segments else 0.25  # inches under the figure for the counter (and segment)

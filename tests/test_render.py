@@ -36,6 +36,24 @@ def test_gif_from_fixture_joints(tmp_path):
         assert image.info["duration"] == 500  # 20 fps / stride 10 -> 2 fps
 
 
+def test_a_gif_faster_than_50_fps_or_longer_than_its_frame_limit_draws_every_kth_frame(
+        tmp_path, monkeypatch):
+    """A 60 fps GIF got 1-hundredth delays, which browsers play as 10 (6 times too slowly);
+    1e9 fps wrote a delay of 0; every frame of any length was held in memory."""
+    import segmo.render as render
+
+    joints = as_joints(np.zeros((24, 263)))
+    with pytest.warns(UserWarning, match="one frame in 2 is drawn"):
+        out = save_animation(joints, tmp_path / "fast.gif", fps=60)
+    with Image.open(out) as image:
+        assert image.info["duration"] == 30 and image.n_frames == 12  # 30 fps, on time
+    monkeypatch.setattr(render, "GIF_MAX_FRAMES", 5)
+    with pytest.warns(UserWarning, match="one frame in 5 is drawn"):
+        out = save_animation(joints, tmp_path / "long.gif")
+    with Image.open(out) as image:
+        assert image.info["duration"] == 250 and image.n_frames == 5  # 20 fps / 5, on time
+
+
 def test_gif_from_random_zscored_features(tmp_path):
     g = np.random.default_rng(0)
     mean, std = g.normal(size=263), np.abs(g.normal(size=263)) * 0.1 + 0.01
