@@ -301,6 +301,9 @@ def test_report_tables() -> None:
     assert table.splitlines()[2] == "| SegMo | 0.553±0.003 | - | - | 0.042±0.002 | - | - | - |"
     with pytest.raises(ValueError, match="no run"):
         report.compare_table([("a", {"generation": {}})])
+    # A row name holding '|' or a line break (a --name, a config.name) stays one table row.
+    table = report.generation_table([("x | y\nz", {"fid": 1.0})])
+    assert table.splitlines()[2].startswith("| x \\| y z | ") and len(table.splitlines()) == 3
 
 
 def test_ablation_dry_run(tmp_path: Path) -> None:

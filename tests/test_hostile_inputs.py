@@ -111,6 +111,9 @@ CLI_CASES = [
         "--model", "a model folder that does not exist"),
     Cli("generate-model-is-stage", "generate --model {bundle}/mask --text walk --out {tmp}/g",
         "segmo.json", "a single stage instead of a bundle"),
+    Cli("generate-bundle-residual-loop", "generate --model {residual_loop} --text walk --out "
+        "{tmp}/g", "residual stage is not a model directory", "a bundle whose residual stage "
+        "is a link to itself (was left out without a word)"),
     Cli("generate-bundle-deep-json", "generate --model {deep_bundle_json} --text walk --out "
         "{tmp}/g", "nested too deeply", "a segmo.json of 200,000 '[' (was a RecursionError)"),
     Cli("generate-bundle-json", "generate --model {bad_bundle_json} --text walk --out {tmp}/g",
@@ -247,6 +250,9 @@ CLI_CASES = [
         "metrics.json:1", "`--compare` of an invalid metrics.json"),
     Cli("evaluate-compare-shape", "evaluate --compare {odd_metrics} --out {tmp}/e",
         "odd/metrics.json: not a metrics.json", "`--compare` of a metrics.json of other shape"),
+    Cli("evaluate-compare-row", "evaluate --compare {row_metrics} --out {tmp}/e",
+        "generation.generated.fid: expected a number", "`--compare` of a metric of another "
+        "shape (was a KeyError traceback)"),
     Cli("evaluate-compare-empty", "evaluate --compare {empty_metrics} --out {tmp}/e",
         "no metrics.json given has generation rows", "`--compare` of a metrics.json without rows"),
     # -- segmo export, fit, validate, test (more of fit: tests/test_training_cli.py)
@@ -357,6 +363,21 @@ API_CASES = [
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
         "RuntimeError)"),
+    Api("api-retrieve-texts-string", lambda m, w: m.retrieve_texts(_motion(w), "walk"),
+        SegmoError, "candidates must be a list of texts", "`retrieve_texts(motion, \"walk\")` "
+        "(ranked the letters)"),
+    Api("api-retrieve-texts-span-fraction",
+        lambda m, w: m.retrieve_texts(_motion(w), ["walk"], span=(0.9, 7.9)), SegmoError,
+        "span must be (start, end) whole frames", "`retrieve_texts(span=(0.9, 7.9))` (was cut "
+        "to (0, 7))"),
+    Api("api-ground-attention-segments-string",
+        lambda m, w: m.ground("walk then run", _motion(w), method="attention", segments="ab"),
+        SegmoError, "segments must be a list of texts", "`ground(method=\"attention\", "
+        "segments=\"ab\")` (grounded 'a' and 'b')"),
+    Api("api-embed-normalized-nan",
+        lambda m, w: m.embed_segments(["walk"], [np.full_like(_motion(w), np.nan)],
+                                      normalized=True),
+        SegmoError, "not a motion", "`embed_segments(normalized=True)` of NaN (returned NaN)"),
     Api("api-edit-text-inject-bool",
         lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), "walk, then jump",
                                  inject_until=True),
@@ -443,6 +464,9 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     files["odd_metrics"] = tmp / "odd" / "metrics.json"
     files["odd_metrics"].parent.mkdir()
     files["odd_metrics"].write_text('{"generation": "oops", "config": 5}')
+    files["row_metrics"] = tmp / "rows" / "metrics.json"
+    files["row_metrics"].parent.mkdir()
+    files["row_metrics"].write_text('{"generation": {"generated": {"fid": {"avg": 1}}}}')
     files["empty_metrics"] = tmp / "empty" / "metrics.json"
     files["empty_metrics"].parent.mkdir()
     files["empty_metrics"].write_text("{}")
@@ -491,6 +515,12 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
 
     variant("nan_weights", poison)
     variant("no_mask", lambda d: shutil.rmtree(d / "mask"))
+
+    def residual_loop(d: Path) -> None:
+        shutil.rmtree(d / "residual")
+        (d / "residual").symlink_to("residual")  # a link to itself
+
+    variant("residual_loop", residual_loop)
     return files
 
 

@@ -375,6 +375,12 @@ def compare(paths: list[str], out: str | Path) -> str:
                 isinstance(row, dict) for row in generation.values()):
             raise SegmoError(f"{path}: not a metrics.json of `segmo evaluate` ('generation' must "
                              "hold rows and 'config' be an object)")
+        for key in ("real", "reconstruction", "generated"):
+            for metric, _ in report.GENERATION_COLUMNS:
+                value = generation.get(key, {}).get(metric)
+                if value is not None and not report.is_metric(value):
+                    raise SegmoError(f"{path}: generation.{key}.{metric}: expected a number or "
+                                     f"{{\"mean\": ..., \"interval\": ...}}, got {value!r:.60}")
         runs.append((config.get("name") or path.parent.name, metrics))
     try:
         table = report.compare_table(runs)

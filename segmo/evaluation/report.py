@@ -87,9 +87,22 @@ def cell(entry: dict[str, float] | float | None, digits: int = 3) -> str:
     return f"{float(entry):.{digits}f}"
 
 
+def is_metric(value: Any) -> bool:
+    """A metric as `cell` shows it: a number, or {"mean": number, "interval": number}."""
+    def number(x: Any) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    if isinstance(value, dict):
+        return number(value.get("mean")) and number(value.get("interval"))
+    return number(value)
+
+
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    def text(cell: str) -> str:  # a name holding '|' or a line break would break the table
+        return " ".join(str(cell).split()).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(map(text, header)) + " |", "|" + " --- |" * len(header)]
+    lines += ["| " + " | ".join(map(text, r)) + " |" for r in rows]
     return "\n".join(lines)
 
 

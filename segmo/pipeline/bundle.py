@@ -143,6 +143,11 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
         SamplingOptions(**sampling_fields(config))
     except SegmoError as error:
         raise SegmoError(f"{path}: {str(error).removeprefix('SegMo: ')}") from None
+    for name in STAGES:  # an optional stage that is there but broken is not left out
+        path = directory / name
+        if (path.exists() or path.is_symlink()) and not path.is_dir():
+            raise SegmoError(f"{path}: the bundle's {name} stage is not a model directory "
+                             "(a file, or a broken symbolic link)")
     stages = {name: load_stage(directory / name, kind) if (directory / name).is_dir()
               else None for name, kind in STAGES.items()}
     for name in ("tokenizer", "mask"):

@@ -138,6 +138,9 @@ def attention_locate(model: Any, text: str, motion: Any, search: str,
                      window: int | Sequence[int] | None = None, stride: int = 1,
                      min_tokens: int = MIN_TOKENS, segments: list[str] | None = None) -> GroundingOutput:
     """`ground` with method "attention" (module docstring)."""
+    if segments is not None and (isinstance(segments, str) or not isinstance(segments, (list, tuple))):
+        # a string would be read letter by letter, as the similarity method refuses
+        raise SegmoError(f"ground: segments must be a list of texts, got {segments!r:.80}")
     segments = model.segment_texts([text])[0] if segments is None else list(segments)
     return locate_by_attention(text, segments, attention_shares(model, text, motion, segments),
                                len(motion), search, window, stride, min_tokens)

@@ -12,6 +12,7 @@ retrieval are `segmo.evaluation.retrieval`.
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 import torch
@@ -19,6 +20,7 @@ import torch.nn.functional as F
 
 from segmo.errors import SegmoError
 from segmo.generation.editing import token_span
+from segmo.pipeline.inputs import check_texts
 from segmo.pipeline.space import SegmentModel
 from segmo.segmentation import segment_batch
 
@@ -76,7 +78,7 @@ def pair_scores(text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor) ->
 
 
 def _top(scores: torch.Tensor, top_k: int) -> list[tuple[int, float]]:
-    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+    if isinstance(top_k, bool) or not isinstance(top_k, numbers.Integral) or top_k < 1:
         raise SegmoError(f"SegMo: top_k must be a whole number >= 1, got {top_k!r}")
     order = scores.argsort(descending=True, stable=True)[:top_k]
     return [(int(i), float(scores[i])) for i in order]
@@ -90,10 +92,19 @@ def retrieve_texts(model: SegmentModel, motion: Any, candidates: list[str],
     Each candidate is split into its text segments and paired with as many uniform spans
     of the motion (or of the span); its score is the mean paired cosine.
     """
+    if isinstance(candidates, str) or not isinstance(candidates, (list, tuple)):
+        # a string would be ranked letter by letter
+        raise SegmoError(f"retrieve_texts: candidates must be a list of texts, got "
+                         f"{candidates!r:.80}")
     if not candidates:
         raise SegmoError("retrieve_texts: no candidate texts")
+    check_texts(candidates, "candidate")
     region = None
     if span is not None:
+        if not (isinstance(span, (tuple, list)) and len(span) == 2
+                and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in span)):
+            raise SegmoError(f"retrieve_texts: span must be (start, end) whole frames, got "
+                             f"{span!r:.80}")
         start, end = int(span[0]), int(span[1])
         if not 0 <= start < end:
             raise SegmoError(f"retrieve_texts: span must satisfy 0 ≤ start < end, got {span}")
@@ -109,6 +120,8 @@ def retrieve_texts(model: SegmentModel, motion: Any, candidates: list[str],
 def retrieve_motions(model: SegmentModel, text: str, motions: list, top_k: int = 5
                      ) -> list[tuple[int, float]]:
     """Rank motions (raw features (t_i, d)) for a text → [(index, score)], best first."""
+    if not isinstance(text, str):
+        raise SegmoError(f"retrieve_motions: text must be a string, got {text!r:.80}")
     if len(motions) == 0:
         raise SegmoError("retrieve_motions: no motions")
     segments = model.segment_texts([text])

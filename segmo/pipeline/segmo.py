@@ -37,7 +37,7 @@ from segmo.models.length_estimator import LengthEstimator
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
-from segmo.motion.checks import check_motion_values
+from segmo.motion.checks import check_motion_values, value_problem
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.pipeline import compose, editing, grounding, retrieval
@@ -528,6 +528,10 @@ class SegMo:
             return self.normalize_motion(motion)[0][0]
         x, usable = motion_array(motion, self.tokenizer.config.feature_dim, self.max_frames,
                                  self.skeleton.name)
+        problem = value_problem(x[:usable].float().cpu().numpy(), 0.0, 1.0)  # z-scores
+        if problem is not None:
+            raise SegmoError(f"SegMo: the motion (normalized=True, z-scored): not a motion "
+                             f"(NaN/inf or absurd values): {problem}")
         return x[:usable].to(self.device)
 
     def ground(self, text: str, motion: Any, window: int | list[int] | None = None,
