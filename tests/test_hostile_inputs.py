@@ -141,6 +141,9 @@ CLI_CASES = [
         "'wings'", "an unknown field in a stage's config.json"),
     Cli("generate-config-type", "generate --model {bad_type} --text walk --out {tmp}/g",
         "mask/config.json", "a config field of the wrong type"),
+    Cli("generate-config-huge", "generate --model {huge_config} --text walk --out {tmp}/g",
+        "the weights do not fit", "a config edited to sizes of terabytes (its model was built "
+        "before the weights were checked: a 2.9 GB peak for dim 4096)"),
     Cli("generate-weights-garbage", "generate --model {bad_weights} --text walk --out {tmp}/g",
         "model.safetensors", "a weights file that is not safetensors"),
     Cli("generate-weights-shape", "generate --model {bad_shape} --text walk --out {tmp}/g",
@@ -505,6 +508,8 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
                                             lambda p: p["config"].update(dim="big")))
     variant("bad_shape", lambda d: edit_json(d / "mask" / "config.json",
                                              lambda p: p["config"].update(dim=64)))
+    variant("huge_config", lambda d: edit_json(d / "mask" / "config.json",  # 2^43 floats a layer
+                                               lambda p: p["config"].update(dim=2**20, ff_dim=2**22)))
     variant("bad_weights", lambda d: (d / "mask" / "model.safetensors").write_bytes(b"\0" * 64))
 
     def poison(d: Path) -> None:

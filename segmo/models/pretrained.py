@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
-from safetensors import SafetensorError
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
 from segmo.errors import SegmoError
@@ -116,13 +116,48 @@ class Pretrained:
             raise SegmoError(f"{path}: unknown {cls.kind} config field(s) {unknown} (written by a "
                              "newer segmo, or edited by hand?)")
         try:
-            model = cls(cls.config_class(**payload["config"]))
-        except (TypeError, ValueError, RuntimeError) as error:
+            config = cls.config_class(**payload["config"])
+            # The weights' shapes are checked against a model without storage first: a
+            # config edited to sizes its weights do not have must not take gigabytes.
+            with torch.device("meta"):
+                shell = cls(config)
+        except (TypeError, ValueError, RuntimeError, NotImplementedError) as error:
             raise SegmoError(f"{path}: the config does not build a {cls.kind!r} model: "
                              f"{error}") from None
+        check_weight_shapes(directory, {k: tuple(v.shape) for k, v in shell.state_dict().items()},
+                            weight_shapes(directory))
+        del shell
+        model = cls(config)
         model.meta = payload.get("meta", {})
         model.load_state_dict(read_weights(directory, model, map_location))
         return model.to(map_location).eval()
+
+
+def weight_shapes(directory: str | os.PathLike) -> dict[str, tuple[int, ...]]:
+    """The tensor shapes ``DIR/model.safetensors`` records, read from its header alone."""
+    path = Path(directory) / WEIGHTS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the model directory has no weights file")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return {key: tuple(f.get_slice(key).get_shape()) for key in f.keys()}  # noqa: SIM118 - not a dict
+    except (SafetensorError, OSError, ValueError) as error:
+        raise SegmoError(f"{path}: not a readable safetensors file ({error})") from None
+
+
+def check_weight_shapes(directory: str | os.PathLike, expected: dict[str, tuple[int, ...]],
+                        found: dict[str, tuple[int, ...]]) -> None:
+    """One SegmoError when the weights' tensors (``found``) are not those of the model the
+    config builds (``expected``): missing, unexpected or of another shape."""
+    missing = sorted(set(expected) - set(found))
+    unexpected = sorted(set(found) - set(expected))
+    shapes = [k for k in expected if k in found and found[k] != expected[k]]
+    if missing or unexpected or shapes:
+        first = (f"{shapes[0]} is {found[shapes[0]]}, the config makes {expected[shapes[0]]}"
+                 if shapes else f"e.g. {(missing or unexpected)[0]!r}")
+        raise SegmoError(f"{Path(directory) / WEIGHTS_FILE}: the weights do not fit "
+                         f"{Path(directory) / CONFIG_FILE}: {len(missing)} missing, "
+                         f"{len(unexpected)} unexpected, {len(shapes)} of another shape ({first})")
 
 
 def read_weights(directory: str | os.PathLike, model: torch.nn.Module,
@@ -135,17 +170,8 @@ def read_weights(directory: str | os.PathLike, model: torch.nn.Module,
         state = load_file(str(path), device=map_location)
     except (SafetensorError, OSError, ValueError) as error:
         raise SegmoError(f"{path}: not a readable safetensors file ({error})") from None
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    shapes = [k for k in expected if k in state and state[k].shape != expected[k].shape]
-    if missing or unexpected or shapes:
-        first = (f"{shapes[0]} is {tuple(state[shapes[0]].shape)}, the config makes "
-                 f"{tuple(expected[shapes[0]].shape)}" if shapes else
-                 f"e.g. {(missing or unexpected)[0]!r}")
-        raise SegmoError(f"{path}: the weights do not fit {Path(directory) / CONFIG_FILE}: "
-                         f"{len(missing)} missing, {len(unexpected)} unexpected, {len(shapes)} of "
-                         f"another shape ({first})")
+    check_weight_shapes(directory, {k: tuple(v.shape) for k, v in model.state_dict().items()},
+                        {k: tuple(v.shape) for k, v in state.items()})
     broken = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
     if broken:
         raise SegmoError(f"{path}: {len(broken)} tensor(s) hold NaN or inf (first: {broken[0]!r}); "
