@@ -57,6 +57,10 @@ def as_joints(
         if (mean is None) != (std is None):
             raise ValueError("as_joints: pass both mean and std (z-scored features) or neither")
         if mean is not None:
+            for name, stats in (("mean", mean), ("std", std)):  # else numpy broadcasts them
+                if np.shape(stats) != (spec.feature_dim,):
+                    raise ValueError(f"as_joints: {name} must have shape ({spec.feature_dim},) "
+                                     f"for skeleton {spec.name!r}, got {np.shape(stats)}")
             motion = motion * np.asarray(std, dtype=np.float64) + np.asarray(mean, dtype=np.float64)
         joints = features_to_joints(motion, spec)
     else:
@@ -325,6 +329,11 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"argument --fps: expected a positive number, got {args.fps:g}")
     if args.out.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--out {args.out}: the name must end in .gif or .mp4")
+    if args.out.is_dir():  # before the rendering, not when the file is moved into place
+        parser.error(f"--out {args.out}: is a directory; name the file to write")
+    above = next((p for p in args.out.absolute().parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        parser.error(f"--out {args.out}: {above} is a file, not a directory")
     motion = npy_argument(parser, "FILE", args.file)
     mean = None if args.mean is None else npy_argument(parser, "--mean", args.mean)
     std = None if args.std is None else npy_argument(parser, "--std", args.std)

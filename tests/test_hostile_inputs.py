@@ -215,6 +215,12 @@ CLI_CASES = [
         "`--stride 0`"),
     Cli("render-missing", "render {tmp}/nope.npy --out {tmp}/r.gif", "nope.npy",
         "a file that does not exist"),
+    Cli("render-mean-shape", "render {motion} --out {tmp}/r.gif --mean {motion} --std {motion}",
+        "mean must have shape (263,)", "`--mean`/`--std` of a motion's shape (were broadcast)"),
+    Cli("render-out-dir", "render {motion} --out {gif_dir}", "is a directory",
+        "`--out` naming a folder that ends in .gif (refused after the rendering)"),
+    Cli("render-out-through-file", "render {motion} --out {file}/r.gif", "is a file, not a "
+        "directory", "`--out` inside a file (refused after the rendering)"),
     Cli("render-mean-alone", "render {motion} --out {tmp}/r.gif --mean {motion}", "--mean",
         "`--mean` without `--std`"),
     # -- segmo synth
@@ -467,6 +473,8 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     files["odd_metrics"] = tmp / "odd" / "metrics.json"
     files["odd_metrics"].parent.mkdir()
     files["odd_metrics"].write_text('{"generation": "oops", "config": 5}')
+    files["gif_dir"] = tmp / "shown.gif"
+    files["gif_dir"].mkdir()
     files["row_metrics"] = tmp / "rows" / "metrics.json"
     files["row_metrics"].parent.mkdir()
     files["row_metrics"].write_text('{"generation": {"generated": {"fid": {"avg": 1}}}}')
