@@ -372,6 +372,13 @@ API_CASES = [
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
         "RuntimeError)"),
+    Api("api-word-texts-bogus", lambda m, w: m.word_texts(["walk"], word_text="bogus"),
+        SegmoError, "word_text must be 'caption' or 'segments'", "`word_texts(word_text=\"bogus\")` "
+        "(was accepted)"),
+    Api("api-segment-texts-none", lambda m, w: m.segment_texts(None), SegmoError,
+        "expected a list of strings", "`segment_texts(None)` (was a TypeError)"),
+    Api("api-ground-window-bool", lambda m, w: m.ground("walk", _motion(w), window=True),
+        SegmoError, "not a bool", "`ground(window=True)` (was a window of 1)"),
     Api("api-retrieve-texts-string", lambda m, w: m.retrieve_texts(_motion(w), "walk"),
         SegmoError, "candidates must be a list of texts", "`retrieve_texts(motion, \"walk\")` "
         "(ranked the letters)"),

@@ -80,6 +80,9 @@ def check_search(search: str | None, window: int | Sequence[int] | None, stride:
         raise SegmoError(f"ground: search={search!r}; choose from {', '.join(SEARCHES)}")
     if window is not None and search != "window":
         raise SegmoError(f"ground: window={window!r} is for search='window', not {search!r}")
+    if isinstance(window, bool) or (isinstance(window, (list, tuple))
+                                    and any(isinstance(w, bool) for w in window)):
+        raise SegmoError(f"ground: window={window!r} must be a size >= 1 (tokens), not a bool")
     if window is not None and not isinstance(window, (int, np.integer, list, tuple)):
         raise SegmoError(f"ground: window={window!r} must be a size >= 1 (tokens) or a list of them")
     sizes = [] if window is None else [window] if isinstance(window, (int, np.integer)) else list(window)

@@ -238,7 +238,7 @@ class SegMo:
 
     def segment_texts(self, texts: list[str]) -> list[list[str]]:
         """Ordered text segments of each text (≤ max_segments), rule backend by default."""
-        return self.text.segment(texts)
+        return self.text.segment(check_texts(texts))
 
     def text_condition(self, texts: list[str], segments: list[list[str]] | None = None
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[list[str]]]:
@@ -272,7 +272,10 @@ class SegMo:
         return self.text.word_texts(texts, segments, self._word_text(word_text))
 
     def _word_text(self, word_text: str | None) -> str:
-        return self.sampling.word_text if word_text is None else word_text
+        if word_text is None:
+            return self.sampling.word_text
+        SamplingOptions(word_text=word_text)  # one SegmoError for a value it does not know
+        return word_text
 
     # -- motion side -------------------------------------------------------------------------
 
