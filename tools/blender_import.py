@@ -38,7 +38,7 @@ scene = bpy.context.scene
 first, last = armature.animation_data.action.frame_range
 start = int(round(first))
 frames = int(round(last - first)) + 1
-every = (frames - 1) // max(len(joints) - 1, 1)
+every = max(1, (frames - 1) // max(len(joints) - 1, 1))  # a one-frame motion: 1
 if (len(joints) - 1) * every + 1 != frames:
     sys.exit(f"blender_import: {bvh_path} has {frames} frames, not a whole multiple of the "
              f"{len(joints)} frames of {joints_path}")
