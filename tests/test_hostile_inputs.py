@@ -372,6 +372,10 @@ API_CASES = [
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
         "RuntimeError)"),
+    Api("api-from-pretrained-none", lambda m, w: SegMo.from_pretrained(None), SegmoError,
+        "expected a model folder or a hub id", "`SegMo.from_pretrained(None)` (was a TypeError)"),
+    Api("api-from-pretrained-long-name", lambda m, w: SegMo.from_pretrained("a" * 5000),
+        SegmoError, "File name too long", "a 5,000-character folder name (was an OSError)"),
     Api("api-word-texts-bogus", lambda m, w: m.word_texts(["walk"], word_text="bogus"),
         SegmoError, "word_text must be 'caption' or 'segments'", "`word_texts(word_text=\"bogus\")` "
         "(was accepted)"),

@@ -56,11 +56,17 @@ def resolve(name: str | os.PathLike, revision: str | None = None) -> Path:
     """The local folder of `name`: `name` itself when it is a folder, else the snapshot of
     the hub repository `name` ("owner/model") in the Hugging Face cache (downloaded
     unless ``HF_HUB_OFFLINE`` is set). SegmoError when it is neither."""
+    if not isinstance(name, (str, os.PathLike)) or not str(name).strip():
+        raise SegmoError(f"expected a model folder or a hub id like 'owner/name', got {name!r:.80}")
     path = Path(name)
-    if path.is_dir():
-        return path
+    try:
+        if path.is_dir():
+            return path
+        exists = path.exists()
+    except OSError as error:  # a name too long for the file system, say
+        raise SegmoError(f"{str(name)[:80]}...: not a model folder ({error.strerror})") from None
     text = str(name)
-    if path.exists():
+    if exists:
         raise SegmoError(f"{text}: is a file, not a model folder")
     if not is_hub_id(text):
         raise FileNotFoundError(f"{text}: no such model folder (nor a hub id like 'owner/name')")
