@@ -120,7 +120,8 @@ class SegmoCLI(LightningCLI):
             raise SegmoError(f"--ckpt_path {ckpt_path}: no such checkpoint file (give a file, "
                              f"or 'last' or 'best' of the run in {run})")
         checkpoint = read_checkpoint(ckpt_path, "--ckpt_path", resume=True)
-        _check_checkpoint_task(checkpoint, ckpt_path, config, task, list(args or []))
+        _check_checkpoint_task(checkpoint, ckpt_path, config, task, list(args or []),
+                               resuming=self.config["subcommand"] == "fit")
 
     def _run_directory(self) -> tuple[Path, str, str | None, int | None]:
         """(save_dir, name, version or None for the next free one, resume step or None)."""
@@ -177,7 +178,8 @@ class SegmoCLI(LightningCLI):
 
 
 def _task_class(config: Any) -> type:
-    """The task class the parsed ``config`` names (its ``model.class_path``)."""
+    """The task class the parsed ``config`` names (its ``model.class_path``; jsonargparse
+    has imported it already)."""
     module, _, name = str(config["model"]["class_path"]).rpartition(".")
     return getattr(importlib.import_module(module), name)
 
@@ -202,11 +204,13 @@ def _run_folder(config: Any, task: type) -> Path:
 
 
 def _check_checkpoint_task(checkpoint: dict, ckpt_path: str, config: Any, task: type,
-                           argv: list[str]) -> None:
-    """A checkpoint of another task than the config's, or a model setting given (on the
-    command line or in a config file) that differs from the checkpoint's: one SegmoError.
-    Lightning builds the model from the settings a checkpoint records (they replace the
-    config's), so either would silently train or score another model than the one asked for."""
+                           argv: list[str], resuming: bool) -> None:
+    """A checkpoint of another task than the config's, or a model setting given that differs
+    from the checkpoint's (on the command line, or when ``resuming`` a fit in a config file
+    too: validating with another recipe's file is common and changes nothing): one
+    SegmoError. Lightning builds the model from the settings a checkpoint records (they
+    replace the config's), so either would silently train or score another model than the
+    one asked for."""
     hparams = checkpoint.get("hyper_parameters") or {}
     recorded = hparams.get("_class_path")
     if recorded:
@@ -222,12 +226,14 @@ def _check_checkpoint_task(checkpoint: dict, ckpt_path: str, config: Any, task: 
     for key, saved in hparams.items():
         if key.startswith("_") or key not in given:
             continue
-        places = where_set(f"model.init_args.{key}", argv)
+        places = [place for place, _ in where_set(f"model.init_args.{key}", argv)
+                  if resuming or place.startswith("argument ")]
         if places and _setting(key, given[key]) != _setting(key, saved):
+            advice = "leave it as it was, or start a new run" if resuming else "leave it out"
             raise SegmoError(
-                f"{places[0][0]}: model.init_args.{key}={given[key]!r}, but --ckpt_path "
+                f"{places[0]}: model.init_args.{key}={given[key]!r}, but --ckpt_path "
                 f"{ckpt_path} was trained with {saved!r}, and the model is built from its "
-                "checkpoint's settings; leave it as it was, or start a new run")
+                f"checkpoint's settings; {advice}")
 
 
 def _setting(key: str, value: Any) -> Any:
