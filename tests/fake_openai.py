@@ -23,7 +23,7 @@ RETRY_AFTER = 1.2  # seconds a 429 asks for; more than the client's own first ba
 HANG = 2.0  # seconds a "hang" waits before answering; tests use a shorter client timeout
 
 
-def _envelope(content: str) -> str:
+def _envelope(content: object) -> str:
     return json.dumps({"id": "x", "object": "chat.completion", "created": 0, "model": "tiny",
                        "choices": [{"index": 0, "finish_reason": "stop",
                                     "message": {"role": "assistant", "content": content}}]})
@@ -31,7 +31,8 @@ def _envelope(content: str) -> str:
 
 class FakeOpenAI:
     FAULTS = ("500", "429", "hang", "badjson", "invalidjson", "prose", "itisit", "copies",
-              "dropped", "reversed", "400", "401")
+              "dropped", "reversed", "400", "401", "deepbody", "parts", "number", "deep", "braces",
+              "foreign", "nul", "surrogate")
 
     def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None,
                  structured: bool = True) -> None:
@@ -108,6 +109,12 @@ class FakeOpenAI:
             time.sleep(HANG)
         if fault == "badjson":
             return 200, {}, '{"choices": [ not json'
+        if fault == "deepbody":  # a body nested beyond Python's recursion limit
+            return 200, {}, '{"choices": ' + "[" * 100_000
+        if fault in ("parts", "number"):  # content that is not a string
+            answer = json.dumps({"segments": segments})
+            content = [{"type": "text", "text": answer}] if fault == "parts" else 12345
+            return 200, {}, _envelope(content)
         content = {
             "invalidjson": '{"segments": ["' + caption,
             "prose": f"Sure! The person first does this and then that: {caption}.",
@@ -115,6 +122,11 @@ class FakeOpenAI:
             "copies": json.dumps({"segments": [segments[0]] * 5}),
             "dropped": json.dumps({"segments": segments[:1]}),
             "reversed": json.dumps({"segments": segments[::-1]}),
+            "deep": '{"a":' * 100_000,
+            "braces": "{" * 300_000,  # each '{' a parse: minutes when every one is tried
+            "foreign": json.dumps({"segments": [segments[0] + " 火箭发射到月球", *segments[1:]]}),
+            "nul": json.dumps({"segments": [segments[0] + " \u0000", *segments[1:]]}),
+            "surrogate": json.dumps({"segments": [segments[0] + " \ud800", *segments[1:]]}),
         }.get(fault, "```json\n" + json.dumps({"segments": segments}) + "\n```")
         return 200, {}, _envelope(content)
 

@@ -285,6 +285,45 @@ def test_openai_faults_are_retried_then_fall_back_with_their_reason(caplog):
     assert "falling back" in caplog.text
 
 
+HOSTILE_ANSWERS = {  # each was a traceback (exit 1), or text written that is not the caption's
+    "deepbody": "unreadable response (RecursionError",
+    "number": "the message's content is a int, not text",
+    "deep": "no JSON object",
+    "braces": "no JSON object",
+    "foreign": "uses words not in the caption: ['火箭发射到月球']",
+    "nul": "holds control characters",
+    "surrogate": "holds control characters",
+}
+
+
+@pytest.mark.parametrize("fault", HOSTILE_ANSWERS)
+def test_hostile_answers_fall_back_with_a_reason(fault):
+    caption = "a person walks forward, then waves twice"
+    with FakeOpenAI({caption: fault}) as server:
+        t0 = time.perf_counter()
+        out, fell_back = _client(server.url, timeout=5.0).segment_with_fallbacks([caption])
+    assert out == [RuleSegmenter().segment_one(caption)]
+    assert HOSTILE_ANSWERS[fault] in fell_back[0] and len(fell_back[0]) < 400, fell_back
+    assert time.perf_counter() - t0 < 10  # "{" * 300,000 took 22 s of parsing per answer
+
+
+def test_content_parts_are_read_as_the_answer():
+    """Some servers send the message's content as a list of parts."""
+    caption = "a person walks forward, then waves twice"
+    with FakeOpenAI({caption: "parts"}) as server:
+        out, fell_back = _client(server.url).segment_with_fallbacks([caption])
+    assert out == [RuleSegmenter().segment_one(caption)] and not fell_back
+
+
+def test_an_api_key_no_http_header_can_carry_is_one_line(monkeypatch):
+    """A key with a stray line end failed every request, and the error quoted the key into
+    the manifest."""
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-SECRET123\r")
+    with pytest.raises(SegmoError) as caught:
+        OpenAISegmenter("http://127.0.0.1:9/v1", "tiny")
+    assert "SECRET" not in str(caught.value) and "$OPENAI_API_KEY" in str(caught.value)
+
+
 def test_a_caption_the_server_refuses_falls_back_without_retries():
     caption = " ".join(["a person walks forward then waves"] * 1700)  # 10,000 words
     with FakeOpenAI({caption: "400"}) as server:

@@ -266,7 +266,13 @@ class OpenAISegmenter(LLMSegmenter):
         self.model = model
         self.api_key_env = api_key_env
         self.concurrency, self.timeout = concurrency, timeout
-        self.client = openai.OpenAI(base_url=self.base_url, api_key=os.environ.get(api_key_env) or "none",
+        key = os.environ.get(api_key_env) or "none"
+        if not (key.isascii() and key.isprintable()) or any(c.isspace() for c in key):
+            # httpx would refuse it for every caption, and quote it in the manifest
+            raise SegmoError(f"${api_key_env}: the API key holds a character an HTTP header "
+                             "cannot carry (a line end, a space, a non-ASCII letter); fix the "
+                             "variable")
+        self.client = openai.OpenAI(base_url=self.base_url, api_key=key,
                                     timeout=timeout, max_retries=max_retries)
         self.options = {"temperature": temperature, "max_tokens": max_tokens}
         self.extra_body = extra_body
@@ -324,14 +330,21 @@ class OpenAISegmenter(LLMSegmenter):
         except openai.APIConnectionError as err:
             return self._failed(f"cannot reach {self.base_url} ({err.__cause__ or err}), "
                                 f"{self.max_retries} retries")
-        except (openai.APIResponseValidationError, ValueError, TypeError, KeyError) as err:
+        except (openai.APIResponseValidationError, ValueError, TypeError, KeyError,
+                RecursionError) as err:
             # a broken body (invalid JSON) from a live server: validated, so re-asked, upstream
             return f"{UNREADABLE} ({type(err).__name__}: {str(err)[:120]})>"
         with self._lock:
             self._failures_in_a_row = 0
         choices = getattr(completion, "choices", None) or []
         message = getattr(choices[0], "message", None) if choices else None
-        return getattr(message, "content", None) or ""  # an empty answer is re-asked upstream
+        content = getattr(message, "content", None) or ""  # an empty answer is re-asked upstream
+        if isinstance(content, list):  # content parts, as some servers send them
+            content = "".join(part.get("text") or "" for part in content if isinstance(part, dict)
+                              and isinstance(part.get("text"), str))
+        if not isinstance(content, str):
+            return f"{UNREADABLE} (the message's content is a {type(content).__name__}, not text)>"
+        return content
 
     def _complete_many(self, conversations: list[list[dict[str, str]]],
                        progress: Any = None) -> list[str | Exception]:

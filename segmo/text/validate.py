@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import re
+import unicodedata
 from collections import Counter
 
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -45,7 +46,11 @@ _SUBJECT_WORDS = ALLOWED_EXTRA | lexicon.AUX | lexicon.PRONOUNS | lexicon.DETERM
 LIGHT_VERBS = set("""start begin continue proceed keep try seem appear go get come let need use
 prepare make do take perform repeat end finish""".split())
 _THINK_RE = re.compile(r"<think>.*?(</think>|$)", re.DOTALL | re.IGNORECASE)
-_WORD_RE = re.compile(r"[A-Za-z]+|[0-9]+")
+# Words of any script: a segment's words in another one are not the caption's.
+_WORD_RE = re.compile(r"[^\W\d_]+|[0-9]+")
+# The longest answer read: a segment list is a few hundred characters; a reasoning model's
+# <think> block some thousands.
+MAX_ANSWER_CHARS = 50_000
 
 
 class Answer(BaseModel):
@@ -69,13 +74,15 @@ def parse_answer(text: str) -> list[str] | None:
 
     Tolerates ``<think>...</think>`` blocks (Qwen3), code fences and text around the JSON.
     """
+    if len(text) > MAX_ANSWER_CHARS:  # each '{' is a parse: quadratic in a hostile answer
+        return None
     text = _THINK_RE.sub("", text)
     text = re.sub(r"```(?:json)?", "", text)
     decoder = json.JSONDecoder()
     for match in re.finditer(r"\{", text):
         try:
             obj, _ = decoder.raw_decode(text, match.start())
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             continue
         try:
             segments = Answer.model_validate(obj).segments
@@ -141,12 +148,14 @@ def validate_segments(caption: str, segments: list[str] | None, max_segments: in
         if not s.strip():
             return "empty segment"
         if len(s) > len(caption) + length_margin:
-            return f"segment longer than the caption: {s!r}"
+            return f"segment longer than the caption: {s!r:.120}"
+        if any(unicodedata.category(c) in ("Cc", "Cs") for c in s):  # NUL, a lone surrogate
+            return f"segment {s!r:.120} holds control characters"
         foreign = [w for w in _WORD_RE.findall(s) if lemma(w) not in allowed and w.lower() not in allowed]
         if foreign:
-            return f"segment {s!r} uses words not in the caption: {foreign}"
+            return f"segment {s!r:.120} uses words not in the caption: {foreign[:5]}"
         if not _content(s):
-            return f"segment {s!r} names no action or detail of the caption"
+            return f"segment {s!r:.120} names no action or detail of the caption"
     available = Counter(caption_words)
     for key, copies in Counter(map(_same, segments)).items():
         if copies > 1 and any(available[w] < copies for w in key if w not in FUNCTION_WORDS):
