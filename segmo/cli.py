@@ -9,7 +9,9 @@ LightningCLI wrapper in `segmo.training.cli`.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
+import threading
 import warnings
 
 from segmo.errors import SegmoError
@@ -89,6 +91,14 @@ def run(prog: str, command, argv: list[str], debug: bool = False) -> None:
         if debug:
             raise
         print(f"{prog}: interrupted", file=sys.stderr)
+        if any(t.is_alive() and not t.daemon for t in threading.enumerate()
+               if t is not threading.main_thread()):
+            # Python would wait for them at exit: a request in flight to a server that does
+            # not answer (segment-texts) kept an interrupted run alive for minutes. What the
+            # commands write is atomic and resumable, so nothing is lost by not waiting.
+            sys.stderr.flush()
+            sys.stdout.flush()
+            os._exit(130)
         sys.exit(130)
     finally:
         warnings.showwarning = shown

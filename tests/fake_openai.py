@@ -32,7 +32,7 @@ def _envelope(content: object) -> str:
 class FakeOpenAI:
     FAULTS = ("500", "429", "hang", "badjson", "invalidjson", "prose", "itisit", "copies",
               "dropped", "reversed", "400", "401", "deepbody", "parts", "number", "deep", "braces",
-              "foreign", "nul", "surrogate")
+              "foreign", "nul", "surrogate", "stall")
 
     def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None,
                  structured: bool = True) -> None:
@@ -107,6 +107,8 @@ class FakeOpenAI:
             return 429, {"Retry-After": str(RETRY_AFTER)}, '{"error": {"message": "slow down"}}'
         if fault == "hang":
             time.sleep(HANG)
+        if fault == "stall":  # a server that takes a minute: an interrupted run must not wait
+            time.sleep(60)
         if fault == "badjson":
             return 200, {}, '{"choices": [ not json'
         if fault == "deepbody":  # a body nested beyond Python's recursion limit

@@ -118,3 +118,33 @@ def test_a_dead_server_stops_the_run_with_one_line(root, capsys):
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1].startswith(f"segmo segment-texts: {url}: ")
     assert "requests in a row failed (last: cannot reach" in err and "re-run when the server answers" in err
+
+
+def test_ctrl_c_ends_a_run_whose_requests_are_in_flight(root):
+    """An interrupted run waited for every request in flight (42 s with --timeout 10 and
+    three retries; for ever with a server that trickles its answer), as Python joins the
+    request threads at exit."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    captions = [line.split("#")[0] for f in sorted((root / "texts").iterdir())
+                for line in f.read_text().splitlines()]
+    with FakeOpenAI({c: "stall" for c in captions}) as server:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "segmo", "segment-texts", "--data", str(root), "--backend",
+             "openai", "--base-url", server.url, "--model", "tiny", "--timeout", "30", "--quiet"],
+            stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        deadline = time.monotonic() + 60
+        while server.total < 2 and time.monotonic() < deadline:  # requests in flight
+            time.sleep(0.1)
+        process.send_signal(signal.SIGINT)
+        sent = time.monotonic()
+        try:
+            err = process.communicate(timeout=20)[1]
+        finally:
+            process.kill()
+    assert process.returncode == 130 and "interrupted" in err, err
+    assert time.monotonic() - sent < 15

@@ -357,8 +357,13 @@ class OpenAISegmenter(LLMSegmenter):
         if len(conversations) == 1:
             answers = [ask(conversations[0])]
         else:
-            with ThreadPoolExecutor(max_workers=self.concurrency) as pool:
+            pool = ThreadPoolExecutor(max_workers=self.concurrency)
+            try:
                 answers = list(pool.map(ask, conversations))
+            except BaseException:  # Ctrl-C: the requests not yet sent are not sent
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
         if self._failures_in_a_row >= self.max_failures_in_a_row:
             raise LLMUnavailableError(
                 f"{self.base_url}: {self._failures_in_a_row} requests in a row failed (last: "
