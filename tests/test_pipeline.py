@@ -673,7 +673,9 @@ def test_a_save_writes_all_of_it_or_nothing_and_keeps_earlier_entries(bundle, tm
     out = tmp_path / "out"
     first = model.generate(["walk $x^$, then jump $\\alpha^$", PROMPTS[1]], [16, 16],
                            generator=torch.Generator().manual_seed(0))
+    (out / ".save.tmp-999999999").mkdir(parents=True)  # of a killed save: no such process
     first.save(out, formats=("npy", "gif"))  # plain text in the title and segment labels
+    assert not (out / ".save.tmp-999999999").exists()
     assert (out / "sample_00.gif").stat().st_size > 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     second = model.generate([PROMPTS[0]], [16], generator=torch.Generator().manual_seed(1))

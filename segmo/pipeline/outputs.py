@@ -127,7 +127,11 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     # Everything is rendered into a folder of its own first, and only moved beside what the
     # directory holds once all of it is written: a sample that fails (a GIF that cannot be
     # drawn, a full disk) leaves the directory as it was.
-    stage = directory / f".save.tmp-{os.getpid()}"
+    for leftover in directory.glob(f"{STAGE_PREFIX}*"):  # of a save that was killed
+        pid = leftover.name.removeprefix(STAGE_PREFIX)
+        if leftover.is_dir() and pid.isdecimal() and not _alive(int(pid)):
+            shutil.rmtree(leftover, ignore_errors=True)
+    stage = directory / f"{STAGE_PREFIX}{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     written: list[Path] = []
@@ -173,6 +177,19 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     index = [entry for entry in earlier if entry["file"] not in rewritten] + index
     written.append(write_atomic(directory / "prompts.json", json.dumps(index, indent=2) + "\n"))
     return written
+
+
+STAGE_PREFIX = ".save.tmp-"  # + the pid of the save writing into it
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 def _move_in(files: list[Path], directory: Path, stage: Path) -> None:
