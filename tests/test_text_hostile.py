@@ -234,6 +234,22 @@ def test_encode_texts_no_caption_with_words(tmp_path, capsys):
     _fails(["encode-texts", "--data", str(root)], capsys, f"no caption with words in {root / 'texts'}")
 
 
+def test_a_pipe_among_the_segment_files_is_one_line_not_a_hang(tmp_path, capsys):
+    """A FIFO named *.txt in a segment folder blocked encode-texts for ever, and one named
+    manifest.jsonl blocked segment-texts after its first file."""
+    import os
+
+    root = _data(tmp_path)
+    folder = root / "text_segments" / "rule"
+    folder.mkdir(parents=True)
+    os.mkfifo(folder / "manifest.jsonl")
+    _fails(["segment-texts", "--data", str(root), "--quiet"], capsys,
+           f"{folder / 'manifest.jsonl'}: not a regular file")
+    (folder / "manifest.jsonl").unlink()
+    os.mkfifo(folder / "000002.txt")
+    _fails(["encode-texts", "--data", str(root)], capsys, f"{folder / '000002.txt'}: not a regular file")
+
+
 def test_encode_texts_segment_file_not_utf8(tmp_path, capsys):
     root = _data(tmp_path)
     (root / "text_segments" / "rule").mkdir(parents=True)

@@ -61,6 +61,8 @@ def has_words(text: str) -> bool:
 def read_text(path: Path) -> str:
     """A file's text, decoded as UTF-8 (a leading byte-order mark, which Windows editors
     write, left out); SegmoError naming the file and line otherwise."""
+    if path.exists() and not path.is_file() and not path.is_dir():  # a pipe would block
+        raise SegmoError(f"{path}: not a regular file (a pipe or a device?)")
     data = path.read_bytes().removeprefix(codecs.BOM_UTF8)
     try:
         return data.decode("utf-8")

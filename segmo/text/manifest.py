@@ -44,6 +44,8 @@ class SegmentManifest:
         self.folder = Path(folder)
         self.path = self.folder / MANIFEST
         self.records: dict[str, dict[str, Any]] = {}
+        if self.path.exists() and not self.path.is_file():  # a pipe would block its reads
+            raise SegmoError(f"{self.path}: not a regular file (a folder or a pipe?); move it away")
         self.exists = self.path.is_file()
         self._torn = 0  # bytes of a torn last line
         if self.exists:
