@@ -113,6 +113,13 @@ def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def file_above(path: str | os.PathLike) -> Path | None:
+    """The nearest existing folder of `path` when it is a file (a path through a file cannot
+    be written), else None; checked before any work."""
+    above = next((p for p in Path(path).absolute().parents if p.exists()), None)
+    return above if above is not None and not above.is_dir() else None
+
+
 def foreign_entries(folder: str | os.PathLike, expected: Iterable[str]) -> list[str]:
     """What `folder` holds besides the `expected` files (POSIX paths relative to it), as
     paths relative to it: a whole subfolder no expected file lies in is one entry."""

@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from segmo.errors import ArgumentParser, SegmoError, finite_float, npy_argument, positive_int
-from segmo.files import atomic_open
+from segmo.files import atomic_open, file_above
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
@@ -331,8 +331,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--out {args.out}: the name must end in .gif or .mp4")
     if args.out.is_dir():  # before the rendering, not when the file is moved into place
         parser.error(f"--out {args.out}: is a directory; name the file to write")
-    above = next((p for p in args.out.absolute().parents if p.exists()), None)
-    if above is not None and not above.is_dir():
+    above = file_above(args.out)
+    if above is not None:
         parser.error(f"--out {args.out}: {above} is a file, not a directory")
     motion = npy_argument(parser, "FILE", args.file)
     mean = None if args.mean is None else npy_argument(parser, "--mean", args.mean)

@@ -34,6 +34,7 @@ from segmo.errors import (
     parse_durations,
     positive_int,
 )
+from segmo.files import file_above
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText
@@ -73,8 +74,8 @@ def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str,
         parser.error(f"{flag} {value}: a symbolic link to {os.readlink(path)}, which does not exist")
     if path.exists() and not path.is_dir():
         parser.error(f"{flag} {value}: exists and is not a directory")
-    above = next((p for p in path.absolute().parents if p.exists()), None)
-    if above is not None and not above.is_dir():
+    above = file_above(path)
+    if above is not None:
         parser.error(f"{flag} {value}: {above} is a file, not a directory")
     try:
         if motions:

@@ -35,6 +35,7 @@ from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.residual_transformer import ResidualTransformer
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec
+from segmo.pipeline.inputs import check_span
 from segmo.pipeline.outputs import GenerationOutput
 
 
@@ -81,11 +82,7 @@ def edit(model: EditingModel, motion: GenerationOutput | Any, span: tuple[int, i
         raise SegmoError(f"SegMo.edit: the motion has {tokens.shape[1] * FRAMES_PER_TOKEN} "
                          f"frames, more than the {model.max_frames} the model reads at once; "
                          "edit one part of a composition before composing")
-    if not (isinstance(span, (tuple, list)) and len(span) == 2
-            and all(isinstance(v, numbers.Integral) and not isinstance(v, bool)
-                    for v in span)):
-        raise SegmoError(f"SegMo.edit: span must be (start, end) whole frames, got {span!r}")
-    start, end = int(span[0]), int(span[1])
+    start, end = check_span(span, "SegMo.edit")
     if not 0 <= start < end <= int(lengths.min()):
         raise SegmoError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
                          f"{int(lengths.min())} frames, got {(start, end)}")

@@ -38,6 +38,15 @@ def check_texts(texts: Any, what: str = "text") -> list[str]:
     return list(texts)
 
 
+def check_span(span: Any, what: str) -> tuple[int, int]:
+    """(start, end) of a frame span given as two whole numbers, or SegmoError naming `what`
+    (a fraction would be cut to a whole frame without a word)."""
+    if not (isinstance(span, (tuple, list)) and len(span) == 2
+            and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in span)):
+        raise SegmoError(f"{what}: span must be (start, end) whole frames, got {span!r:.80}")
+    return int(span[0]), int(span[1])
+
+
 def check_generator(generator: Any, what: str) -> None:
     """SegmoError unless `generator` is None or a `torch.Generator` (whose state a result
     records, so that its draws can be replayed)."""

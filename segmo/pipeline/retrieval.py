@@ -20,7 +20,7 @@ import torch.nn.functional as F
 
 from segmo.errors import SegmoError
 from segmo.generation.editing import token_span
-from segmo.pipeline.inputs import check_texts
+from segmo.pipeline.inputs import check_span, check_texts
 from segmo.pipeline.space import SegmentModel
 from segmo.segmentation import segment_batch
 
@@ -101,11 +101,7 @@ def retrieve_texts(model: SegmentModel, motion: Any, candidates: list[str],
     check_texts(candidates, "candidate")
     region = None
     if span is not None:
-        if not (isinstance(span, (tuple, list)) and len(span) == 2
-                and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in span)):
-            raise SegmoError(f"retrieve_texts: span must be (start, end) whole frames, got "
-                             f"{span!r:.80}")
-        start, end = int(span[0]), int(span[1])
+        start, end = check_span(span, "retrieve_texts")
         if not 0 <= start < end:
             raise SegmoError(f"retrieve_texts: span must satisfy 0 ≤ start < end, got {span}")
         region = token_span((start, end))
