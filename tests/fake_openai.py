@@ -11,6 +11,7 @@ request is recorded (caption, arrival time), so tests can check retries and wait
 
 from __future__ import annotations
 
+import gzip
 import json
 import threading
 import time
@@ -21,6 +22,8 @@ from segmo.text.rules import RuleSegmenter
 
 RETRY_AFTER = 1.2  # seconds a 429 asks for; more than the client's own first back-off (0.5 s)
 HANG = 2.0  # seconds a "hang" waits before answering; tests use a shorter client timeout
+TRICKLE = 0.05  # seconds between the bytes of a "trickle" answer (about 20 s in all)
+FLOOD = 64 << 20  # bytes of a "flood" answer that never ends its JSON
 
 
 def _envelope(content: object) -> str:
@@ -32,13 +35,14 @@ def _envelope(content: object) -> str:
 class FakeOpenAI:
     FAULTS = ("500", "429", "hang", "badjson", "invalidjson", "prose", "itisit", "copies",
               "dropped", "reversed", "400", "401", "deepbody", "parts", "number", "deep", "braces",
-              "foreign", "nul", "surrogate", "stall")
+              "foreign", "nul", "surrogate", "stall", "trickle", "flood", "gzip")
 
     def __init__(self, faults: dict[str, str] | None = None, block_at: int | None = None,
                  structured: bool = True) -> None:
         self.faults = dict(faults or {})
         self.structured = structured  # False: refuse response_format with a 400, as old servers do
         self.bodies: list[dict] = []  # every request body, in arrival order
+        self.headers: list[dict[str, str]] = []  # and its headers
         self.connections: set[int] = set()  # client ports seen (one per kept-alive connection)
         self.calls: dict[str, int] = defaultdict(int)
         self.times: dict[str, list[float]] = defaultdict(list)
@@ -60,8 +64,13 @@ class FakeOpenAI:
                 body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
                 with server._lock:
                     server.bodies.append(body)
+                    server.headers.append({k.lower(): v for k, v in self.headers.items()})
                     server.connections.add(self.client_address[1])
                 code, headers, text = server.respond(self.path, body)
+                fake = headers.pop("X-Fake", None)
+                if fake:
+                    self.stream(fake, text)
+                    return
                 try:
                     self.send_response(code)
                     for key, value in {"Content-Type": "application/json", **headers}.items():
@@ -71,6 +80,27 @@ class FakeOpenAI:
                     self.wfile.write(text.encode())
                 except OSError:
                     pass  # the client gave up (timeout) or was killed
+
+            def stream(self, fake, text):
+                """`text` one byte at a time ("trickle"), FLOOD bytes of spaces ("flood"), or
+                those spaces and `text` gzipped ("gzip")."""
+                data = {"trickle": text.encode(), "flood": b" " * FLOOD,
+                        "gzip": gzip.compress(b" " * FLOOD + text.encode())}[fake]
+                try:
+                    self.send_response(200)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(data)))
+                    if fake == "gzip":
+                        self.send_header("Content-Encoding", "gzip")
+                    self.end_headers()
+                    step = 1 if fake == "trickle" else 65536
+                    for i in range(0, len(data), step):
+                        self.wfile.write(data[i : i + step])
+                        if fake == "trickle":
+                            self.wfile.flush()
+                            time.sleep(TRICKLE)
+                except OSError:
+                    pass  # the client stopped reading
 
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.httpd.daemon_threads = True
@@ -109,6 +139,12 @@ class FakeOpenAI:
             time.sleep(HANG)
         if fault == "stall":  # a server that takes a minute: an interrupted run must not wait
             time.sleep(60)
+        if fault == "trickle":
+            return 200, {"X-Fake": "trickle"}, _envelope(json.dumps({"segments": segments}))
+        if fault == "flood":
+            return 200, {"X-Fake": "flood"}, "x"
+        if fault == "gzip":  # a 64 KB gzip of 64 MB, sent although the client asked for none
+            return 200, {"X-Fake": "gzip"}, _envelope(json.dumps({"segments": segments}))
         if fault == "badjson":
             return 200, {}, '{"choices": [ not json'
         if fault == "deepbody":  # a body nested beyond Python's recursion limit

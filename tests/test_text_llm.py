@@ -398,3 +398,33 @@ def test_transformers_backend_falls_back_on_garbage(tmp_path, caplog):
     assert out == RuleSegmenter().segment(captions)
     assert seg.fallbacks == 3 and seg.stats.requests == 6  # asked, re-asked, fell back
     assert "falling back" in caplog.text
+
+
+SLOW_OR_HUGE_ANSWERS = {  # each held a request for ever, or its bytes in memory
+    "trickle": "still arriving 1 s after it began",
+    "flood": "ran past 1 MiB",
+    "gzip": "came compressed (gzip)",
+}
+
+
+@pytest.mark.parametrize("fault", SLOW_OR_HUGE_ANSWERS)
+def test_an_answer_is_read_within_the_timeout_and_a_size(fault):
+    """httpx's timeout bounds each wait for bytes, not their sum: a server sending a byte
+    every 50 ms held a request for 20 s with --timeout 1, and an endless body was read into
+    memory (1.3 GB in 3 s). A gzip of 64 MB is 64 KB on the wire."""
+    caption = "a person walks forward, then waves twice"
+    with FakeOpenAI({caption: fault}) as server:
+        t0 = time.perf_counter()
+        out, fell_back = _client(server.url, timeout=1.0, max_retries=0).segment_with_fallbacks([caption])
+        elapsed = time.perf_counter() - t0
+    assert out == [RuleSegmenter().segment_one(caption)]
+    assert SLOW_OR_HUGE_ANSWERS[fault] in fell_back[0], fell_back
+    assert server.calls[caption] == 1  # not asked again
+    assert elapsed < 6
+
+
+def test_requests_ask_for_uncompressed_answers():
+    """So that the bytes read are the bytes held (see the "gzip" fault above)."""
+    with FakeOpenAI() as server:
+        _client(server.url).segment(["a person walks forward, then waves twice"])
+    assert server.headers[0]["accept-encoding"] == "identity"

@@ -25,13 +25,16 @@ Example (a vLLM server with Qwen3-8B)::
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib
 import json
 import logging
 import math
 import os
 import re
 import threading
+import time
 import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -56,6 +59,9 @@ PROMPT_DIR = files("segmo._prompts")
 # Words of a 400 that refuses response_format (not, say, a caption over the context length).
 _FORMAT_WORDS = ("response_format", "json_schema", "schema", "structured", "guided")
 UNREADABLE = "<unreadable response"  # how a backend hands a broken answer to the re-ask loop
+# A server's response is read up to this size: an answer is read up to MAX_ANSWER_CHARS
+# (50,000) characters, which JSON-escaped take at most 300 KB.
+MAX_RESPONSE_BYTES = 1 << 20
 
 
 class LLMUnavailableError(SegmoError):
@@ -206,6 +212,62 @@ class LLMSegmenter:
 
 
 # ---------------------------------------------------------------- OpenAI-compatible server
+class ResponseLimitError(RuntimeError):
+    """A response ran past its size or time bound, or came compressed; reading stopped."""
+
+
+@functools.cache
+def _bounded_stream_class(library: Any) -> type:
+    """A body stream of `library` (httpx or httpx2) that stops at MAX_RESPONSE_BYTES or a deadline."""
+
+    class BoundedStream(library.SyncByteStream):
+        def __init__(self, stream: Any, seconds: float) -> None:
+            self.stream, self.seconds = stream, seconds
+            self.deadline = time.monotonic() + seconds
+
+        def __iter__(self) -> Any:
+            size = 0
+            for chunk in self.stream:
+                size += len(chunk)
+                if size > MAX_RESPONSE_BYTES:
+                    raise ResponseLimitError(f"the answer ran past {MAX_RESPONSE_BYTES >> 20} MiB; "
+                                             "stopped reading it")
+                if time.monotonic() > self.deadline:
+                    raise ResponseLimitError(f"the answer was still arriving {self.seconds:g} s "
+                                             "after it began; stopped reading it")
+                yield chunk
+
+        def close(self) -> None:
+            self.stream.close()
+
+    return BoundedStream
+
+
+def bounded_http_client(openai: Any, timeout: float) -> Any:
+    """openai's default HTTP client, reading every response body within `timeout` seconds
+    of its headers and up to MAX_RESPONSE_BYTES.
+
+    The client's own timeout bounds each wait for bytes, not their sum: a server sending
+    one byte a second, or bytes without end, would otherwise hold a request, and memory,
+    for ever. Answers are asked for uncompressed (``Accept-Encoding: identity``), so that
+    the size read is the size held; a compressed answer is refused.
+    """
+    client_class = openai.DefaultHttpxClient  # openai's defaults (limits, redirects)
+    # the library the installed openai is built on: httpx2, or httpx for older releases
+    base = next(c for c in client_class.__mro__ if c.__name__ == "Client")
+    stream_class = _bounded_stream_class(importlib.import_module(base.__module__.split(".")[0]))
+
+    def bound(response: Any) -> None:
+        encoding = response.headers.get("content-encoding", "identity").strip().lower()
+        if encoding not in ("", "identity"):
+            raise ResponseLimitError(f"the answer came compressed ({encoding}) although none was "
+                                     "asked for")
+        response.stream = stream_class(response.stream, timeout)
+
+    return client_class(timeout=timeout, headers={"Accept-Encoding": "identity"},
+                        event_hooks={"response": [bound]})
+
+
 def check_base_url(url: str) -> str:
     """`url` if it is an http(s) URL with a host (and a valid port); SegmoError otherwise."""
     try:
@@ -224,7 +286,8 @@ class OpenAISegmenter(LLMSegmenter):
     `base_url` includes the API version (``http://host:8000/v1``); None reads
     ``OPENAI_BASE_URL``. The key is read from the environment variable `api_key_env`
     and may be absent for local servers. `timeout` (seconds) is the longest wait for the
-    server (to connect, or for the next bytes of an answer). Timeouts, connection errors,
+    server (to connect, or for the next bytes of an answer), and the longest an answer may
+    take to arrive once it begins; an answer is read up to 1 MiB. Timeouts, connection errors,
     408/409/429 and 5xx are retried `max_retries` times by the client, after the server's
     ``Retry-After`` when it sends one (up to two minutes) and otherwise with exponential
     back-off from 0.5 s. A request still failing then makes its caption fall back to the
@@ -272,8 +335,9 @@ class OpenAISegmenter(LLMSegmenter):
             raise SegmoError(f"${api_key_env}: the API key holds a character an HTTP header "
                              "cannot carry (a line end, a space, a non-ASCII letter); fix the "
                              "variable")
-        self.client = openai.OpenAI(base_url=self.base_url, api_key=key,
-                                    timeout=timeout, max_retries=max_retries)
+        self.client = openai.OpenAI(base_url=self.base_url, api_key=key, timeout=timeout,
+                                    max_retries=max_retries,
+                                    http_client=bounded_http_client(openai, timeout))
         self.options = {"temperature": temperature, "max_tokens": max_tokens}
         self.extra_body = extra_body
         self.name = f"openai-{_slug(model)}"
@@ -327,7 +391,11 @@ class OpenAISegmenter(LLMSegmenter):
                                 + (f" after {self.max_retries} retries" if retried else ""))
         except openai.APITimeoutError:
             return self._failed(f"no answer within {self.timeout:g} s, {self.max_retries} retries")
+        except ResponseLimitError as err:  # a hostile or broken server: not asked again
+            return self._failed(str(err))
         except openai.APIConnectionError as err:
+            if isinstance(err.__cause__, ResponseLimitError):  # older openai releases wrap it
+                return self._failed(str(err.__cause__))
             return self._failed(f"cannot reach {self.base_url} ({err.__cause__ or err}), "
                                 f"{self.max_retries} retries")
         except (openai.APIResponseValidationError, ValueError, TypeError, KeyError,
