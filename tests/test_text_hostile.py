@@ -109,6 +109,12 @@ def test_missing_data_argument(capsys, command):
      "argument --timeout: expected a finite number, got 'nan'"),
     (["--backend", "openai", "--model", "m", "--base-url", "http://h/v1", "--max-retries", "-2"],
      "argument --max-retries: expected a whole number >= 0, got '-2'"),
+    # a million retries of 8 s each waited for ever on a dead server
+    (["--backend", "openai", "--model", "m", "--base-url", "http://h/v1", "--max-retries", "1000000"],
+     "argument --max-retries: expected at most 20 retries, got '1000000'"),
+    # and 10^6 parallel requests took 2 million failures to call the server down
+    (["--backend", "openai", "--model", "m", "--base-url", "http://h/v1", "--concurrency", "1000000"],
+     "argument --concurrency: expected at most 1024 parallel requests, got '1000000'"),
     (["--max-fallback-share", "1.5"], "argument --max-fallback-share: expected a share between 0 and 1, got '1.5'"),
     (["--max-fallback-share", "nan"], "argument --max-fallback-share: expected a finite number, got 'nan'"),
     (["--backend", "transformers", "--model", "m", "--batch-size", "0"], "argument --batch-size: expected a whole number >= 1, got '0'"),

@@ -428,3 +428,13 @@ def test_requests_ask_for_uncompressed_answers():
     with FakeOpenAI() as server:
         _client(server.url).segment(["a person walks forward, then waves twice"])
     assert server.headers[0]["accept-encoding"] == "identity"
+
+
+@pytest.mark.parametrize("options, expected", [
+    ({"max_retries": 21}, "max_retries must be in [0, 20], got 21"),
+    ({"concurrency": 1025}, "concurrency must be in [1, 1024], got 1025"),
+])
+def test_retries_and_concurrency_are_bounded(options, expected):
+    with pytest.raises(SegmoError) as caught:
+        OpenAISegmenter("http://127.0.0.1:9/v1", "tiny", **options)
+    assert expected in str(caught.value)

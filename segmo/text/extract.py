@@ -61,7 +61,7 @@ from segmo.text.captions import (
     read_text,
     texts_file,
 )
-from segmo.text.llm import check_base_url, get_text_segmenter
+from segmo.text.llm import MAX_CONCURRENCY, MAX_RETRIES, check_base_url, get_text_segmenter
 from segmo.text.manifest import SegmentManifest
 from segmo.text.rules import RULES_VERSION, TextSegmenter
 
@@ -304,6 +304,21 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _retries(text: str) -> int:
+    value = non_negative_int(text)
+    if value > MAX_RETRIES:  # each waits up to 8 s, or two minutes for a Retry-After
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_RETRIES} retries, got {text!r}")
+    return value
+
+
+def _concurrency(text: str) -> int:
+    value = positive_int(text)
+    if value > MAX_CONCURRENCY:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_CONCURRENCY} parallel requests, "
+                                         f"got {text!r}")
+    return value
+
+
 def _share(text: str) -> float:
     value = finite_float(text)
     if not 0 <= value <= 1:
@@ -319,12 +334,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--base-url", help="OpenAI-compatible server, e.g. http://localhost:8000/v1 "
                                            "(default: $OPENAI_BASE_URL)")
     parser.add_argument("--api-key-env", help="environment variable holding the API key (OPENAI_API_KEY)")
-    parser.add_argument("--concurrency", type=positive_int, help="parallel requests (openai, default 8)")
+    parser.add_argument("--concurrency", type=_concurrency, help="parallel requests (openai, default 8)")
     parser.add_argument("--structured-output", choices=["auto", "json_schema", "off"], default="auto",
                         help="openai: ask for a JSON-schema response_format (auto: unless the "
                              "server refuses it)")
-    parser.add_argument("--timeout", type=_seconds, help="seconds per request (openai, default 60)")
-    parser.add_argument("--max-retries", type=non_negative_int,
+    parser.add_argument("--timeout", type=_seconds,
+                        help="seconds to wait for the server, and for an answer to arrive once "
+                             "it begins (openai, default 60)")
+    parser.add_argument("--max-retries", type=_retries,
                         help="retries of a failed request and re-asks of a rejected answer before "
                              "the rule fallback (default: openai 3, transformers 1)")
     parser.add_argument("--max-fallback-share", type=_share, default=0.0,

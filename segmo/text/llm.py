@@ -62,6 +62,11 @@ UNREADABLE = "<unreadable response"  # how a backend hands a broken answer to th
 # A server's response is read up to this size: an answer is read up to MAX_ANSWER_CHARS
 # (50,000) characters, which JSON-escaped take at most 300 KB.
 MAX_RESPONSE_BYTES = 1 << 20
+# Bounds of the options: each retry of a failed request waits up to 8 s (or a server's
+# Retry-After, up to two minutes), so more retries only wait on a broken server; and the
+# server is taken to be down after max(16, 2 * concurrency) failures in a row.
+MAX_RETRIES = 20
+MAX_CONCURRENCY = 1024
 
 
 class LLMUnavailableError(SegmoError):
@@ -132,8 +137,9 @@ class LLMSegmenter:
 
     def __init__(self, prompt: Prompt | None = None, max_retries: int = 3,
                  max_segments: int = MAX_SEGMENTS, length_margin: int = 40) -> None:
-        if max_retries < 0:
-            raise SegmoError(f"{type(self).__name__}: max_retries must be >= 0, got {max_retries}")
+        if not 0 <= max_retries <= MAX_RETRIES:
+            raise SegmoError(f"{type(self).__name__}: max_retries must be in [0, {MAX_RETRIES}], "
+                             f"got {max_retries}")
         self.prompt = prompt if prompt is not None else load_prompt()
         self.max_retries = max_retries
         self.max_segments = max_segments
@@ -321,8 +327,9 @@ class OpenAISegmenter(LLMSegmenter):
         if not base_url:
             raise SegmoError("OpenAISegmenter: no base URL (pass base_url / --base-url, or set "
                              "OPENAI_BASE_URL)")
-        if concurrency < 1:
-            raise SegmoError(f"OpenAISegmenter: concurrency must be >= 1, got {concurrency}")
+        if not 1 <= concurrency <= MAX_CONCURRENCY:
+            raise SegmoError(f"OpenAISegmenter: concurrency must be in [1, {MAX_CONCURRENCY}], "
+                             f"got {concurrency}")
         if not (timeout > 0 and math.isfinite(timeout)):
             raise SegmoError(f"OpenAISegmenter: timeout must be a positive number of seconds, got {timeout}")
         self.base_url = check_base_url(base_url).rstrip("/")
