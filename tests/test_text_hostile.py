@@ -79,6 +79,24 @@ def test_a_byte_order_mark_is_not_part_of_the_first_caption(tmp_path):
 
 
 @pytest.mark.parametrize("command", ["segment-texts", "encode-texts"])
+@pytest.mark.parametrize("kind", ["broken link", "folder", "pipe"])
+def test_a_texts_entry_that_is_not_a_file_is_named(tmp_path, capsys, command, kind):
+    """They were skipped without a word: their motions had no captions, hence no segments."""
+    import os
+
+    root = _data(tmp_path)
+    entry = root / "texts" / "000002.txt"
+    if kind == "broken link":
+        entry.symlink_to(tmp_path / "moved" / "000002.txt")
+    elif kind == "folder":
+        entry.mkdir()
+    else:
+        os.mkfifo(entry)
+    _fails([command, "--data", str(root)], capsys,
+           f"{root / 'texts'}: 1 of its *.txt entries are not caption files", "'000002.txt'")
+
+
+@pytest.mark.parametrize("command", ["segment-texts", "encode-texts"])
 def test_texts_not_utf8(tmp_path, capsys, command):
     root = _data(tmp_path, {"000001": "a man walks#x#0#0\n", "000002": b"a man walks#x#0#0\na \xe9t\xe9#x#0#0\n"})
     _fails([command, "--data", str(root)], capsys, "000002.txt:2: not UTF-8 text")

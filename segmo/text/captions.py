@@ -133,7 +133,12 @@ def check_data_folder(data: str | Path) -> tuple[Path, list[Path]]:
     texts_dir = data / TEXTS
     if not texts_dir.is_dir():
         raise SegmoError(f"--data {data}: no texts/ folder in it (expected {texts_dir}/<id>.txt)")
-    files = sorted(p for p in texts_dir.glob("*.txt") if p.is_file())
+    entries = sorted(texts_dir.glob("*.txt"))
+    others = [p.name for p in entries if not p.is_file()]
+    if others:  # skipped, their motions would lose captions without a word
+        raise SegmoError(f"{texts_dir}: {len(others)} of its *.txt entries are not caption files "
+                         f"(a broken link, a folder or a pipe), e.g. {others[0]!r}; fix or remove them")
+    files = entries
     if not files:
         raise SegmoError(f"{texts_dir} holds no <id>.txt caption files")
     return data, files
