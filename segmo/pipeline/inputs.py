@@ -19,9 +19,10 @@ from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 
 
-def check_texts(texts: Any, what: str = "text") -> list[str]:
-    """A list of strings that each hold a word, or SegmoError naming the first that does not
-    ("text 2", or with what="text 0, segment": "text 0, segment 1")."""
+def check_texts(texts: Any, what: str = "text", words: bool = True) -> list[str]:
+    """A list of strings that each hold a word (any valid text with words=False), or
+    SegmoError naming the first that does not ("text 2", or with what="text 0, segment":
+    "text 0, segment 1")."""
     if isinstance(texts, str) or not isinstance(texts, (list, tuple)):
         raise SegmoError(f"SegMo: expected a list of strings ({what}s), got {texts!r:.80}")
     for i, text in enumerate(texts):
@@ -33,7 +34,7 @@ def check_texts(texts: Any, what: str = "text") -> list[str]:
             except UnicodeEncodeError as error:  # a lone surrogate: bytes that were not UTF-8
                 raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) is not valid Unicode at "
                                  f"character {error.start} (bytes that are not UTF-8?)") from None
-        if not any(c.isalnum() for c in text):
+        if words and not any(c.isalnum() for c in text):
             raise SegmoError(f"SegMo: {what} {i} ({text!r:.80}) holds no words; describe a motion")
     return list(texts)
 

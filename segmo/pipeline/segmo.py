@@ -230,11 +230,9 @@ class SegMo:
         return self.text.has_word_keys
 
     def encode_texts(self, texts: list[str]) -> torch.Tensor:
-        """texts → (n, text_dim) float32 sentence vectors on the model's device."""
-        if isinstance(texts, str) or not isinstance(texts, (list, tuple)) \
-                or not all(isinstance(text, str) for text in texts):
-            raise SegmoError(f"SegMo.encode_texts: expected a list of strings, got {texts!r:.80}")
-        return self.text.encode(texts)
+        """texts → (n, text_dim) float32 sentence vectors on the model's device (a text
+        without words, "" included, is encoded as the encoder reads it)."""
+        return self.text.encode(check_texts(texts, words=False))
 
     def segment_texts(self, texts: list[str]) -> list[list[str]]:
         """Ordered text segments of each text (≤ max_segments), rule backend by default."""
@@ -324,7 +322,7 @@ class SegMo:
             raise SegmoError("SegMo: no lengths given and the bundle has no length estimator; "
                              "pass lengths=[frames, ...]")
         with torch.inference_mode():
-            lengths = self.length.sample(self.encode_texts(texts), generator=generator)
+            lengths = self.length.sample(self.encode_texts(check_texts(texts)), generator=generator)
         # The estimator may know longer motions than the mask transformer accepts.
         return lengths.clamp(FRAMES_PER_TOKEN, self.max_frames).long()
 
