@@ -71,9 +71,11 @@ def has_ground_truth(root: str | Path) -> bool:
 def read_split(root: str | Path, split: str) -> list[str]:
     """Ids of ``ROOT/<split>.txt``, one per non-blank line, in file order."""
     path = split_file(root, split)
-    if not path.is_file():
+    if path.is_dir():
+        raise SegmoError(f"{path}: is a folder, not a split file (one motion id per line)")
+    if not path.exists():  # a broken link too
         raise FileNotFoundError(f"split file not found: {path}")
-    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    ids = [line.strip() for line in read_text(path).splitlines() if line.strip()]
     if not ids:
         raise SegmoError(f"split file lists no ids: {path}")
     return ids
