@@ -23,7 +23,6 @@ Example: `segmo export runs/rvq/synthetic/version_0/checkpoints/last.ckpt --out 
 from __future__ import annotations
 
 import importlib
-import json
 import pickle
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import torch
 from segmo.errors import ArgumentParser, SegmoError
 from segmo.files import foreign_entries, replacing_folder
 from segmo.models.hub import portable_path
-from segmo.models.pretrained import CONFIG_FILE, WEIGHTS_FILE, read_config
+from segmo.models.pretrained import CONFIG_FILE, WEIGHTS_FILE, read_config, read_json
 
 SHOWN = 5  # non-finite tensors named in a message
 
@@ -165,9 +164,9 @@ def training_data(hparams: dict) -> dict:
     corpus = Path(root) / "corpus.json"
     if corpus.is_file():
         try:
-            info = json.loads(corpus.read_text())
+            info = read_json(corpus)
             data["corpus"] = {k: info[k] for k in ("name", "version", "seed", "num_motions") if k in info}
-        except (ValueError, OSError):
+        except (SegmoError, OSError):
             pass  # the card then says less; a broken corpus.json is not the export's business
     return data
 

@@ -88,6 +88,28 @@ def test_missing_split_file_names_path(tmp_path):
         MotionDataset(tmp_path, "test")
 
 
+def test_a_split_file_that_cannot_be_read_is_one_line_naming_it(tmp_path):
+    """A split file of Latin-1 bytes was a UnicodeDecodeError traceback from `segmo fit`, and
+    a folder or a pipe named train.txt was 'not found'."""
+    import os
+
+    write_dataset(tmp_path, {"a": 60}, splits={"train": ["a"]})
+    (tmp_path / "train.txt").write_bytes(b"a\nmotion_\xe9t\xe9\n")
+    with pytest.raises(SegmoError, match=r"train\.txt:2: not UTF-8 text"):
+        read_split(tmp_path, "train")
+    (tmp_path / "train.txt").unlink()
+    os.mkfifo(tmp_path / "train.txt")
+    with pytest.raises(SegmoError, match=r"train\.txt: not a regular file"):
+        read_split(tmp_path, "train")
+    (tmp_path / "train.txt").unlink()
+    (tmp_path / "train.txt").mkdir()
+    with pytest.raises(SegmoError, match=r"train\.txt: is a folder, not a split file"):
+        read_split(tmp_path, "train")
+    (tmp_path / "train.txt").rmdir()
+    (tmp_path / "train.txt").write_bytes(b"\xef\xbb\xbfa\r\n")  # a Windows editor's file
+    assert read_split(tmp_path, "train") == ["a"]
+
+
 def test_samples_are_zscored_cropped_and_stats_untouched(tmp_path):
     raw = write_dataset(tmp_path, {"a": 61, "b": 80})
     mean_file, std_file = np.load(tmp_path / "Mean.npy"), np.load(tmp_path / "Std.npy")
@@ -697,3 +719,14 @@ def test_action_attributes_and_the_modifiers_a_text_names():
     assert named_attributes("he jumps three times") == ["count"]
     assert named_attributes("someone leftovers fastener") == []  # whole words only
     assert list(ATTRIBUTES) == ["side", "count", "speed"]
+
+
+@pytest.mark.parametrize("content", ["5", "[" * 100_000, '{"version": 1'])
+def test_a_broken_corpus_json_leaves_the_model_card_without_it(tmp_path, content):
+    """`segmo export` reads the corpus' version for the model card: a corpus.json of `5`
+    was a TypeError, and one nested 100,000 deep a RecursionError, after training."""
+    from segmo.export import training_data
+
+    (tmp_path / "corpus.json").write_text(content)
+    card = training_data({"root": str(tmp_path), "text_segments": "rule"})
+    assert "corpus" not in card and card["text_segments"] == "rule"
