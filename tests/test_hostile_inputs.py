@@ -101,6 +101,9 @@ CLI_CASES = [
         "is a file, not a directory", "`--out` inside a file (was refused after the generation)"),
     Cli("generate-out-foreign-prompts", "generate --model {bundle} --text walk --out {theirs}",
         "not a prompts.json written by segmo", "`--out` holding a prompts.json of the user's"),
+    Cli("compose-out-user-file", "compose --model {bundle} --text walk --length 40 --out {notes}",
+        "sample_00.bvh: a file that segmo did not write",
+        "`--out` holding the user's `sample_00.bvh` (was replaced by the output)"),
     Cli("edit-weight-with-swap", "edit --model {bundle} --source-text walk --target-text run "
         "--weight 2=2 --out {tmp}/e", "--weight is for --mode reweight",
         "`--weight` with `--mode swap` (was ignored)"),
@@ -486,6 +489,9 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     files["theirs"] = tmp / "theirs"
     files["theirs"].mkdir()
     (files["theirs"] / "prompts.json").write_text('{"my": "prompts"}')
+    files["notes"] = tmp / "notes"  # a folder of the user's holding a file named as an output
+    files["notes"].mkdir()
+    (files["notes"] / "sample_00.bvh").write_text("my notes")
     files["bad_metrics"] = tmp / "metrics.json"
     files["bad_metrics"].write_text("{oops")
     files["odd_metrics"] = tmp / "odd" / "metrics.json"

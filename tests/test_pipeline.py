@@ -723,6 +723,25 @@ def test_a_save_writes_all_of_it_or_nothing_and_keeps_earlier_entries(bundle, tm
     assert (out / "prompts.json").read_text() == '{"mine": true}'
 
 
+def test_a_save_does_not_replace_a_file_no_save_wrote(bundle, tmp_path):
+    """`segmo compose --out u` replaced the user's u/sample_00.bvh: only a prompts.json not
+    segmo's was refused. A save replaces the files of the motions an earlier save listed."""
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    out = tmp_path / "u"
+    out.mkdir()
+    (out / "sample_00.bvh").write_text("my notes")
+    output = model.generate([PROMPTS[0]], [16], generator=torch.Generator().manual_seed(0))
+    with pytest.raises(SegmoError, match=r"sample_00\.bvh: a file that segmo did not write"):
+        output.save(out, formats=("npy", "bvh"))
+    assert [p.name for p in out.iterdir()] == ["sample_00.bvh"]
+    assert (out / "sample_00.bvh").read_text() == "my notes"
+    (out / "sample_00.bvh").rename(out / "notes.bvh")
+    output.save(out, formats=("npy", "bvh"))
+    output.save(out, formats=("npy", "bvh"))  # its own files, listed: replaced
+    assert (out / "notes.bvh").read_text() == "my notes"
+    assert [e["file"] for e in json.loads((out / "prompts.json").read_text())] == ["sample_00"]
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),

@@ -50,7 +50,7 @@ from segmo.pipeline.grounding import (
     plot_similarity_map,
 )
 from segmo.pipeline.model_card import read_metrics
-from segmo.pipeline.outputs import FORMATS, read_prompts, save_outputs
+from segmo.pipeline.outputs import FORMATS, check_save_target, save_outputs
 from segmo.pipeline.segmo import SegMo
 
 
@@ -65,10 +65,10 @@ def _load(parser: argparse.ArgumentParser, directory: str):
 
 
 def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str,
-                      motions: bool = True) -> None:
+                      saves: dict[str, int] | None = None, formats: tuple[str, ...] = ()) -> None:
     """Refuse an output path that cannot become a directory before any work is done (and,
-    for the commands that write motions, one whose prompts.json `save_outputs` would not
-    add to)."""
+    for the commands that write motions, `saves[prefix]` of them in `formats`, one that
+    `save_outputs` would refuse: `check_save_target`)."""
     path = Path(value)
     if path.is_symlink() and not path.exists():
         parser.error(f"{flag} {value}: a symbolic link to {os.readlink(path)}, which does not exist")
@@ -78,8 +78,8 @@ def _check_output_dir(parser: argparse.ArgumentParser, flag: str, value: str,
     if above is not None:
         parser.error(f"{flag} {value}: {above} is a file, not a directory")
     try:
-        if motions:
-            read_prompts(path)  # a prompts.json that is not segmo's would be replaced
+        if saves:
+            check_save_target(path, saves, formats)
     except SegmoError as error:
         parser.error(f"{flag}: {error}")
 
@@ -163,7 +163,7 @@ def generate_main(argv: list[str] | None = None) -> None:
         lengths = lengths * len(args.text)
     if args.temperature is not None and args.temperature < 0:
         parser.error(f"argument --temperature: expected a number >= 0, got {args.temperature:g}")
-    _check_output_dir(parser, "--out", args.out)
+    _check_output_dir(parser, "--out", args.out, {"sample": len(args.text)}, formats)
     model = _load(parser, args.model)
     try:
         model = model.to(args.device)
@@ -258,7 +258,7 @@ def edit_main(argv: list[str] | None = None) -> None:
         parser.error(f"argument --inject-until: expected a number in [0, 1], got "
                      f"{args.inject_until:g}")
     weights = dict(_weight(parser, w) for w in args.weight or [])
-    _check_output_dir(parser, "--out", args.out)
+    _check_output_dir(parser, "--out", args.out, {"source": 1, "edit": 1}, formats)
     model = _load(parser, args.model)
     keep_freed_memory()
     generator = torch.Generator().manual_seed(args.seed)
@@ -297,7 +297,7 @@ def compose_main(argv: list[str] | None = None) -> None:
                      "give one per --text")
     durations = _durations_per_text(parser, args.durations, len(args.text))
     parts = list(zip(args.text, args.length, durations or [None] * len(args.text)))
-    _check_output_dir(parser, "--out", args.out)
+    _check_output_dir(parser, "--out", args.out, {"sample": 1}, formats)
     model = _load(parser, args.model)
     keep_freed_memory()
     out = model.compose(parts, args.transition,
@@ -344,7 +344,7 @@ def _map_format(parser: argparse.ArgumentParser, value: str) -> str:
     if suffix not in MAP_FORMATS:
         parser.error(f"--out {value}: name an image file ending in "
                      f"{', '.join('.' + f for f in MAP_FORMATS)}")
-    _check_output_dir(parser, "--out", str(path.parent), motions=False)
+    _check_output_dir(parser, "--out", str(path.parent))
     return suffix
 
 

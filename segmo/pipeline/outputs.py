@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
-from segmo.files import write_atomic
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.bvh import ANIMATION_FPS, check_bvh_fps, write_bvh
@@ -102,8 +101,10 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     output's `spans`), and one `prompts.json` that lists every motion written, e.g.
     `segmo edit`'s {"source": ..., "edit": ...}. Returns the written paths, each once.
 
-    Nothing is written unless all of it can be: files of the same name are replaced, other
-    files stay, and so do their entries in an existing `prompts.json` (`read_prompts`).
+    Nothing is written unless all of it can be: files of the same name that an earlier save
+    wrote (its `prompts.json` lists them) are replaced, other files stay, and so do their
+    entries in `prompts.json` (`read_prompts`). A file of the same name that no save wrote
+    (the user's) is refused before any work.
     """
     unknown = set(formats) - set(FORMATS)
     if unknown:
@@ -112,16 +113,8 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     if bvh_fps is not None:  # before any file is written
         check_bvh_fps(bvh_fps, "GenerationOutput.save: bvh_fps")
     directory = Path(directory)
-    earlier = read_prompts(directory)  # before any work: a prompts.json not ours is refused
-    suffixes = {"npy": ("_features.npy", "_joints.npy", "_tokens.npy"), "gif": (".gif",),
-                "bvh": (".bvh",)}
-    names = ["prompts.json"] + [f"{prefix}_{i:02d}{suffix}" for prefix, output in outputs.items()
-                                for i in range(len(output.texts))
-                                for kind in formats for suffix in suffixes[kind]]
-    blocked = [name for name in names if (directory / name).is_dir()]
-    if blocked:
-        raise SegmoError(f"{directory / blocked[0]}: a folder where the save writes a file; move "
-                         "it away or write elsewhere")
+    earlier = check_save_target(directory, {prefix: len(output.texts)
+                                            for prefix, output in outputs.items()}, formats)
     created = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     # Everything is rendered into a folder of its own first, and only moved beside what the
@@ -166,17 +159,48 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
                                              target_fps=bvh_fps))
                 index.append({"file": stem.name, "text": text, "segments": output.segments[i],
                               "frames": int(output.lengths[i])})
-        _move_in(written, directory, stage)
+        # An earlier save's entries stay listed, except those of the files written now. The
+        # list moves in first, so that every file a save moves in is listed even if the
+        # save is killed halfway.
+        rewritten = {entry["file"] for entry in index}
+        index = [entry for entry in earlier if entry["file"] not in rewritten] + index
+        listing = stage / "prompts.json"
+        listing.write_text(json.dumps(index, indent=2) + "\n", encoding="utf-8")
+        written.append(listing)
+        _move_in([listing, *written[:-1]], directory, stage)
     except BaseException:
         shutil.rmtree(directory if created else stage, ignore_errors=True)
         raise
     shutil.rmtree(stage, ignore_errors=True)
-    written = [directory / path.name for path in written]
-    # An earlier save's entries stay listed, except those of the files written now.
-    rewritten = {entry["file"] for entry in index}
-    index = [entry for entry in earlier if entry["file"] not in rewritten] + index
-    written.append(write_atomic(directory / "prompts.json", json.dumps(index, indent=2) + "\n"))
-    return written
+    return [directory / path.name for path in written]
+
+
+SUFFIXES = {"npy": ("_features.npy", "_joints.npy", "_tokens.npy"), "gif": (".gif",),
+            "bvh": (".bvh",)}  # the files of one motion, by format
+
+
+def check_save_target(directory: str | Path, counts: Mapping[str, int],
+                      formats: Sequence[str]) -> list[dict]:
+    """What `save_outputs` checks before any work, for `counts[prefix]` motions of each
+    prefix in `formats`: SegmoError when `directory` holds a prompts.json that is not
+    segmo's, a folder where a file goes, or a file of the same name that no save wrote (no
+    prompts.json entry lists its motion: the user's). Returns the prompts.json entries."""
+    directory = Path(directory)
+    earlier = read_prompts(directory)
+    stems = {f"{prefix}_{i:02d}{suffix}": f"{prefix}_{i:02d}" for prefix, count in counts.items()
+             for i in range(count) for kind in formats for suffix in SUFFIXES[kind]}
+    blocked = [name for name in ["prompts.json", *stems] if (directory / name).is_dir()]
+    if blocked:
+        raise SegmoError(f"{directory / blocked[0]}: a folder where the save writes a file; move "
+                         "it away or write elsewhere")
+    ours = {entry["file"] for entry in earlier}
+    foreign = [name for name, stem in stems.items() if stem not in ours
+               and ((directory / name).exists() or (directory / name).is_symlink())]
+    if foreign:
+        raise SegmoError(f"{directory / foreign[0]}: a file that segmo did not write (no "
+                         f"prompts.json there lists {stems[foreign[0]]!r}); move it away or write "
+                         "elsewhere")
+    return earlier
 
 
 STAGE_PREFIX = ".save.tmp-"  # + the pid of the save writing into it
