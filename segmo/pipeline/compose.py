@@ -131,4 +131,4 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
     return GenerationOutput(features=features.float(), joints=joints,
                             tokens=torch.cat(all_tokens)[None], lengths=total.long(),
                             texts=[text], segments=[list(texts)], skeleton=model.skeleton,
-                            fps=model.fps, spans=[part_spans])
+                            fps=model.fps, spans=[part_spans], model=model.weights_fingerprint())

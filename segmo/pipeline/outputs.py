@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -56,6 +57,9 @@ class GenerationOutput:
     # Per sample, the (start, end) frames of each of its segments where known (a
     # composition's parts, `SegMo.compose`); `save` names them in the GIF.
     spans: list[list[tuple[int, int]]] | None = None
+    # `weights_fingerprint` of the model that made it: `SegMo.edit` and `edit_text` refuse
+    # another model's output (None: made by hand, not checked).
+    model: str | None = None
 
     def __len__(self) -> int:
         return len(self.texts)
@@ -254,6 +258,17 @@ def read_prompts(directory: str | Path) -> list[dict]:
         raise SegmoError(f"{path}: not a prompts.json written by segmo (a list of "
                          "{\"file\": ...} entries); move it away or write elsewhere")
     return entries
+
+
+def weights_fingerprint(modules: Sequence[torch.nn.Module]) -> str:
+    """A short digest of `modules`' weights (names and the first 64 values of each tensor):
+    which model made an output, in milliseconds, without reading every weight."""
+    digest = hashlib.sha256()
+    for module in modules:
+        for name, tensor in module.state_dict().items():
+            digest.update(name.encode())
+            digest.update(tensor.detach().reshape(-1)[:64].float().cpu().numpy().tobytes())
+    return digest.hexdigest()[:16]
 
 
 @dataclass

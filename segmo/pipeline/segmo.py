@@ -61,7 +61,7 @@ from segmo.pipeline.inputs import (
     resolve_device,
     segment_durations,
 )
-from segmo.pipeline.outputs import GenerationOutput, GroundingOutput
+from segmo.pipeline.outputs import GenerationOutput, GroundingOutput, weights_fingerprint
 from segmo.pipeline.space import SegmentEmbeddings, alignment_head, embed_segments
 
 
@@ -310,7 +310,14 @@ class SegMo:
         joints = features_to_joints(features, self.skeleton).float() * valid[..., None]
         return GenerationOutput(features=features.float(), joints=joints, tokens=tokens,
                                 lengths=lengths.long(), texts=list(texts), segments=segments,
-                                skeleton=self.skeleton, fps=self.fps)
+                                skeleton=self.skeleton, fps=self.fps,
+                                model=self.weights_fingerprint())
+
+    def weights_fingerprint(self) -> str:
+        """A digest of the weights of the stages that make tokens and motions (`outputs.
+        weights_fingerprint`): outputs record it, and edits refuse another model's."""
+        return weights_fingerprint([m for m in (self.tokenizer, self.mask, self.residual)
+                                    if m is not None])
 
     # -- generation --------------------------------------------------------------------------
 
