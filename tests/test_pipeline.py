@@ -723,6 +723,74 @@ def test_a_save_writes_all_of_it_or_nothing_and_keeps_earlier_entries(bundle, tm
     assert (out / "prompts.json").read_text() == '{"mine": true}'
 
 
+KILLED_SAVE = """
+import os, sys, torch
+sys.path.insert(0, {tests!r})
+from conftest import hash_encoder
+import segmo.pipeline.outputs as outputs
+from segmo.pipeline import SegMo
+model = SegMo.from_pretrained({bundle!r}, text_encoder=hash_encoder("hash", {dim}))
+output = model.generate(["a person jumps"], [16], generator=torch.Generator().manual_seed(5))
+real, calls = os.replace, []
+def replace(source, target):
+    calls.append(source)
+    if len(calls) == 5:  # prompts.json and the features moved in, the joints not
+        os._exit(9)
+    return real(source, target)
+outputs.os.replace = replace
+output.save({out!r}, formats=("npy",))
+"""
+
+
+def test_a_save_killed_while_moving_its_files_in_is_rolled_back(bundle, tmp_path):
+    """A save killed between two moves left a prompts.json naming 'a person jumps' beside
+    the files of the earlier motion; the next save now puts the earlier files back."""
+    import subprocess
+    import sys
+
+    from segmo.pipeline.outputs import save_outputs
+
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    out = tmp_path / "out"
+    model.generate([PROMPTS[0]], [16], generator=seeded()).save(out, formats=("npy",))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    script = KILLED_SAVE.format(tests=str(Path(__file__).parent), bundle=str(bundle),
+                                dim=TEXT_DIM, out=str(out))
+    assert subprocess.run([sys.executable, "-c", script]).returncode == 9
+    stage = [p for p in out.iterdir() if p.name.startswith(".save.tmp-")]
+    assert len(stage) == 1 and (out / "sample_00_features.npy").read_bytes() != before[
+        "sample_00_features.npy"]  # the half-done state the kill left
+    other = model.generate([PROMPTS[1]], [16], generator=seeded())
+    save_outputs(out, {"other": other}, formats=("npy",))
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {k: v for k, v in after.items() if k != "prompts.json" and not k.startswith("other")} \
+        == {k: v for k, v in before.items() if k != "prompts.json"}
+    index = json.loads((out / "prompts.json").read_text())
+    assert [(e["file"], e["text"]) for e in index] == [("sample_00", PROMPTS[0]),
+                                                      ("other_00", PROMPTS[1])]
+
+
+def test_a_stopped_save_keeps_what_another_wrote_into_the_folder_it_made(bundle, tmp_path,
+                                                                         monkeypatch):
+    """Two `segmo generate` into one new --out: Ctrl-C of the first deleted the folder it
+    had made, with the files the second had finished in it."""
+    import segmo.pipeline.outputs as outputs
+
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    out = tmp_path / "new"
+    other = model.generate([PROMPTS[1]], [16], generator=seeded())
+
+    def meanwhile(*args, **kwargs):
+        outputs.save_outputs(out, {"other": other}, formats=("npy",))  # finishes first
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs, "save_animation", meanwhile)
+    with pytest.raises(KeyboardInterrupt):
+        model.generate([PROMPTS[0]], [16], generator=seeded()).save(out, formats=("npy", "gif"))
+    assert sorted(p.name for p in out.iterdir()) == [
+        "other_00_features.npy", "other_00_joints.npy", "other_00_tokens.npy", "prompts.json"]
+
+
 def test_a_save_does_not_replace_a_file_no_save_wrote(bundle, tmp_path):
     """`segmo compose --out u` replaced the user's u/sample_00.bvh: only a prompts.json not
     segmo's was refused. A save replaces the files of the motions an earlier save listed."""

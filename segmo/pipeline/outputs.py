@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -117,6 +118,11 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     if bvh_fps is not None:  # before any file is written
         check_bvh_fps(bvh_fps, "GenerationOutput.save: bvh_fps")
     directory = Path(directory)
+    for leftover in directory.glob(f"{STAGE_PREFIX}*"):  # of a save that was killed
+        pid = leftover.name.removeprefix(STAGE_PREFIX)
+        if leftover.is_dir() and pid.isdecimal() and not _alive(int(pid)):
+            _roll_back(directory, leftover)
+            shutil.rmtree(leftover, ignore_errors=True)
     earlier = check_save_target(directory, {prefix: len(output.texts)
                                             for prefix, output in outputs.items()}, formats)
     created = not directory.exists()
@@ -124,10 +130,6 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     # Everything is rendered into a folder of its own first, and only moved beside what the
     # directory holds once all of it is written: a sample that fails (a GIF that cannot be
     # drawn, a full disk) leaves the directory as it was.
-    for leftover in directory.glob(f"{STAGE_PREFIX}*"):  # of a save that was killed
-        pid = leftover.name.removeprefix(STAGE_PREFIX)
-        if leftover.is_dir() and pid.isdecimal() and not _alive(int(pid)):
-            shutil.rmtree(leftover, ignore_errors=True)
     stage = directory / f"{STAGE_PREFIX}{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
@@ -173,7 +175,10 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
         written.append(listing)
         _move_in([listing, *written[:-1]], directory, stage)
     except BaseException:
-        shutil.rmtree(directory if created else stage, ignore_errors=True)
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:  # and nothing else was written into it meanwhile (another save's files)
+            with contextlib.suppress(OSError):
+                directory.rmdir()
         raise
     shutil.rmtree(stage, ignore_errors=True)
     return [directory / path.name for path in written]
@@ -220,11 +225,16 @@ def _alive(pid: int) -> bool:
     return True
 
 
+MOVES = ".moves.json"  # in a stage folder: the names its save moves into the directory
+
+
 def _move_in(files: list[Path], directory: Path, stage: Path) -> None:
     """Move ``files`` (in ``stage``) into ``directory``, all or none: a file they replace
-    is kept in ``stage`` until every move is done, and put back if one fails."""
+    is kept in ``stage`` until every move is done, and put back if one fails, or, when the
+    save is killed, by the next save (`_roll_back`)."""
     kept: list[tuple[Path, Path]] = []
     moved: list[Path] = []
+    (stage / MOVES).write_text(json.dumps([path.name for path in files]), encoding="utf-8")
     try:
         for path in files:
             target = directory / path.name
@@ -240,6 +250,25 @@ def _move_in(files: list[Path], directory: Path, stage: Path) -> None:
         for backup, target in kept:
             os.replace(backup, target)
         raise
+
+
+def _roll_back(directory: Path, stage: Path) -> None:
+    """Undo the moves of a save killed while moving its files in (`_move_in`): put back
+    the files they replaced and remove those they added, so that the directory and its
+    prompts.json are the earlier save's again."""
+    try:
+        names = json.loads((stage / MOVES).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return  # killed before its moves began: nothing in the directory is its
+    for name in names if isinstance(names, list) else []:
+        if not isinstance(name, str) or Path(name).name != name:
+            continue
+        backup = stage / f".replaced-{name}"
+        with contextlib.suppress(OSError):
+            if backup.exists():
+                os.replace(backup, directory / name)
+            elif not (stage / name).exists():  # moved in, replacing nothing
+                (directory / name).unlink(missing_ok=True)
 
 
 def read_prompts(directory: str | Path) -> list[dict]:
