@@ -168,3 +168,24 @@ def test_command_summary_and_errors(tmp_path, capsys):
         main(["--data", str(tmp_path / "nowhere")])
     with pytest.raises(SegmoError, match=r"--segments llm: no text-segment folder .*text_segments/llm.*present: rule"):
         main(["--data", str(root), "--segments", "llm"])
+
+
+def test_features_of_another_encoder_of_the_same_name_are_refused(tmp_path, capsys):
+    """Two encoder directories both called "model": encode-texts with the second reused the
+    first one's features ("0 new, 9 reused"), and training read them as its own."""
+    from test_text_encoders import make_tiny_clip
+
+    root = make_dataset(tmp_path / "data")
+    first, second = (tmp_path / "a" / "model", tmp_path / "b" / "model")
+    first.mkdir(parents=True)
+    second.mkdir(parents=True)
+    make_tiny_clip(first)
+    make_tiny_clip(second, full_clip=True)  # other weights, the same kind and width
+    main(["--data", str(root), "--encoder", str(first), "--quiet"])
+    with pytest.raises(SegmoError, match=r"text_features/model: its features were encoded by "
+                                         r"another 'model' encoder than .*b/model"):
+        main(["--data", str(root), "--encoder", str(second), "--quiet"])
+    with pytest.raises(SegmoError, match="the weights differ"):
+        TextFeatureCache.open(root, str(second))
+    assert len(TextFeatureCache.open(root, str(first))) == len(DISTINCT)
+    assert TextFeatureCache.open(root, str(first)).meta["identity"] is not None

