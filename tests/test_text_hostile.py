@@ -315,3 +315,51 @@ def test_opening_a_cache_with_a_corrupt_shard_names_it(tmp_path):
         TextFeatureCache.open(root, "hash")
     np.save(shard, np.zeros((1, 8), dtype=np.float16))  # a readable shard opens again
     assert TextFeatureCache.open(root, "hash").dim == 8
+
+
+def _damage(folder, what):
+    import json as json_
+
+    stem = folder / "shard-00000"
+    index = json_.loads((folder / "index.json").read_text())
+    if what == "sentence rows":
+        np.save(f"{stem}.sentence.npy", np.load(f"{stem}.sentence.npy")[:0])
+    elif what == "sentence ints":
+        np.save(f"{stem}.sentence.npy", np.load(f"{stem}.sentence.npy").astype(np.int8))
+    elif what == "token width":
+        np.save(f"{stem}.tokens.npy", np.load(f"{stem}.tokens.npy")[:, :3])
+    elif what == "offsets floats":
+        np.save(f"{stem}.offsets.npy", np.load(f"{stem}.offsets.npy").astype(np.float32))
+    elif what == "offsets past the end":
+        np.save(f"{stem}.offsets.npy", np.load(f"{stem}.offsets.npy") + 5)
+    elif what in ("name outside", "name a number"):
+        index["shards"][0]["name"] = "../../elsewhere" if what == "name outside" else 7
+        (folder / "index.json").write_text(json_.dumps(index))
+    elif what == "huge dim":
+        meta = json_.loads((folder / "meta.json").read_text())
+        (folder / "meta.json").write_text(json_.dumps({**meta, "dim": 10**12}))
+
+
+@pytest.mark.parametrize("what, expected", [
+    ("sentence rows", "shard-00000.sentence.npy: float16 of shape (0, 8), expected floats of shape (1, 8)"),
+    ("sentence ints", "shard-00000.sentence.npy: int8 of shape (1, 8)"),
+    ("token width", "shard-00000.tokens.npy: float16 of shape"),
+    ("offsets floats", "shard-00000.offsets.npy: float32 of shape (2,), expected 2 whole numbers"),
+    ("offsets past the end", "shard-00000.offsets.npy: offsets must run from 0 up to the"),
+    ("name outside", "shard '../../elsewhere' is not a shard entry of segmo's"),
+    ("name a number", "shard '7' is not a shard entry of segmo's"),
+    ("huge dim", "meta.json: no valid 'dim'"),
+])
+def test_a_damaged_cache_is_one_line_naming_the_file(tmp_path, what, expected):
+    """Each was read as valid (a shard of int8, token lookups past the end came back empty,
+    a name outside the folder was read), or failed later in training with an IndexError,
+    a TypeError or a MemoryError."""
+    from segmo.errors import SegmoError
+    from segmo.text.cache import TextFeatureCache
+
+    root = _data(tmp_path)
+    _hash_cache(root)
+    _damage(root / "text_features" / "hash", what)
+    with pytest.raises(SegmoError) as caught:
+        TextFeatureCache.open(root, "hash")
+    assert expected in str(caught.value) and "re-run `segmo encode-texts`" in str(caught.value)

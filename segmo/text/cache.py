@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +59,7 @@ from segmo.text.encoders import (
 
 FORMAT = 1
 INDEX, META = "index.json", "meta.json"
+MAX_DIM = 1 << 16  # widths of text features (CLIP 512, MiniLM 384); a larger one is damage
 
 
 def normalise_text(text: str) -> str:
@@ -135,27 +137,59 @@ class TextFeatureCache:
     def __init__(self, folder: Path):
         self.folder = Path(folder)
         self.meta = _read_json(self.folder / META, "text-feature metadata")
-        try:
-            self.dim = int(self.meta["dim"])
-            self.encoder = self.meta["encoder"]
-        except (KeyError, TypeError, ValueError) as err:
-            raise SegmoError(f"{self.folder / META}: no valid 'dim'/'encoder' ({err!r})") from err
+        dim = self.meta.get("dim")
+        if isinstance(dim, bool) or not isinstance(dim, int) or not 1 <= dim <= MAX_DIM \
+                or not isinstance(self.meta.get("encoder"), str):
+            raise SegmoError(f"{self.folder / META}: no valid 'dim' (a whole number up to "
+                             f"{MAX_DIM}) and 'encoder'; delete {self.folder} and re-run "
+                             "`segmo encode-texts`")
+        self.dim, self.encoder = dim, self.meta["encoder"]
         index = _read_index(self.folder)
         self._sentences: list[np.ndarray] = []
         self._tokens: list[np.ndarray | None] = []
         self._rows: dict[str, tuple[int, int]] = {}  # text -> (shard, row)
         self._spans: dict[str, tuple[int, int, int]] = {}  # text -> (shard, start, end)
         for s, shard in enumerate(index["shards"]):
-            stem = self.folder / shard["name"]
-            self._sentences.append(_load_array(f"{stem}.sentence.npy", mmap_mode="r"))
+            sentence, tokens, offsets = self._open_shard(shard)
+            self._sentences.append(sentence)
             self._rows.update((t, (s, r)) for r, t in enumerate(shard["texts"]))
-            if shard["token_texts"]:
-                self._tokens.append(_load_array(f"{stem}.tokens.npy", mmap_mode="r"))
-                offsets = _load_array(f"{stem}.offsets.npy").tolist()
+            self._tokens.append(tokens)
+            if tokens is not None:
                 self._spans.update((t, (s, offsets[j], offsets[j + 1]))
                                    for j, t in enumerate(shard["token_texts"]))
-            else:
-                self._tokens.append(None)
+
+    def _open_shard(self, shard: dict) -> tuple[np.ndarray, np.ndarray | None, list[int]]:
+        """A shard's sentence vectors, token features and offsets, memory-mapped, once their
+        names, shapes, types and offsets agree with index.json (SegmoError naming the file:
+        a shard cut short, of another width or swapped with another was read as valid)."""
+        name, texts, token_texts = shard["name"], shard["texts"], shard["token_texts"]
+        redo = f"; delete {self.folder} and re-run `segmo encode-texts`"
+        if not (isinstance(name, str) and re.fullmatch(r"shard-\d{5}", name)
+                and isinstance(texts, list) and isinstance(token_texts, list)
+                and all(isinstance(t, str) for t in [*texts, *token_texts])):
+            raise SegmoError(f"{self.folder / INDEX}: shard {str(name)[:40]!r} is not a shard "
+                             f"entry of segmo's (name shard-NNNNN, lists of texts){redo}")
+        stem = self.folder / name
+        sentence = _load_array(f"{stem}.sentence.npy", mmap_mode="r")
+        if sentence.shape != (len(texts), self.dim) or sentence.dtype.kind != "f":
+            raise SegmoError(f"{stem}.sentence.npy: {sentence.dtype} of shape {sentence.shape}, "
+                             f"expected floats of shape ({len(texts)}, {self.dim}){redo}")
+        if not token_texts:
+            return sentence, None, []
+        tokens = _load_array(f"{stem}.tokens.npy", mmap_mode="r")
+        offsets = _load_array(f"{stem}.offsets.npy", mmap_mode="r")
+        if tokens.ndim != 2 or tokens.shape[1] != self.dim or tokens.dtype.kind != "f":
+            raise SegmoError(f"{stem}.tokens.npy: {tokens.dtype} of shape {tokens.shape}, "
+                             f"expected floats of shape (tokens, {self.dim}){redo}")
+        if offsets.shape != (len(token_texts) + 1,) or offsets.dtype.kind not in "iu":
+            raise SegmoError(f"{stem}.offsets.npy: {offsets.dtype} of shape {offsets.shape}, "
+                             f"expected {len(token_texts) + 1} whole numbers{redo}")
+        bounds = offsets.tolist()
+        if bounds[0] != 0 or bounds[-1] != len(tokens) or any(
+                a > b for a, b in zip(bounds, bounds[1:])):
+            raise SegmoError(f"{stem}.offsets.npy: offsets must run from 0 up to the "
+                             f"{len(tokens)} rows of {stem.name}.tokens.npy{redo}")
+        return sentence, tokens, bounds
 
     @classmethod
     def open(cls, root: str | Path, encoder: str) -> TextFeatureCache:
