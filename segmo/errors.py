@@ -113,7 +113,7 @@ def parse_durations(text: str) -> list[float]:
 def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.PathLike):
     """The numeric array of the .npy file an argument names, or the one-line error of
     `parser` naming the argument and the file (missing, a folder, a pickle, not numbers)."""
-    import numpy as np  # commands that take no arrays start without it
+    from segmo.files import read_npy  # files imports this module
 
     path = Path(path)
     if path.is_dir():
@@ -121,9 +121,6 @@ def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.Path
     if not path.is_file():
         parser.error(f"{flag} {path}: no such file")
     try:
-        array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as error:
-        parser.error(f"{flag} {path}: not a .npy array ({error})")
-    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
-        parser.error(f"{flag} {path}: holds {array.dtype} values, not numbers")
-    return array
+        return read_npy(path)
+    except SegmoError as error:
+        parser.error(f"{flag} {error}")

@@ -36,7 +36,7 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 from typing import IO, Any
 
-from segmo.errors import FolderBusyError
+from segmo.errors import FolderBusyError, SegmoError
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +111,53 @@ def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+NPY_MAGIC = b"\x93NUMPY"  # how every .npy file begins
+
+
+def read_npy_shape(path: str | os.PathLike) -> tuple[int, ...]:
+    """Shape from a ``.npy`` header without reading the data; ValueError when the file is
+    not a .npy file or holds fewer bytes than the header claims (a cut file, or a header
+    claiming 2e9 frames, which `np.load` would try to allocate before it failed)."""
+    import math
+
+    import numpy as np  # on use: most commands read no arrays
+
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        held = os.fstat(f.fileno()).st_size - f.tell()
+    claimed = math.prod(shape) * dtype.itemsize
+    if not dtype.hasobject and held < claimed:
+        raise ValueError(f"its header claims {shape} values of {dtype} ({claimed:,} bytes) but "
+                         f"the file holds {held:,} bytes")
+    return shape
+
+
+def read_npy(path: str | os.PathLike) -> Any:
+    """The array of real numbers in a .npy file, or SegmoError naming the file: not a .npy
+    file (an .npz archive, text, a pickle), a header claiming more bytes than the file
+    holds, values that are not real numbers (objects, strings, complex)."""
+    import numpy as np
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(NPY_MAGIC))
+        if magic != NPY_MAGIC:
+            kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy file"
+            raise SegmoError(f"{path}: {kind}; save one array with numpy.save")
+        read_npy_shape(path)
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as error:
+        raise SegmoError(f"{path}: not a readable .npy array ({error})") from None
+    if array.dtype.kind not in "iuf":
+        raise SegmoError(f"{path}: holds {array.dtype} values, not real numbers")
+    return array
 
 
 def file_above(path: str | os.PathLike) -> Path | None:

@@ -164,6 +164,10 @@ CLI_CASES = [
         "a .npy holding a pickled object"),
     Cli("ground-motion-text", GROUND + " --motion {text_file}", "notes.txt",
         "a text file as motion"),
+    Cli("ground-motion-npz", GROUND + " --motion {npz}", "archive.npy: an .npz archive",
+        "an .npz archive named .npy (was an AttributeError)"),
+    Cli("render-npz", "render {npz} --out {tmp}/r.gif", "archive.npy: an .npz archive",
+        "an .npz archive named .npy (was an AttributeError)"),
     Cli("ground-motion-dir", GROUND + " --motion {tmp}", "is a directory", "a folder as motion"),
     Cli("ground-motion-joints", GROUND + " --motion {joints}", "joints", "joints instead of features"),
     Cli("ground-motion-dim", GROUND + " --motion {wrong_dim}", "(170, 100)",
@@ -481,6 +485,9 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     for name, array in arrays.items():
         files[name] = tmp / f"{name}.npy"
         np.save(files[name], array)
+    files["npz"] = tmp / "archive.npy"  # np.savez writes a zip whatever the name
+    with open(files["npz"], "wb") as handle:
+        np.savez(handle, motion=features[:48])
     files["pickle"] = tmp / "pickle.npy"
     np.save(files["pickle"], np.array([{"a": 1}], dtype=object), allow_pickle=True)
     files["foreign"] = tmp / "foreign"

@@ -39,8 +39,6 @@ process or DataLoader worker that reads it.
 from __future__ import annotations
 
 import logging
-import math
-import os
 import warnings
 from collections import Counter
 from dataclasses import dataclass
@@ -56,6 +54,7 @@ from segmo.data.layout import caption_spans, motion_file, read_split, resolve_st
 from segmo.data.motion_tokens import MotionTokenCache, clip_key
 from segmo.data.sampling import sample_rng, split_key
 from segmo.errors import SegmoError
+from segmo.files import read_npy_shape
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
@@ -72,24 +71,6 @@ WARNED_KINDS = ("missing", "empty", "unreadable", "missing_text", "bad_line",
 
 
 # ----------------------------------------------------------------------------- reading
-
-
-def read_npy_shape(path: Path) -> tuple[int, ...]:
-    """Shape from a ``.npy`` header without reading the data (lazy mode); ValueError when
-    the file holds fewer bytes than the header claims (a cut file, or a header claiming
-    2e9 frames, which `np.load` would try to allocate before it failed)."""
-    with open(path, "rb") as f:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-        else:
-            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-        held = os.fstat(f.fileno()).st_size - f.tell()
-    claimed = math.prod(shape) * dtype.itemsize
-    if not dtype.hasobject and held < claimed:
-        raise ValueError(f"its header claims {shape} values of {dtype} ({claimed:,} bytes) but "
-                         f"the file holds {held:,} bytes")
-    return shape
 
 
 class LoadReport:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from segmo.errors import SegmoError
+from segmo.files import read_npy
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.captions import read_text, texts_file
 
@@ -82,8 +83,19 @@ def read_split(root: str | Path, split: str) -> list[str]:
 
 
 def read_motion(root: str | Path, motion_id: str) -> np.ndarray:
-    """The raw (un-normalised) features (t, d) of ``ROOT/new_joint_vecs/<id>.npy``."""
-    return np.load(motion_file(root, motion_id))
+    """The raw (un-normalised) features (t, d) of ``ROOT/new_joint_vecs/<id>.npy``;
+    SegmoError naming the file when it is missing, not a .npy array of real numbers, not
+    (frames ≥ 1, features), or holds NaN or inf (an evaluation skipped such a motion, or
+    failed on it without naming it)."""
+    path = motion_file(root, motion_id)
+    if not path.is_file():
+        raise SegmoError(f"{path}: motion file not found (listed in a split of {root})")
+    array = read_npy(path)
+    if array.ndim != 2 or not array.shape[0] or not array.shape[1]:
+        raise SegmoError(f"{path}: shape {array.shape}, expected (frames, features)")
+    if not np.isfinite(array).all():
+        raise SegmoError(f"{path}: holds NaN or inf")
+    return array
 
 
 # ----------------------------------------------------------------------------- statistics
