@@ -488,6 +488,8 @@ def test_segment_durations_steer_a_timing_model(tmp_path, tokenizer_dir, model):
 
     first = tokens(durations=[[1, 5], [1, 5]])
     assert torch.equal(first, tokens(durations=[[2, 10], [0.5, 2.5]]))  # shares, not units
+    even = tokens(durations=[[1, 1], [1, 1]])  # beyond float32 (3.4e38) they were other spans
+    assert torch.equal(even, tokens(durations=[[3e38, 3e38], [1e39, 1e39]]))
     assert not torch.equal(first, tokens(durations=[[5, 1], [5, 1]]))
     predicted = tokens()
     spans = timed.mask.predict_spans(*timed.text_condition(PROMPTS)[1:3], torch.tensor([16, 16]))

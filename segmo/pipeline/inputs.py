@@ -191,5 +191,8 @@ def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor
         if not all(math.isfinite(v) and v >= 0 for v in values) or sum(values) <= 0:
             raise SegmoError(f"SegMo.generate: durations[{i}] must be finite, ≥ 0 and not "
                              f"all 0, got {values!r:.80}")
-        out[i, : len(values)] = torch.tensor(values)
+        # As shares of the largest, in float64: 3e38 and 1e39 overflowed float32 (to spans
+        # of 1 token and 11, or to an error), though they read as an even split.
+        largest = max(values)
+        out[i, : len(values)] = torch.tensor([v / largest for v in values])
     return None if all(values is None for values in durations) else out
