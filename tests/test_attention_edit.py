@@ -195,6 +195,14 @@ def test_edit_text_refuses_what_it_cannot_do(segmo_model):
         model.edit_text(source, mode="reweight", weights=[(1, 2.0)])
     with pytest.raises(SegmoError, match="inject_until"):
         model.edit_text(source, "a person runs, then jumps.", inject_until=1.5)
+    # Each was taken without a word: the last factor of a segment won, "no" was True, and
+    # fp16 was a ValueError from the sampler.
+    with pytest.raises(SegmoError, match=r"weights keys 1 and 'a person walks' both name segment 1"):
+        model.edit_text(source, mode="reweight", weights={1: 2.0, "a person walks": 0.5})
+    with pytest.raises(SegmoError, match="keep_outside must be True or False, got 'no'"):
+        model.edit_text(source, "a person walks, then kicks.", keep_outside="no")
+    with pytest.raises(SegmoError, match="precision must be 'auto', 'fp32' or 'bf16'"):
+        model.edit_text(source, "a person walks, then kicks.", precision="fp16")
     edit = model.edit(source, (0, 8), "a person runs")
     with pytest.raises(SegmoError, match="generator state"):
         model.edit_text(edit, "a person runs, then jumps.")

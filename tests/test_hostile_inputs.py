@@ -104,6 +104,9 @@ CLI_CASES = [
     Cli("compose-out-user-file", "compose --model {bundle} --text walk --length 40 --out {notes}",
         "sample_00.bvh: a file that segmo did not write",
         "`--out` holding the user's `sample_00.bvh` (was replaced by the output)"),
+    Cli("edit-weight-twice", "edit --model {bundle} --source-text walk --mode reweight "
+        "--weight 1=2 --weight 1=0.5 --out {tmp}/e", "--weight names one segment twice",
+        "`--weight 1=2 --weight 1=0.5` (the last won without a word)"),
     Cli("edit-weight-with-swap", "edit --model {bundle} --source-text walk --target-text run "
         "--weight 2=2 --out {tmp}/e", "--weight is for --mode reweight",
         "`--weight` with `--mode swap` (was ignored)"),

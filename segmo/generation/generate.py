@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from segmo import cpu
+from segmo.errors import SegmoError
 from segmo.generation.sampling import SamplingOptions, cosine_schedule, gumbel_noise, sample_tokens
 from segmo.models.attention_recorder import is_recorded
 from segmo.models.mask_transformer import MaskTransformer
@@ -166,7 +167,7 @@ def resolve_precision(precision: Precision, device: torch.device | str = "cpu"
     other CPUs and on other devices; "fp32" and "bf16" are taken as asked.
     """
     if precision not in ("auto", "fp32", "bf16"):
-        raise ValueError(f"precision must be 'auto', 'fp32' or 'bf16', got {precision!r}")
+        raise SegmoError(f"precision must be 'auto', 'fp32' or 'bf16', got {precision!r}")
     device = torch.device(device)
     if precision == "bf16" and device.type == "cpu" and not cpu.onednn_bf16():
         return "bf16", ("asked for; this CPU has no oneDNN bf16 path, so it runs in torch's "

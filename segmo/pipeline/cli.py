@@ -257,7 +257,10 @@ def edit_main(argv: list[str] | None = None) -> None:
     if not 0.0 <= args.inject_until <= 1.0:
         parser.error(f"argument --inject-until: expected a number in [0, 1], got "
                      f"{args.inject_until:g}")
-    weights = dict(_weight(parser, w) for w in args.weight or [])
+    pairs = [_weight(parser, w) for w in args.weight or []]
+    weights = dict(pairs)
+    if len(weights) < len(pairs):  # the last factor of a segment won without a word
+        parser.error("--weight names one segment twice; give each segment one factor")
     _check_output_dir(parser, "--out", args.out, {"source": 1, "edit": 1}, formats)
     model = _load(parser, args.model)
     keep_freed_memory()

@@ -135,6 +135,9 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
     if mode not in EDIT_MODES:
         raise SegmoError(f"SegMo.edit_text: mode must be one of {', '.join(EDIT_MODES)}, "
                          f"got {mode!r}")
+    if not isinstance(keep_outside, bool):  # "no" was read as True
+        raise SegmoError(f"SegMo.edit_text: keep_outside must be True or False, got "
+                         f"{keep_outside!r:.40}")
     if isinstance(inject_until, bool) or not (isinstance(inject_until, numbers.Real)
                                               and 0.0 <= inject_until <= 1.0):
         raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
@@ -206,6 +209,7 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
         raise SegmoError(f"SegMo.edit_text: weights must be a dict such as {{1: 2.0}} or "
                          f"{{'jumps': 2.0}}, got {type(weights).__name__}")
     labels: dict[str, float] = {}
+    keys: dict[str, Any] = {}  # label -> the key that named it
     for key, factor in weights.items():
         # Attention weights are float32: a factor beyond its range would be inf.
         if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
@@ -234,5 +238,9 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
         if label.startswith("segment ") and not 1 <= int(label.split()[1]) <= len(segments):
             raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has "
                              f"{len(segments)} segments")
+        if label in keys:  # the last one won without a word
+            raise SegmoError(f"SegMo.edit_text: weights keys {keys[label]!r} and {key!r} both "
+                             f"name {label}; give each segment one factor")
+        keys[label] = key
         labels[label] = float(factor)
     return labels
