@@ -44,6 +44,8 @@ MAX_SECONDS = 9.8  # 196 frames at 20 fps
 MAX_CAPTION_CHARACTERS = 2_000
 # Request folders a server keeps in its work folder (`prune_requests`).
 KEEP_REQUESTS = 20
+# The page takes no files, but Gradio's upload route stays open: bound what it stores.
+MAX_UPLOAD = "1mb"
 
 
 def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance: float,
@@ -157,7 +159,8 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
                                      lines=2)
                 seconds = gr.Slider(0, MAX_SECONDS, value=0, step=0.2,
                                     label="length (s); 0: the model's estimate")
-                seed = gr.Number(value=0, precision=0, label="seed")
+                # precision None: Gradio would round 2.7 to 3 before generate_files sees it
+                seed = gr.Number(value=0, precision=None, label="seed (a whole number)")
                 guidance = gr.Slider(1, 8, value=model.config.guidance_scale, step=0.5,
                                      label="guidance scale")
                 method = gr.Radio(list(GROUNDING_METHODS), value="attention",
@@ -188,9 +191,12 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--model {args.model}: no such directory (a bundle made by `segmo bundle`, "
                      "or a hub id like owner/name)")
     model = SegMo.from_pretrained(args.model)
-    app = build_app(model)
-    print(f"segmo serve: http://{args.host}:{args.port}  (Ctrl-C stops)")
-    app.launch(server_name=args.host, server_port=args.port, show_error=True)
+    # The requests' files live in a folder that goes when the server stops.
+    with tempfile.TemporaryDirectory(prefix="segmo-serve-") as workdir:
+        app = build_app(model, workdir)
+        print(f"segmo serve: http://{args.host}:{args.port}  (Ctrl-C stops)")
+        app.launch(server_name=args.host, server_port=args.port, show_error=True,
+                   max_file_size=MAX_UPLOAD)
 
 
 if __name__ == "__main__":

@@ -59,6 +59,10 @@ def test_a_caption_in_a_motion_file_out(served):
     assert np.array_equal(np.load(again_joints), np.load(paths["sample_00_joints.npy"]))
     with pytest.raises(Exception, match="type a caption first"):
         client.predict("   ", 2.4, 0, 4.0, "similarity", api_name="/generate")
+    # The seed widget rounded 2.7 to 3 before generate_files could refuse it.
+    with pytest.raises(Exception, match="seed must be a whole number"):
+        client.predict("a person walks forward, then waves", 2.4, 2.7, 4.0, "attention",
+                       api_name="/generate")
 
 
 def test_segment_durations_through_the_api(served, tmp_path, tokenizer_dir):
