@@ -103,6 +103,40 @@ def test_a_damaged_shard_is_refused_naming_it(data, tokenizer_dir, tmp_path, dam
     assert "\n" not in message
 
 
+def _huge_header(path):
+    """A .npy of a few bytes whose header claims 1e11 int64s (np.load asked for 745 GiB)."""
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<i8", "fortran_order": False,
+                                                 "shape": (10**11,)})
+
+
+@pytest.mark.parametrize("edit, expected", [
+    (lambda meta, index, folder: meta.update(codebook_size="256"), "not this folder's motion-token metadata"),
+    (lambda meta, index, folder: meta.update(key="0" * 16), "key"),
+    (lambda meta, index, folder: index["shards"][0].update(name="../../elsewhere"),
+     "shard '../../elsewhere' is not an entry of segmo's"),
+    (lambda meta, index, folder: index["shards"][0].update(items=[[1]]), "is not an entry of segmo's"),
+    (lambda meta, index, folder: _huge_header(folder / "shard-00000.offsets.npy"),
+     "shard-00000.offsets.npy: unreadable shard"),
+])
+def test_damaged_metadata_and_index_are_refused(data, tokenizer_dir, tmp_path, edit, expected):
+    """A codebook_size of "256" turned the code-range check off (an IndexError in fit), a
+    folder of another key was trusted, a shard name outside the folder was read there, and
+    items given as lists were a TypeError."""
+    root = tmp_path / "data"
+    shutil.copytree(data, root)
+    folder = attach(train_set(root), RVQVAE.from_pretrained(tokenizer_dir["t2m"]),
+                    tokenizer_dir["t2m"]).folder
+    meta = json.loads((folder / "meta.json").read_text())
+    index = json.loads((folder / "index.json").read_text())
+    edit(meta, index, folder)
+    (folder / "meta.json").write_text(json.dumps(meta))
+    (folder / "index.json").write_text(json.dumps(index))
+    with pytest.raises(SegmoError) as caught:
+        mt.MotionTokenCache(folder)
+    assert expected in str(caught.value) and f"delete {folder}" in str(caught.value)
+
+
 def test_a_killed_build_is_not_trusted_and_resumes(data, tokenizer_dir, tmp_path, monkeypatch):
     root = tmp_path / "data"
     shutil.copytree(data, root)

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import time
 from collections import defaultdict
 from dataclasses import dataclass
@@ -145,12 +146,26 @@ class MotionTokenCache:
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
         self.meta = _read_json(self.folder / META)
+        redo = f"delete {self.folder} and run again (it is rebuilt)"
+        sizes = [self.meta.get(k) for k in ("codebook_size", "num_quantizers")]
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in sizes) \
+                or self.meta.get("key", self.folder.name) != self.folder.name:
+            # a string turned the code-range check off; a copied folder of another key
+            # (another tokenizer or statistics) would be trusted
+            raise SegmoError(f"{self.folder / META}: not this folder's motion-token metadata "
+                             f"(whole-number codebook_size and num_quantizers, key "
+                             f"{self.folder.name!r}); {redo}")
         self._tokens: list[np.ndarray] = []
         self._spans: dict[str, tuple[int, int, int]] = {}  # item -> (shard, start, end)
         for s, shard in enumerate(_read_index(self.folder)["shards"]):
-            stem = self.folder / shard["name"]
+            name, items = shard["name"], shard["items"]
+            if not (isinstance(name, str) and re.fullmatch(r"shard-\d{5}", name)
+                    and isinstance(items, list) and all(isinstance(i, str) for i in items)):
+                raise SegmoError(f"{self.folder / INDEX}: shard {str(name)[:40]!r} is not an "
+                                 f"entry of segmo's (name shard-NNNNN, a list of items); {redo}")
+            stem = self.folder / name
             tokens = _load(Path(f"{stem}.tokens.npy"), mmap_mode="r")
-            offsets = _load(Path(f"{stem}.offsets.npy"))
+            offsets = _load(Path(f"{stem}.offsets.npy"), mmap_mode="r")
             problem = shard_problem(tokens, offsets, len(shard["items"]), self.meta)
             if problem:
                 raise SegmoError(f"{stem}.*.npy: {problem}: a damaged motion-token cache; delete "
