@@ -27,6 +27,7 @@ from PIL import Image
 
 from segmo.errors import ArgumentParser, SegmoError, finite_float, npy_argument, positive_int
 from segmo.files import atomic_open, file_above
+from segmo.motion.checks import joints_problem
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
@@ -36,7 +37,6 @@ LEFT, RIGHT, CENTRE = "#1f5fbf", "#d62728", "#333333"
 FLOOR_HALF_SIZE = 1.0  # metres of floor shown around the root (at least)
 GRID_STEP = 0.5  # metres between floor grid lines
 TITLE_LINES = 3  # a longer caption is cut: matplotlib lays out every line on every frame
-MAX_METRES = 1e4  # a joint further from the origin is a corrupt file, not a motion
 
 
 def as_joints(
@@ -71,12 +71,9 @@ def as_joints(
     if len(joints) == 0:
         raise SegmoError("cannot render a motion with 0 frames")
     joints = joints * spec.unit
-    bad = ~np.isfinite(joints) | (np.abs(joints) > MAX_METRES)
-    if bad.any():
-        frame = int(np.argwhere(bad)[0][0])
-        raise SegmoError(f"{int(bad.any(axis=(1, 2)).sum())} frame(s) hold NaN/inf or joints "
-                         f"beyond {MAX_METRES:g} m (a corrupt file, not a motion); the first is "
-                         f"frame {frame}")
+    problem = joints_problem(joints)
+    if problem:
+        raise SegmoError(problem)
     return joints
 
 

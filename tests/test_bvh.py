@@ -215,6 +215,22 @@ def test_bvh_rejects_wrong_shape(tmp_path):
         joints_to_bvh(np.full((5, 22, 3), np.nan), tmp_path / "x.bvh", foot_lock=False)
 
 
+def test_bvh_refuses_a_frame_of_absurd_joints_and_reads_bf16(tmp_path):
+    """One frame whose root lies at 3e38 passed the bone-scale check (a median) and wrote
+    110 rotations of ~1800 degrees; a bfloat16 tensor was a TypeError from numpy."""
+    joints = _corpus_joints()
+    broken = joints.copy()
+    broken[5, 0] = 3e38
+    with pytest.raises(ValueError, match=r"1 frame\(s\) hold NaN/inf or joints beyond 10000 m"
+                                         r".* the first is frame 5"):
+        joints_to_bvh(broken, tmp_path / "x.bvh")
+    assert not (tmp_path / "x.bvh").exists()
+    half = torch.from_numpy(joints).to(torch.bfloat16)
+    written = joints_to_bvh(half, tmp_path / "bf16.bvh", foot_lock=False)
+    error = np.linalg.norm(_read(written, "bvh") - half.double().numpy(), axis=-1)
+    assert error.max() < 0.05
+
+
 @pytest.mark.parametrize("scale", [float("nan"), 0.0, -1.0, "100", True])
 def test_bvh_refuses_a_scale_that_is_not_a_positive_number(tmp_path, scale):
     """NaN wrote 'nan' into the file, 0 collapsed every bone, -1 mirrored the motion

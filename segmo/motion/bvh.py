@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from segmo.errors import SegmoError
+from segmo.motion.checks import joints_problem
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.motion.skeleton_fit import SkeletonFit, check_bone_scale, fit_motion
 
@@ -244,7 +245,8 @@ def joints_to_bvh(
         if value is not None:  # before the fit
             check_bvh_fps(value, f"joints_to_bvh: {name}")
     if hasattr(joints, "detach"):
-        joints = joints.detach().cpu().numpy()
+        joints = joints.detach().cpu()
+        joints = (joints if joints.is_complex() else joints.double()).numpy()  # bf16 has no numpy type
     if np.iscomplexobj(joints):  # np.asarray would drop the imaginary part
         raise ValueError("joints_to_bvh: joints are complex numbers; expected real positions")
     positions = np.asarray(joints, dtype=np.float64)
@@ -253,8 +255,9 @@ def joints_to_bvh(
             f"joints_to_bvh: joints must be (t, {spec.num_joints}, 3) for skeleton {spec.name!r}, "
             f"got {positions.shape}"
         )
-    if not np.isfinite(positions).all():
-        raise ValueError("joints_to_bvh: joints hold NaN or inf")
+    problem = joints_problem(positions * spec.unit)
+    if problem:
+        raise ValueError(f"joints_to_bvh: {problem}")
     if bone_lengths in (None, "skeleton"):
         check_bone_scale(positions, spec, "joints_to_bvh")
     fit = fit_motion(positions, spec, foot_lock=foot_lock, contacts=contacts, bone_lengths=bone_lengths)

@@ -24,6 +24,19 @@ import numpy as np
 from segmo.errors import SegmoError
 
 MAX_ABS_Z = 1000.0
+MAX_METRES = 1e4  # joints further from the origin are a corrupt file, not a motion
+
+
+def joints_problem(joints: np.ndarray) -> str | None:
+    """Where joint positions in metres (t, j, 3) are NaN/inf or beyond `MAX_METRES` (None
+    when nowhere): what rendering and BVH export refuse (one frame of 3e38 passed the bone
+    scale check and wrote rotations of ~1800 degrees)."""
+    bad = ~np.isfinite(joints) | (np.abs(joints) > MAX_METRES)
+    if not bad.any():
+        return None
+    frame = int(np.argwhere(bad)[0][0])
+    return (f"{int(bad.any(axis=(1, 2)).sum())} frame(s) hold NaN/inf or joints beyond "
+            f"{MAX_METRES:g} m (a corrupt file, not a motion); the first is frame {frame}")
 
 
 def value_problem(arr: np.ndarray, mean: np.ndarray, std: np.ndarray,
