@@ -63,7 +63,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"segmo: unknown command {name!r} (see `segmo --help`)", file=sys.stderr)
         sys.exit(2)
     module, function, _ = COMMANDS[name]
-    command = getattr(importlib.import_module(module), function)
+
+    def command(argv: list[str]) -> None:  # imported inside `run`: Ctrl-C while torch loads
+        getattr(importlib.import_module(module), function)(argv)  # is one line, not 58
+
     # LightningCLI needs the sub-command itself.
     args = [name, *rest] if module == "segmo.training.cli" else rest
     run(f"segmo {name}", command, args, debug=debug)

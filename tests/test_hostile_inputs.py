@@ -710,3 +710,20 @@ def table() -> str:
 
 def _cell(text: str) -> str:
     return "`" + text.replace("|", "\\|").replace("`", "'") + "`"
+
+
+def test_ctrl_c_while_a_command_loads_is_one_line(monkeypatch, capsys):
+    """Ctrl-C in the seconds torch takes to import printed a 58-line KeyboardInterrupt
+    traceback: the command's module was imported before the handler was in place."""
+    import importlib
+
+    from segmo.cli import main
+
+    def interrupted(name, *args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(importlib, "import_module", interrupted)
+    with pytest.raises(SystemExit) as exit_:
+        main(["synth", "--out", "nowhere"])
+    assert exit_.value.code == 130
+    assert capsys.readouterr().err == "segmo synth: interrupted\n"
