@@ -94,8 +94,10 @@ def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
     """Yield an empty temporary folder beside `folder` that takes its place whole (an
     existing `folder` is deleted) when the block ends without an exception, and is deleted
     when it raises. A reader finds the old folder or the new one, never a mix of both; a
-    killed writer leaves ``NAME.tmp-<pid>-<n>`` (or ``NAME.old-<pid>-<n>``) beside it."""
+    killed writer leaves ``NAME.tmp-<pid>-<n>`` (or ``NAME.old-<pid>-<n>``) beside it,
+    which the next writer of `folder` clears up (`_recover`)."""
     target = Path(folder).resolve()  # a symbolic link keeps pointing at the new folder
+    _recover(target)
     suffix = f"{os.getpid()}-{next(_counter)}"
     tmp = target.with_name(f"{target.name}.tmp-{suffix}")
     tmp.mkdir(parents=True)
@@ -111,6 +113,33 @@ def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _recover(target: Path) -> None:
+    """Clear what killed `replacing_folder` writers of `target` left beside it: their
+    half-written ``.tmp-`` folders go; an ``.old-`` folder is put back when the kill came
+    between the two renames (so `target` was missing), and goes otherwise."""
+    for kind in ("old", "tmp"):
+        for leftover in sorted(target.parent.glob(f"{target.name}.{kind}-*-*")):
+            pid = leftover.name.removeprefix(f"{target.name}.{kind}-").split("-")[0]
+            if not (pid.isdecimal() and leftover.is_dir() and not leftover.is_symlink()) \
+                    or pid_alive(int(pid)):
+                continue  # a folder of the user's named alike, or a writer at work
+            if kind == "old" and not target.exists():
+                leftover.rename(target)
+            else:
+                shutil.rmtree(leftover, ignore_errors=True)
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process `pid` runs on this machine (one we may not signal counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 NPY_MAGIC = b"\x93NUMPY"  # how every .npy file begins

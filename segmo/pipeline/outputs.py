@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from segmo.errors import SegmoError
+from segmo.files import pid_alive
 from segmo.generation.sampling import SamplingOptions
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.bvh import ANIMATION_FPS, check_bvh_fps, write_bvh
@@ -120,7 +121,7 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     directory = Path(directory)
     for leftover in directory.glob(f"{STAGE_PREFIX}*"):  # of a save that was killed
         pid = leftover.name.removeprefix(STAGE_PREFIX)
-        if leftover.is_dir() and pid.isdecimal() and not _alive(int(pid)):
+        if leftover.is_dir() and pid.isdecimal() and not pid_alive(int(pid)):
             _roll_back(directory, leftover)
             shutil.rmtree(leftover, ignore_errors=True)
     earlier = check_save_target(directory, {prefix: len(output.texts)
@@ -213,16 +214,6 @@ def check_save_target(directory: str | Path, counts: Mapping[str, int],
 
 
 STAGE_PREFIX = ".save.tmp-"  # + the pid of the save writing into it
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OverflowError):
-        return True
-    return True
 
 
 MOVES = ".moves.json"  # in a stage folder: the names its save moves into the directory
