@@ -174,12 +174,12 @@ def read_npy(path: str | os.PathLike) -> Any:
     import numpy as np
 
     path = Path(path)
+    with open(path, "rb") as f:
+        magic = f.read(len(NPY_MAGIC))
+    if magic != NPY_MAGIC:
+        kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy file"
+        raise SegmoError(f"{path}: {kind}; save one array with numpy.save")
     try:
-        with open(path, "rb") as f:
-            magic = f.read(len(NPY_MAGIC))
-        if magic != NPY_MAGIC:
-            kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy file"
-            raise SegmoError(f"{path}: {kind}; save one array with numpy.save")
         read_npy_shape(path)
         array = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
