@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-from pathlib import Path
 
 
 class SegmoError(ValueError):
@@ -108,19 +106,3 @@ def parse_durations(text: str) -> list[float]:
         raise ValueError(f"{str(text)!r:.80}: expected numbers >= 0 separated by commas, not "
                          "all 0, e.g. 1,4")
     return numbers
-
-
-def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.PathLike):
-    """The numeric array of the .npy file an argument names, or the one-line error of
-    `parser` naming the argument and the file (missing, a folder, a pickle, not numbers)."""
-    from segmo.files import read_npy  # files imports this module
-
-    path = Path(path)
-    if path.is_dir():
-        parser.error(f"{flag} {path}: is a directory, not a .npy file")
-    if not path.is_file():
-        parser.error(f"{flag} {path}: no such file")
-    try:
-        return read_npy(path)
-    except SegmoError as error:
-        parser.error(f"{flag} {error}")

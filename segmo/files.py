@@ -24,6 +24,7 @@ its process dies, kill -9 included: a stale lock recovers by itself.
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import json
 import logging
@@ -311,3 +312,17 @@ def _read_holder(handle: IO[str]) -> str:
         return "another process"
     host = f" on {note['host']}" if note.get("host") not in (None, socket.gethostname()) else ""
     return f"PID {note['pid']}{host} ({note.get('command', '?')}, since {note.get('since', '?')})"
+
+
+def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.PathLike):
+    """The numeric array of the .npy file an argument names, or the one-line error of
+    `parser` naming the argument and the file (missing, a folder, a pickle, not numbers)."""
+    path = Path(path)
+    if path.is_dir():
+        parser.error(f"{flag} {path}: is a directory, not a .npy file")
+    if not path.is_file():
+        parser.error(f"{flag} {path}: no such file")
+    try:
+        return read_npy(path)
+    except SegmoError as error:
+        parser.error(f"{flag} {error}")

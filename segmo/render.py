@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from segmo.errors import ArgumentParser, SegmoError, finite_float, npy_argument, positive_int
-from segmo.files import atomic_open, file_above
+from segmo.errors import ArgumentParser, SegmoError, finite_float, positive_int
+from segmo.files import atomic_open, file_above, npy_argument
 from segmo.motion.checks import joints_problem
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton

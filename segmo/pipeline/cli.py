@@ -30,11 +30,10 @@ from segmo.errors import (
     finite_float,
     non_negative_float,
     non_negative_int,
-    npy_argument,
     parse_durations,
     positive_int,
 )
-from segmo.files import file_above
+from segmo.files import file_above, npy_argument
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText

@@ -161,7 +161,8 @@ class TextFeatureCache:
     def _open_shard(self, shard: dict) -> tuple[np.ndarray, np.ndarray | None, list[int]]:
         """A shard's sentence vectors, token features and offsets, memory-mapped, once their
         names, shapes, types and offsets agree with index.json (SegmoError naming the file:
-        a shard cut short, of another width or swapped with another was read as valid)."""
+        a shard cut short, of another width or type, or offsets past its end were read as
+        valid). Shards swapped with others of the same shape are not found."""
         name, texts, token_texts = shard["name"], shard["texts"], shard["token_texts"]
         redo = f"; delete {self.folder} and re-run `segmo encode-texts`"
         if not (isinstance(name, str) and re.fullmatch(r"shard-\d{5}", name)
