@@ -58,7 +58,8 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from segmo.pipeline.grounding import plot_similarity_map
+    from segmo.models.tokenizer import FRAMES_PER_TOKEN
+    from segmo.pipeline.grounding import MIN_TOKENS, plot_similarity_map
 
     if not isinstance(caption, str):
         raise SegmoError(f"caption must be text, got {type(caption).__name__}")
@@ -85,8 +86,13 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
             raise SegmoError(f"segment durations {error}") from None
     lengths = None
     if seconds and seconds > 0:
-        frames = int(round(min(float(seconds), MAX_SECONDS) * model.fps / 4)) * 4
-        lengths = [max(frames, 4)]
+        frames = max(int(round(min(float(seconds), MAX_SECONDS) * model.fps / 4)) * 4, 4)
+        count = len(model.segment_texts([caption])[0])
+        needed = count * MIN_TOKENS * FRAMES_PER_TOKEN  # what grounding each segment takes
+        if frames < needed:  # it failed after the generation, naming tokens
+            raise SegmoError(f"a length of {seconds:g} s is too short for the caption's {count} "
+                             f"segments; give at least {needed / model.fps:.1f} s")
+        lengths = [frames]
     result = model.generate([caption], lengths, guidance_scale=float(guidance),
                             generator=torch.Generator().manual_seed(int(seed)), durations=timing)
     segments = result.segments[0]

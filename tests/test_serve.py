@@ -109,7 +109,10 @@ def test_a_request_out_of_range_names_its_field(served, tmp_path):
             ((caption, 2.4, 1e30, 4.0), r"seed must be a whole number from 0 to 2\^63 - 1"),
             ((caption, 2.4, 2.5, 4.0), r"seed must be a whole number"),
             ((caption, 2.4, 0, float("inf")), "guidance must be a finite number, got inf"),
-            (("walk " * MAX_CAPTION_CHARACTERS, 2.4, 0, 4.0), "characters; at most 2,000")):
+            (("walk " * MAX_CAPTION_CHARACTERS, 2.4, 0, 4.0), "characters; at most 2,000"),
+            # it failed after the generation: "3 segments in order need 6 tokens"
+            (("a person walks, then jumps, then sits, then waves, then kicks", 0.6, 0, 4.0),
+             r"a length of 0.6 s is too short for the caption's 3 segments; give at least 1.2 s")):
         with pytest.raises(SegmoError, match=message):
             generate_files(model, *args, "similarity", tmp_path / "out")
     assert not (tmp_path / "out").exists()
