@@ -25,6 +25,7 @@ its process dies, kill -9 included: a stale lock recovers by itself.
 from __future__ import annotations
 
 import argparse
+import glob
 import itertools
 import json
 import logging
@@ -76,6 +77,16 @@ def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as f:
         f.write(data)
     return Path(path)
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> None:
+    """Delete the temporaries that writers of `path`, killed before they finished, left
+    beside it (`atomic_open`'s ``.NAME.<pid>.<n>.tmp`` of processes that are gone)."""
+    path = Path(path)
+    for leftover in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        pid = leftover.name[len(path.name) + 2:].split(".")[0]
+        if pid.isdecimal() and not pid_alive(int(pid)):
+            leftover.unlink(missing_ok=True)
 
 
 def remove_temporaries(folder: str | os.PathLike) -> int:

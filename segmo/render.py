@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from segmo.errors import ArgumentParser, SegmoError, finite_float, positive_int
-from segmo.files import atomic_open, file_above, npy_argument
+from segmo.files import atomic_open, file_above, npy_argument, remove_stale_temporaries
 from segmo.motion.checks import joints_problem
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
@@ -331,6 +331,7 @@ def main(argv: list[str] | None = None) -> None:
     above = file_above(args.out)
     if above is not None:
         parser.error(f"--out {args.out}: {above} is a file, not a directory")
+    remove_stale_temporaries(args.out)  # of a render of this file that was killed
     motion = npy_argument(parser, "FILE", args.file)
     mean = None if args.mean is None else npy_argument(parser, "--mean", args.mean)
     std = None if args.std is None else npy_argument(parser, "--std", args.std)

@@ -40,3 +40,20 @@ def test_a_leftover_of_a_writer_still_running_is_left_alone(tmp_path):
     with replacing_folder(tmp_path / "model") as tmp:
         (tmp / "weights").write_text("new")
     assert busy.is_dir()
+
+
+def test_a_killed_writers_temporary_is_removed_by_the_next_writer_of_the_file(tmp_path):
+    """`segmo render --out r/out.gif` killed while writing left r/.out.gif.<pid>.0.tmp for
+    good; one of a live writer, and other files' temporaries, stay."""
+    import os
+
+    from segmo.files import remove_stale_temporaries
+
+    dead, live = _dead_pid(), os.getpid()
+    stale = tmp_path / f".out.gif.{dead}.0.tmp"
+    busy = tmp_path / f".out.gif.{live}.3.tmp"
+    other = tmp_path / f".other.gif.{dead}.0.tmp"
+    for path in (stale, busy, other):
+        path.write_bytes(b"GIF")
+    remove_stale_temporaries(tmp_path / "out.gif")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([busy.name, other.name])
