@@ -189,3 +189,18 @@ def test_features_of_another_encoder_of_the_same_name_are_refused(tmp_path, caps
         TextFeatureCache.open(root, str(second))
     assert len(TextFeatureCache.open(root, str(first))) == len(DISTINCT)
     assert TextFeatureCache.open(root, str(first)).meta["identity"] is not None
+
+
+def test_an_encoder_identity_sees_a_change_in_the_middle_of_the_weights(tmp_path):
+    """It read the first and last MiB of each weight file: one tensor in the middle of
+    MiniLM's 90 MB scaled by 1.5 gave the same identity, and the cache was reused."""
+    import shutil
+
+    from segmo.text.encoders import encoder_identity, encoder_source
+
+    copy = shutil.copytree(encoder_source("minilm"), tmp_path / "model")
+    weights = copy / "model.safetensors"
+    data = bytearray(weights.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one byte of one tensor, the size unchanged
+    weights.write_bytes(bytes(data))
+    assert encoder_identity(copy) != encoder_identity(encoder_source("minilm"))

