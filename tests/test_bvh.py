@@ -231,6 +231,15 @@ def test_bvh_refuses_a_frame_of_absurd_joints_and_reads_bf16(tmp_path):
     assert error.max() < 0.05
 
 
+def test_the_file_does_not_depend_on_the_arrays_memory_order(tmp_path):
+    """A Fortran-ordered copy of the same joints (np.load gives one for a file saved so)
+    rounded otherwise in the fit and wrote other, equivalent, Euler triples."""
+    joints = _corpus_joints()
+    c = joints_to_bvh(np.ascontiguousarray(joints), tmp_path / "c.bvh")
+    f = joints_to_bvh(np.asfortranarray(joints), tmp_path / "f.bvh")
+    assert c.read_text() == f.read_text()
+
+
 @pytest.mark.parametrize("scale", [float("nan"), 0.0, -1.0, "100", True])
 def test_bvh_refuses_a_scale_that_is_not_a_positive_number(tmp_path, scale):
     """NaN wrote 'nan' into the file, 0 collapsed every bone, -1 mirrored the motion

@@ -249,7 +249,9 @@ def joints_to_bvh(
         joints = (joints if joints.is_complex() else joints.double()).numpy()  # bf16 has no numpy type
     if np.iscomplexobj(joints):  # np.asarray would drop the imaginary part
         raise ValueError("joints_to_bvh: joints are complex numbers; expected real positions")
-    positions = np.asarray(joints, dtype=np.float64)
+    # C order: a Fortran-ordered copy of the same joints rounded differently in the fit and
+    # wrote other (equivalent) Euler triples
+    positions = np.ascontiguousarray(joints, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[1:] != (spec.num_joints, 3) or len(positions) < 1:
         raise ValueError(
             f"joints_to_bvh: joints must be (t, {spec.num_joints}, 3) for skeleton {spec.name!r}, "
