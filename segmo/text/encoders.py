@@ -234,10 +234,22 @@ def encoder_identity(source: str | os.PathLike | None) -> str | None:
     90 MB on a 2-core host). None when there is no such directory."""
     if source is None or not Path(source).is_dir():
         return None
-    digest = hashlib.sha256()
     folder = Path(source)
     names = sorted(p.name for p in folder.iterdir() if p.is_file() and (
         p.name == "config.json" or p.suffix in (".safetensors", ".bin", ".pt", ".pth")))
+    # A fit opens the cache once per split and dataset: hash each unchanged file set once.
+    stamp = (str(folder.resolve()), *((n, (folder / n).stat().st_size,
+                                       (folder / n).stat().st_mtime_ns) for n in names))
+    if stamp not in _IDENTITIES:
+        _IDENTITIES[stamp] = _hash_files(folder, names)
+    return _IDENTITIES[stamp]
+
+
+_IDENTITIES: dict[tuple, str | None] = {}  # file stamps -> encoder_identity, this process
+
+
+def _hash_files(folder: Path, names: list[str]) -> str | None:
+    digest = hashlib.sha256()
     for name in names:
         digest.update(f"{name}:".encode())
         with open(folder / name, "rb") as f:
