@@ -56,6 +56,9 @@ class FakeOpenAI:
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"  # keep-alive, as real servers do
+            # buffered: an answer's headers and body leave in one write, as from a real server,
+            # so a client never waits on this thread between them on a loaded host
+            wbufsize = -1
 
             def log_message(self, *args):
                 pass
