@@ -151,9 +151,12 @@ def check_finite(state_dict: dict, path: str | Path) -> None:
                          "checkpoint")
 
 
-def training_data(hparams: dict) -> dict:
+def training_data(hparams: dict, resolved_root: str | None = None) -> dict:
     """What a model card says about the training data: the data folder (a portable path),
-    its text features and segments, and the built-in corpus' version, seed and size."""
+    its text features and segments, and the built-in corpus' version, seed and size.
+
+    `resolved_root` is the folder as the fit saw it (an absolute path, recorded in the
+    checkpoint), read in place of `root` when `root` is relative to another directory."""
     root = hparams.get("root")
     if not root:
         return {}
@@ -161,7 +164,7 @@ def training_data(hparams: dict) -> dict:
     for key in ("text_features", "text_segments", "text_tokens"):
         if hparams.get(key):
             data[key] = hparams[key]
-    corpus = Path(root) / "corpus.json"
+    corpus = Path(resolved_root or root) / "corpus.json"
     if corpus.is_file():
         try:
             info = read_json(corpus)
@@ -180,13 +183,15 @@ def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None
     if not overwrite:
         check_replaceable(out)
     module, class_path, checkpoint = load_task(checkpoint_path, task, tokenizer=tokenizer)
+    from segmo.tasks.base import DATA_ROOT_KEY  # Lightning is imported by now
     model = module.export_model().eval()
     meta = {
         "task": class_path,
         "checkpoint": portable_path(checkpoint_path),
         "global_step": int(checkpoint.get("global_step", 0)),
     }
-    data = training_data(checkpoint.get("datamodule_hyper_parameters") or {})
+    data = training_data(checkpoint.get("datamodule_hyper_parameters") or {},
+                         checkpoint.get(DATA_ROOT_KEY))
     if data:
         meta["data"] = data
     with replacing_folder(out) as tmp:

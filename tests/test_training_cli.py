@@ -529,3 +529,23 @@ def test_tokenizer_that_is_not_a_model_directory(text_dataset, tmp_path, capsys)
                         f"--model.init_args.tokenizer={tokenizer}"])
         err = capsys.readouterr().err.strip()
         assert exit_.value.code == 2 and "\n" not in err and err.startswith(f"segmo fit: {expected}"), err
+
+
+def test_export_from_another_directory_keeps_the_corpus_on_the_model_card(tmp_path, monkeypatch):
+    """`data.root` relative to the fit's directory: `segmo export` run from elsewhere looked
+    for corpus.json beside itself and left the corpus out of the model card."""
+    from segmo.export import export
+    from segmo.models.pretrained import read_config
+
+    fit_dir, other = tmp_path / "project", tmp_path / "elsewhere"
+    other.mkdir()
+    make_dataset(fit_dir / "data")
+    (fit_dir / "data" / "corpus.json").write_text('{"name": "synthetic", "version": 2, "seed": 7}')
+    monkeypatch.chdir(fit_dir)
+    cli_main(["fit", "--config", str(CONFIGS[0]), *tiny_overrides(Path("data"), Path("runs")),
+              "--trainer.max_steps=1", "--trainer.val_check_interval=1"])
+    last = next(fit_dir.glob("runs/*/*/version_*/checkpoints/last.ckpt"))
+    monkeypatch.chdir(other)
+    card = read_config(export(last, other / "model"))
+    assert card["meta"]["data"]["root"] == "data"
+    assert card["meta"]["data"]["corpus"] == {"name": "synthetic", "version": 2, "seed": 7}

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import random
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -34,6 +35,7 @@ from segmo.errors import SegmoError
 from segmo.motion.skeleton import get_skeleton
 
 RNG_KEY = "segmo_rng_states"
+DATA_ROOT_KEY = "segmo_data_root"  # the data folder as an absolute path, for the model card
 SHOWN_IDS = 8
 
 
@@ -224,6 +226,9 @@ class Task(L.LightningModule):
                 f"{len(bad)} of {len(checkpoint['state_dict'])} tensors hold NaN/inf "
                 f"({', '.join(bad[:5])}{', ...' if len(bad) > 5 else ''})")
         checkpoint[RNG_KEY] = _gather(rng_states())
+        root = getattr(self.datamodule, "root", None)
+        if root is not None:  # `data.root` may be relative to the directory of the fit
+            checkpoint[DATA_ROOT_KEY] = str(Path(root).resolve())
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self._rng_to_restore = checkpoint.get(RNG_KEY)
