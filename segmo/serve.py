@@ -23,6 +23,7 @@ import argparse
 import math
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -197,12 +198,24 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--model {args.model}: no such directory (a bundle made by `segmo bundle`, "
                      "or a hub id like owner/name)")
     model = SegMo.from_pretrained(args.model)
-    # The requests' files live in a folder that goes when the server stops.
-    with tempfile.TemporaryDirectory(prefix="segmo-serve-") as workdir:
-        app = build_app(model, workdir)
-        print(f"segmo serve: http://{args.host}:{args.port}  (Ctrl-C stops)")
-        app.launch(server_name=args.host, server_port=args.port, show_error=True,
-                   max_file_size=MAX_UPLOAD)
+    # The requests' files live in a folder that goes when the server stops: on Ctrl-C, and
+    # on SIGTERM (`docker stop`, systemd, `kill`), which would otherwise end Python on the spot.
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        with tempfile.TemporaryDirectory(prefix="segmo-serve-") as workdir:
+            app = build_app(model, workdir)
+            print(f"segmo serve: http://{args.host}:{args.port}  (Ctrl-C stops)")
+            try:
+                app.launch(server_name=args.host, server_port=args.port, show_error=True,
+                           max_file_size=MAX_UPLOAD)
+            finally:
+                app.close()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)  # the status a shell gives a process ended by the signal
 
 
 if __name__ == "__main__":

@@ -136,3 +136,38 @@ def test_old_request_folders_are_pruned_and_other_entries_stay(tmp_path):
     prune_requests(tmp_path, 2)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["000004", "000005", "notes"]
     prune_requests(tmp_path / "missing", 2)  # nothing served yet: nothing to do
+
+
+def test_sigterm_stops_the_server_and_removes_its_work_folder(tmp_path, monkeypatch):
+    """`docker stop` sends SIGTERM, which ended Python on the spot: the server's /tmp work
+    folder, with every request's GIF and BVH, stayed behind (Ctrl-C removed it)."""
+    import os
+    import signal
+    import time
+
+    from segmo import serve
+
+    folders, closed = [], []
+
+    class App:  # stands in for the Gradio app: launch blocks until a signal
+        def launch(self, **kwargs):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(10)  # the handler runs here
+
+        def close(self):
+            closed.append(True)
+
+    monkeypatch.setattr(serve, "build_app", lambda model, workdir: folders.append(Path(workdir)) or App())
+    monkeypatch.setattr(SegMo, "from_pretrained", classmethod(lambda cls, name: object()))
+    def unhandled(signum, frame):  # what would end the test run, were serve not to catch it
+        raise AssertionError("SIGTERM reached the handler serve found")
+
+    previous = signal.signal(signal.SIGTERM, unhandled)
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            serve.main(["--model", str(tmp_path)])
+        assert signal.getsignal(signal.SIGTERM) is unhandled  # serve's handler is not left behind
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert stopped.value.code == 128 + signal.SIGTERM
+    assert folders and not folders[0].exists() and closed
