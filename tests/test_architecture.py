@@ -15,7 +15,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 # What models/ may import besides itself: the layers below it.
-BELOW_MODELS = ("segmo.errors", "segmo.files", "segmo.cpu", "segmo.motion", "segmo.text")
+BELOW_MODELS = ("segmo.errors", "segmo.files", "segmo.cpu", "segmo.network", "segmo.motion",
+                "segmo.text")
 
 
 def _module_of(path: Path) -> str:

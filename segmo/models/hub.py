@@ -5,8 +5,9 @@
     model.save_pretrained("out", push_to_hub=True, repo_id="me/segmo-test")
 
 Downloads go through `huggingface_hub` and its cache (``HF_HOME`` / ``HF_HUB_CACHE``);
-with ``HF_HUB_OFFLINE=1`` only the cache is read, so a model fetched once loads on a
-machine without a network. A name that is a folder is always the folder.
+with ``HF_HUB_OFFLINE=1``, or when the hub's host name does not resolve
+(`segmo.network`), only the cache is read, so a model fetched once loads on a machine
+without a network. A name that is a folder is always the folder.
 
 Every model directory records the segmo version that wrote it and its format number
 (`FORMAT`); a directory of a newer format is refused with the version that wrote it,
@@ -20,6 +21,7 @@ import re
 from pathlib import Path
 
 from segmo.errors import SegmoError
+from segmo.network import hub_unreachable
 
 __all__ = ["FORMAT", "check_format", "is_hub_id", "resolve", "push_folder", "portable_path"]
 
@@ -70,7 +72,7 @@ def resolve(name: str | os.PathLike, revision: str | None = None) -> Path:
         raise SegmoError(f"{text}: is a file, not a model folder")
     if not is_hub_id(text):
         raise FileNotFoundError(f"{text}: no such model folder (nor a hub id like 'owner/name')")
-    from huggingface_hub import snapshot_download
+    from huggingface_hub import constants, snapshot_download
     from huggingface_hub.errors import (
         HfHubHTTPError,
         LocalEntryNotFoundError,
@@ -78,13 +80,15 @@ def resolve(name: str | os.PathLike, revision: str | None = None) -> Path:
         RevisionNotFoundError,
     )
 
+    unreachable = None if constants.HF_HUB_OFFLINE else hub_unreachable()  # offline: cache only
     try:
         return Path(snapshot_download(text, revision=revision, library_name="segmo",
-                                      library_version=segmo_version()))
+                                      library_version=segmo_version(),
+                                      local_files_only=bool(unreachable)))
     except LocalEntryNotFoundError:
         raise SegmoError(f"{text}: no such model folder, and the hub repository is not in the "
-                         "Hugging Face cache (offline, or no network); download it once with a "
-                         "network, or pass a folder") from None
+                         f"Hugging Face cache ({unreachable or 'offline, or no network'}); "
+                         "download it once with a network, or pass a folder") from None
     except (RepositoryNotFoundError, RevisionNotFoundError) as error:
         raise SegmoError(f"{text}: no such model folder, and no such hub repository"
                          f"{f' at revision {revision!r}' if revision else ''} "

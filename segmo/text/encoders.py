@@ -35,6 +35,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from segmo.network import hub_unreachable
+
 CLIP_DEFAULT = "openai/clip-vit-base-patch32"
 CLIP_MAX_TOKENS = 77
 ALIASES = ("clip", "minilm")
@@ -175,6 +177,9 @@ def _from_pretrained(cls, source: str, local: bool):
     except OSError as cached_error:
         if _offline():
             raise _unavailable(source, "HF_HUB_OFFLINE is set") from cached_error
+        unreachable = hub_unreachable()
+        if unreachable:
+            raise _unavailable(source, unreachable) from cached_error
     try:
         return cls.from_pretrained(source)
     except Exception as error:  # network errors come in many types; all mean "not here"

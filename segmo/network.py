@@ -1,0 +1,27 @@
+"""Whether the Hugging Face hub can be reached, asked before a download.
+
+Without a network, `huggingface_hub` retries a failed name lookup five times with
+back-off (about 25 s, five warnings) before it says so. One lookup of the hub's host
+tells at once; a miss then reads only the local cache and says why.
+"""
+
+from __future__ import annotations
+
+import functools
+import socket
+import urllib.parse
+
+
+@functools.cache
+def hub_unreachable() -> str | None:
+    """Why the hub's host (``HF_ENDPOINT``, huggingface.co by default) cannot be reached,
+    or None when its name resolves. Asked once per process."""
+    from huggingface_hub import constants
+
+    host = urllib.parse.urlsplit(constants.ENDPOINT).hostname or ""
+    try:
+        socket.getaddrinfo(host, 443, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as error:
+        reason = getattr(error, "strerror", None) or str(error) or type(error).__name__
+        return f"{host} cannot be reached, its name does not resolve: {reason}"
+    return None
