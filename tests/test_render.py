@@ -121,3 +121,23 @@ def test_gif_counts_frames_and_names_the_segment_of_each_frame(tmp_path):
     changed = [np.abs(frames[k][-footer:] - frames[k - 1][-footer:]).sum() for k in range(1, 8)]
     assert all(c > 0 for c in changed)  # the counter moves every frame
     assert changed[3] == max(changed)  # frame 4 -> 5: "1/2 walks" becomes "2/2 waves"
+
+
+def test_each_gif_frame_redraws_what_moves_and_keeps_the_title(tmp_path):
+    """Frames are drawn over a copy of the first full drawing (the title is drawn once): a
+    walking figure must move from frame to frame, and the title stay in every frame."""
+    pose = np.random.default_rng(0).normal(size=(1, 22, 3)) * 0.3 + np.array([0.0, 1.0, 0.0])
+    walk = np.repeat(pose, 6, axis=0) + np.arange(6)[:, None, None] * np.array([0.25, 0.0, 0.0])
+    out = save_animation(walk, tmp_path / "walk.gif", title="a person walks to the right")
+    with Image.open(out) as image:
+        frames = []
+        for k in range(image.n_frames):
+            image.seek(k)
+            frames.append(np.asarray(image.convert("L"), dtype=np.int16))
+    title = slice(0, int(0.4 / (4.0 + 0.4 + 0.25) * frames[0].shape[0]))  # the strip above the axes
+    assert (frames[0][title] < 128).sum() > 50  # the title is drawn...
+    assert all(np.abs(f[title] - frames[0][title]).max() <= 8 for f in frames)  # ...in every frame
+    figure = slice(title.stop, frames[0].shape[0] - 20)
+    assert all((f[figure] < 128).sum() > 500 for f in frames)  # the stick figure, in every frame
+    # the floor moves under the figure the camera follows
+    assert all(np.abs(frames[k][figure] - frames[k - 1][figure]).max() > 30 for k in range(1, 6))
