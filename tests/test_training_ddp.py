@@ -1,6 +1,9 @@
 """`segmo fit` under Lightning DDP with 2 CPU ranks (gloo): rvq, mask (in-sample alignment,
 with validation), residual, length and evaluator train, and the ranks end with identical
-weights.
+weights. The mask stage runs as users start it (`segmo fit --trainer.devices=2`: Lightning
+starts the second rank); the others in two ranks started as torchrun does, each fitting
+the four stages in turn (one start-up a rank instead of two a stage: about 20 s against
+110 s on a 2-core host).
 
 The mask run's validation split is built so that only rank 0's share has ground-truth
 spans: the segment top-1 metrics are then logged by one rank's batches only, the case
@@ -13,6 +16,7 @@ import csv
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -72,24 +76,24 @@ def run_fit(args: list[str], timeout: float = 300) -> str:
     return out
 
 
-@pytest.mark.slow
-@pytest.mark.xdist_group("ddp")  # under `make test`, one DDP run at a time (two ranks each)
-@pytest.mark.parametrize("stage", list(TINY))
-def test_two_cpu_ranks_end_with_identical_weights(stage, ddp_data, tokenizer_dir, tmp_path):
-    if not torch.distributed.is_available():
-        pytest.skip("torch.distributed is not available in this build")
-    states = tmp_path / "states"
-    args = ["--config", str(REPO / "configs" / stage / "synthetic.yaml"), f"--data.root={ddp_data}",
-            f"--runs_dir={tmp_path / 'runs'}", *TINY[stage], "--data.init_args.batch_size=2",
+def stage_args(stage: str, data: Path, tokenizer_dir: dict, out: Path) -> list[str]:
+    """`segmo fit` arguments of a tiny `stage` on 2 CPU ranks, writing under `out`."""
+    args = ["--config", str(REPO / "configs" / stage / "synthetic.yaml"), f"--data.root={data}",
+            f"--runs_dir={out / 'runs'}", *TINY[stage], "--data.init_args.batch_size=2",
             f"--trainer.max_steps={STEPS}", "--trainer.check_val_every_n_epoch=null",
             "--trainer.val_check_interval=2", "--trainer.log_every_n_steps=1",
             "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false",
             "--trainer.accelerator=cpu", "--trainer.devices=2", "--trainer.strategy=ddp",
-            "--trainer.callbacks+=fit_helpers.SaveRankState", f"--trainer.callbacks.directory={states}"]
+            "--trainer.callbacks+=fit_helpers.SaveRankState",
+            f"--trainer.callbacks.directory={out / 'states' / stage}"]
     if stage in ("mask", "residual"):
         args.append(f"--model.init_args.tokenizer={tokenizer_dir['t2m']}")
-    run_fit(args)
+    return args
 
+
+def check_ranks(stage: str, out: Path) -> None:
+    """Both ranks trained `stage` on their own shares and end with identical weights."""
+    states = out / "states" / stage
     rank0, rank1 = (torch.load(states / f"rank{r}.pt") for r in (0, 1))
     assert rank0["world_size"] == rank1["world_size"] == 2
     assert rank0["step"] == rank1["step"] == STEPS
@@ -97,10 +101,65 @@ def test_two_cpu_ranks_end_with_identical_weights(stage, ddp_data, tokenizer_dir
     assert rank0["state"].keys() == rank1["state"].keys()
     for name, value in rank0["state"].items():
         assert torch.equal(value, rank1["state"][name]), f"{name} differs between the ranks"
-    with open(tmp_path / "runs" / stage / "synthetic" / "version_0" / "metrics.csv", newline="") as f:
+    with open(out / "runs" / stage / "synthetic" / "version_0" / "metrics.csv", newline="") as f:
         logged = {key for row in csv.DictReader(f) for key, value in row.items() if value}
     assert {"val/loss", "train/loss"} <= logged
     if stage == "mask":
         assert "val/segment_top1" in logged  # from rank 0's batches alone
     if stage == "evaluator":
         assert "val/matching" in logged  # over the embeddings of both ranks
+
+
+def skip_without_distributed() -> None:
+    if not torch.distributed.is_available():
+        pytest.skip("torch.distributed is not available in this build")
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("ddp")  # under `make test`, one DDP run at a time (two ranks each)
+def test_segmo_fit_launches_two_cpu_ranks_that_end_with_identical_weights(ddp_data, tokenizer_dir,
+                                                                           tmp_path):
+    """`segmo fit --trainer.devices=2`: Lightning starts the second rank itself."""
+    skip_without_distributed()
+    run_fit(stage_args("mask", ddp_data, tokenizer_dir, tmp_path))
+    check_ranks("mask", tmp_path)
+
+
+LAUNCHED = ["rvq", "residual", "length", "evaluator"]
+
+
+@pytest.fixture(scope="module")
+def launched(ddp_data, tokenizer_dir, tmp_path_factory) -> Path:
+    """Two ranks started as torchrun or a cluster starts them, each fitting every stage of
+    LAUNCHED in turn (one import of Lightning a rank for all of them)."""
+    skip_without_distributed()
+    out = tmp_path_factory.mktemp("launched")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    runs = json.dumps([stage_args(stage, ddp_data, tokenizer_dir, out) for stage in LAUNCHED])
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
+           "WORLD_SIZE": "2", "NODE_RANK": "0",
+           "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
+    ranks = [subprocess.Popen([sys.executable, str(TESTS / "ddp_ranks.py"), runs],
+                              env={**env, "LOCAL_RANK": str(r), "RANK": str(r)}, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+             for r in (0, 1)]
+    outputs = []
+    try:
+        for rank in ranks:
+            outputs.append(rank.communicate(timeout=300)[0])
+    except subprocess.TimeoutExpired:  # a deadlock: kill both ranks
+        for rank in ranks:
+            os.killpg(rank.pid, signal.SIGKILL)
+        pytest.fail("the launched DDP ranks did not finish in 300 s (deadlocked?)")
+    for r, (rank, output) in enumerate(zip(ranks, outputs)):
+        assert rank.returncode == 0, f"rank {r}:\n{output[-3000:]}"
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("ddp")
+@pytest.mark.parametrize("stage", LAUNCHED)
+def test_launched_cpu_ranks_end_with_identical_weights(stage, launched):
+    check_ranks(stage, launched)
