@@ -276,3 +276,22 @@ def test_reader_keeps_the_line_count_check_without_a_manifest(motion_data):
     (folder / f"{train[0]}.txt").write_text("a person walks\n")
     with pytest.raises(SegmoError, match=r"has 1 lines but .* has 2"):
         MotionDataset(motion_data, "train", text_segments="rule")
+
+
+def test_segment_texts_with_the_rules_starts_without_torch(tmp_path):
+    """Extraction with the rules or a server needs no torch; importing it (through the
+    text package and the LLM module) took 2 of the command's 3 s to start, in every rank
+    of a preprocessing job and every resumed run."""
+    import subprocess
+    import sys
+
+    root = build_text_dataset(tmp_path / "data")
+    code = ("import sys; from segmo.cli import main\n"
+            "try:\n    main(['segment-texts', '--data', sys.argv[1], '--quiet'])\n"
+            "except SystemExit as e:\n    assert not e.code, e.code\n"
+            "print(sorted(m for m in ('torch', 'transformers') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code, str(root)], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+    assert any((root / "text_segments" / "rule").glob("*.txt"))

@@ -1,34 +1,38 @@
 """Text side: offline text-segment extraction, text encoders and their feature cache.
 
-Heavy dependencies (transformers) are imported only when an LLM backend or an encoder
+Heavy dependencies are imported on use: torch with the encoders and their cache (so that
+`segmo segment-texts` starts without it), transformers when an LLM backend or an encoder
 is actually built.
 """
 
-from segmo.text.cache import TextFeatureCache, update_cache
-from segmo.text.encoders import TextEncoder, TextEncoding, get_text_encoder
-from segmo.text.llm import (
-    OpenAISegmenter,
-    TransformersSegmenter,
-    get_text_segmenter,
-    load_prompt,
-    parse_answer,
-    validate_segments,
-)
-from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
+import importlib
 
-__all__ = [
-    "MAX_SEGMENTS",
-    "OpenAISegmenter",
-    "RuleSegmenter",
-    "TextEncoder",
-    "TextEncoding",
-    "TextFeatureCache",
-    "TextSegmenter",
-    "TransformersSegmenter",
-    "get_text_segmenter",
-    "get_text_encoder",
-    "load_prompt",
-    "parse_answer",
-    "update_cache",
-    "validate_segments",
-]
+# name -> the module that defines it, imported on first use
+_EXPORTS = {
+    "TextFeatureCache": "segmo.text.cache",
+    "update_cache": "segmo.text.cache",
+    "TextEncoder": "segmo.text.encoders",
+    "TextEncoding": "segmo.text.encoders",
+    "get_text_encoder": "segmo.text.encoders",
+    "OpenAISegmenter": "segmo.text.llm",
+    "TransformersSegmenter": "segmo.text.llm",
+    "get_text_segmenter": "segmo.text.llm",
+    "load_prompt": "segmo.text.llm",
+    "parse_answer": "segmo.text.llm",
+    "validate_segments": "segmo.text.llm",
+    "MAX_SEGMENTS": "segmo.text.rules",
+    "RuleSegmenter": "segmo.text.rules",
+    "TextSegmenter": "segmo.text.rules",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'segmo.text' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:  # completion in notebooks lists the lazy names too
+    return sorted([*globals(), *__all__])

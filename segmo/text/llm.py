@@ -42,8 +42,6 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from segmo.errors import SegmoError
 from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
 from segmo.text.validate import answer_schema, parse_answer, validate_segments
@@ -477,6 +475,8 @@ class TransformersSegmenter(LLMSegmenter):
 
     def _complete_many(self, conversations: list[list[dict[str, str]]],
                        progress: Any = None) -> list[str | Exception]:
+        import torch  # with transformers, on use: the rule and server backends run without it
+
         answers: list[str | Exception] = []
         for start in range(0, len(conversations), self.batch_size):
             chunk = conversations[start : start + self.batch_size]
