@@ -438,3 +438,34 @@ def test_neutral_pose_stands_on_the_floor_in_the_rest_pose():
     assert np.abs(joints - expected).max() < 0.06  # only the knees unlock slightly
     assert abs(joints[FEET, 1].min()) < 0.005
     assert joints[15, 1] > 1.5 and joints[[20, 21], 1].max() < 0.9  # upright, arms down
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers end with their parent on Linux")
+def test_workers_end_quietly_with_a_killed_parent(tmp_path):
+    """`segmo synth --workers 2` killed with SIGKILL (a job's time limit): its workers went
+    on drawing motions for nobody and each printed a BrokenPipeError traceback."""
+    import os
+    import time
+
+    out = tmp_path / "corpus"
+    proc = subprocess.Popen([sys.executable, "-m", "segmo", "synth", "--out", str(out),
+                             "--num-motions", "2000", "--workers", "2"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.monotonic() + 60
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    while time.monotonic() < deadline and not any(tmp_path.glob("*/new_joint_vecs/*.npy")):
+        time.sleep(0.1)  # the workers are drawing motions
+    workers = [int(pid) for pid in children.read_text().split()]
+    assert len(workers) == 2
+    proc.kill()
+    err = proc.communicate(timeout=30)[1]
+    time.sleep(1)
+    for pid in workers:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            continue
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+        assert state == "Z", f"worker {pid} still runs after its parent was killed"  # or a zombie
+    assert "Traceback" not in err

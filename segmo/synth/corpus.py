@@ -24,6 +24,8 @@ import json
 import multiprocessing
 import os
 import shutil
+import signal
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -116,8 +118,23 @@ def write_motion(root: Path, mid: str, features: np.ndarray, segments: list[Segm
     ground_truth_file(root, mid).write_text(json.dumps(truth, indent=1) + "\n")
 
 
-def _init_worker() -> None:
+def _init_worker(parent: int) -> None:
     torch.set_num_threads(1)
+    _end_with(parent)
+
+
+def _end_with(parent: int) -> None:
+    """Have the kernel end this worker when `parent` ends (Linux). Killed (SIGKILL, a job's
+    time limit), the parent left its workers drawing motions for nobody, each printing a
+    BrokenPipeError traceback when it tried to hand one over."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1  # <sys/prctl.h>
+    ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent:  # it ended before the request: nothing would signal us
+        os._exit(0)
 
 
 def _corpus_of(path: Path) -> dict | None:
@@ -191,7 +208,7 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool,
         jobs = [(str(tmp), seed, i, splits[i], version) for i in range(num_motions)]
         if workers > 1:
             context = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
-            with context.Pool(workers, initializer=_init_worker) as pool:
+            with context.Pool(workers, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
                 results = list(tqdm(pool.imap(_build_one, jobs, chunksize=4), total=num_motions,
                                     desc="synth", disable=not progress))
         else:
