@@ -97,7 +97,9 @@ class _StickFigure:
         self.ax, self.joints, self.spec = ax, joints, spec
         self.height = max(float(joints[..., 1].max()), 1.0)
         self.num_grid = int(2 * FLOOR_HALF_SIZE / GRID_STEP) + 2
-        self.grid = [ax.plot([], [], [], color="#bbbbbb", lw=0.6)[0] for _ in range(2 * self.num_grid)]
+        # one artist for the whole floor grid, its lines apart by NaN: a 3-D line costs its
+        # projection on every frame, whatever its length
+        self.grid = ax.plot([], [], [], color="#bbbbbb", lw=0.6)[0]
         self.trajectory = ax.plot([], [], [], color="#8c564b", lw=1.2)[0] if trajectory else None
         self.bones = [
             ax.plot([], [], [], color=colour, lw=2.5 if colour == CENTRE else 2.0,
@@ -119,14 +121,17 @@ class _StickFigure:
             first = np.floor((centre - half) / GRID_STEP) * GRID_STEP
             for k in range(self.num_grid):
                 lines.append((axis, first + k * GRID_STEP))
-        for artist, (axis, value) in zip(self.grid, lines):
+        floor = []
+        for axis, value in lines:
+            if abs(value - (root_x if axis == 0 else root_z)) > half:
+                continue  # outside the floor shown
             if axis == 0:
-                seg = np.array([[value, 0.0, root_z - half], [value, 0.0, root_z + half]])
+                floor += [[value, 0.0, root_z - half], [value, 0.0, root_z + half]]
             else:
-                seg = np.array([[root_x - half, 0.0, value], [root_x + half, 0.0, value]])
-            inside = abs(value - (root_x if axis == 0 else root_z)) <= half
-            seg = _to_plot(seg if inside else seg[:0])
-            artist.set_data_3d(seg[:, 0], seg[:, 1], seg[:, 2])
+                floor += [[root_x - half, 0.0, value], [root_x + half, 0.0, value]]
+            floor.append([np.nan] * 3)
+        floor = _to_plot(np.array(floor, dtype=float).reshape(-1, 3))
+        self.grid.set_data_3d(floor[:, 0], floor[:, 1], floor[:, 2])
         if self.trajectory is not None:
             path = self.joints[: frame + 1, 0] * np.array([1.0, 0.0, 1.0])
             # 3-D lines are not clipped to the axes box: hide what lies off the floor.
