@@ -24,6 +24,7 @@ import math
 import os
 import shutil
 import signal
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -147,8 +148,9 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
         try:
             found = generate_files(model, caption, seconds, seed, guidance, method,
                                    root / f"{next(counter):06d}", durations)
-        except SegmoError as error:
-            raise gr.Error(str(error)) from None
+        except SegmoError as error:  # one line in the server's log, the reason on the page
+            print(f"segmo serve: refused a request: {error}", file=sys.stderr, flush=True)
+            raise gr.Error(str(error), print_exception=False) from None
         lines = [f"{k + 1}. {text} — frames {s}–{e} ({s / model.fps:.1f}–{e / model.fps:.1f} s)"
                  for k, (text, (s, e)) in enumerate(zip(found["segments"], found["spans"]))]
         summary = (f"**{found['frames']} frames ({found['frames'] / model.fps:.1f} s), "

@@ -39,7 +39,7 @@ def served(tmp_path_factory, tokenizer_dir):
     app.close()
 
 
-def test_a_caption_in_a_motion_file_out(served):
+def test_a_caption_in_a_motion_file_out(served, capfd):
     url, model = served
     client = gradio_client.Client(url, verbose=False)
     summary, gif, files, grounding = client.predict("a person walks forward, then waves", 2.4, 3,
@@ -57,8 +57,12 @@ def test_a_caption_in_a_motion_file_out(served):
     again_joints = [f if isinstance(f, str) else f["path"] for f in again[2] if str(f).endswith(".npy") or
                     (isinstance(f, dict) and f["path"].endswith(".npy"))][0]
     assert np.array_equal(np.load(again_joints), np.load(paths["sample_00_joints.npy"]))
+    capfd.readouterr()
     with pytest.raises(Exception, match="type a caption first"):
         client.predict("   ", 2.4, 0, 4.0, "similarity", api_name="/generate")
+    # the server's log says why in one line, without Gradio's 30-line traceback
+    err = capfd.readouterr().err
+    assert "segmo serve: refused a request: type a caption first" in err and "Traceback" not in err
     # The seed widget rounded 2.7 to 3 before generate_files could refuse it.
     with pytest.raises(Exception, match="seed must be a whole number"):
         client.predict("a person walks forward, then waves", 2.4, 2.7, 4.0, "attention",
