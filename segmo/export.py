@@ -164,7 +164,7 @@ def training_data(hparams: dict, resolved_root: str | None = None) -> dict:
     for key in ("text_features", "text_segments", "text_tokens"):
         if hparams.get(key):
             data[key] = hparams[key]
-    corpus = Path(resolved_root or root) / "corpus.json"
+    corpus = Path(resolved_root if isinstance(resolved_root, str) else root) / "corpus.json"
     if corpus.is_file():
         try:
             info = read_json(corpus)

@@ -732,6 +732,20 @@ def test_a_broken_corpus_json_leaves_the_model_card_without_it(tmp_path, content
     assert "corpus" not in card and card["text_segments"] == "rule"
 
 
+def test_the_model_card_reads_the_corpus_where_the_fit_found_it(tmp_path):
+    """The checkpoint's resolved data folder wins over a relative `root`; a value of another
+    type in a hand-made checkpoint falls back to `root` (it was a TypeError)."""
+    from segmo.export import training_data
+
+    fit = tmp_path / "fit" / "data"
+    fit.mkdir(parents=True)
+    (fit / "corpus.json").write_text('{"name": "synthetic", "version": 3}')
+    card = training_data({"root": "data"}, str(fit))
+    assert card == {"root": "data", "corpus": {"name": "synthetic", "version": 3}}
+    assert "corpus" not in training_data({"root": str(tmp_path / "nope")}, 5)
+    assert training_data({"root": str(fit)}, 5)["corpus"]["version"] == 3
+
+
 @pytest.mark.parametrize("content, expected", [
     (None, "motion file not found"),
     ("npz", "an .npz archive"),
