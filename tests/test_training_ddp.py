@@ -141,20 +141,24 @@ def launched(ddp_data, tokenizer_dir, tmp_path_factory) -> Path:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
            "WORLD_SIZE": "2", "NODE_RANK": "0",
            "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
-    ranks = [subprocess.Popen([sys.executable, str(TESTS / "ddp_ranks.py"), runs],
-                              env={**env, "LOCAL_RANK": str(r), "RANK": str(r)}, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
-             for r in (0, 1)]
-    outputs = []
+    # Each rank writes to a file: a full pipe would stop one rank while the other waits
+    # for it in a collective.
+    logs = [out / f"rank{r}.log" for r in (0, 1)]
+    ranks = []
+    for r, log in enumerate(logs):
+        with open(log, "w") as f:
+            ranks.append(subprocess.Popen([sys.executable, str(TESTS / "ddp_ranks.py"), runs],
+                                          env={**env, "LOCAL_RANK": str(r), "RANK": str(r)},
+                                          stdout=f, stderr=subprocess.STDOUT, start_new_session=True))
     try:
         for rank in ranks:
-            outputs.append(rank.communicate(timeout=300)[0])
+            rank.wait(timeout=300)
     except subprocess.TimeoutExpired:  # a deadlock: kill both ranks
         for rank in ranks:
             os.killpg(rank.pid, signal.SIGKILL)
         pytest.fail("the launched DDP ranks did not finish in 300 s (deadlocked?)")
-    for r, (rank, output) in enumerate(zip(ranks, outputs)):
-        assert rank.returncode == 0, f"rank {r}:\n{output[-3000:]}"
+    for r, (rank, log) in enumerate(zip(ranks, logs)):
+        assert rank.returncode == 0, f"rank {r}:\n{log.read_text()[-3000:]}"
     return out
 
 
