@@ -7,15 +7,14 @@ tells at once; a miss then reads only the local cache and says why.
 
 from __future__ import annotations
 
-import functools
 import socket
 import urllib.parse
 
 
-@functools.cache
 def hub_unreachable() -> str | None:
     """Why the hub's host (``HF_ENDPOINT``, huggingface.co by default) cannot be reached,
-    or None when its name resolves. Asked once per process."""
+    or None when its name resolves. Asked at each download, not remembered: a notebook
+    that started offline finds the network when it comes back."""
     from huggingface_hub import constants
 
     host = urllib.parse.urlsplit(constants.ENDPOINT).hostname or ""

@@ -25,9 +25,6 @@ def no_network(monkeypatch):
     monkeypatch.delenv("TRANSFORMERS_OFFLINE", raising=False)
     monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", False)
     monkeypatch.setattr(socket, "getaddrinfo", lookup)
-    hub_unreachable.cache_clear()
-    yield
-    hub_unreachable.cache_clear()
 
 
 def test_the_reason_names_the_host(no_network, monkeypatch):
