@@ -86,16 +86,17 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
             timing = [parse_durations(durations)]
         except ValueError as error:
             raise SegmoError(f"segment durations {error}") from None
+    segmented = model.segment_texts([caption])  # once: a bundle may name an LLM segmenter
     lengths = None
     if seconds and seconds > 0:
         frames = max(int(round(min(float(seconds), MAX_SECONDS) * model.fps / 4)) * 4, 4)
-        count = len(model.segment_texts([caption])[0])
+        count = len(segmented[0])
         needed = count * MIN_TOKENS * FRAMES_PER_TOKEN  # what grounding each segment takes
         if frames < needed:  # it failed after the generation, naming tokens
             raise SegmoError(f"a length of {seconds:g} s is too short for the caption's {count} "
                              f"segments; give at least {needed / model.fps:.1f} s")
         lengths = [frames]
-    result = model.generate([caption], lengths, guidance_scale=float(guidance),
+    result = model.generate([caption], lengths, segments=segmented, guidance_scale=float(guidance),
                             generator=torch.Generator().manual_seed(int(seed)), durations=timing)
     segments = result.segments[0]
     grounding = model.ground(caption, result.motion(0), segments=segments, method=method)

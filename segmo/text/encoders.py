@@ -243,8 +243,8 @@ def encoder_identity(source: str | os.PathLike | None) -> str | None:
     names = sorted(p.name for p in folder.iterdir() if p.is_file() and (
         p.name == "config.json" or p.suffix in (".safetensors", ".bin", ".pt", ".pth")))
     # A fit opens the cache once per split and dataset: hash each unchanged file set once.
-    stamp = (str(folder.resolve()), *((n, (folder / n).stat().st_size,
-                                       (folder / n).stat().st_mtime_ns) for n in names))
+    stats = [(folder / n).stat() for n in names]
+    stamp = (str(folder.resolve()), *((n, s.st_size, s.st_mtime_ns) for n, s in zip(names, stats)))
     if stamp not in _IDENTITIES:
         _IDENTITIES[stamp] = _hash_files(folder, names)
     return _IDENTITIES[stamp]
