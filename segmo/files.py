@@ -186,8 +186,11 @@ def read_npy(path: str | os.PathLike) -> Any:
     import numpy as np
 
     path = Path(path)
-    with open(path, "rb") as f:
-        magic = f.read(len(NPY_MAGIC))
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(NPY_MAGIC))
+    except OSError as error:  # a folder, a file this user may not read
+        raise SegmoError(f"{path}: not a readable .npy array ({error.strerror or error})") from None
     if magic != NPY_MAGIC:
         kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy file"
         raise SegmoError(f"{path}: {kind}; save one array with numpy.save")

@@ -772,3 +772,12 @@ def test_read_motion_names_the_file_it_cannot_use(tmp_path, content, expected):
     with pytest.raises(SegmoError) as caught:
         read_motion(tmp_path, "a")
     assert str(caught.value).startswith(str(path)) and expected in str(caught.value)
+
+
+def test_read_npy_of_a_file_it_cannot_open_is_one_segmo_error(tmp_path):
+    """Reading the header first let the OSError of a folder (or a file this user may not
+    read) out of `read_npy`, whose callers expect SegmoError naming the file."""
+    from segmo.files import read_npy
+
+    with pytest.raises(SegmoError, match=r"not a readable \.npy array \(Is a directory\)"):
+        read_npy(tmp_path)
