@@ -163,6 +163,7 @@ def test_sigterm_stops_the_server_and_removes_its_work_folder(tmp_path, monkeypa
 
     monkeypatch.setattr(serve, "build_app", lambda model, workdir: folders.append(Path(workdir)) or App())
     monkeypatch.setattr(SegMo, "from_pretrained", classmethod(lambda cls, name: object()))
+
     def unhandled(signum, frame):  # what would end the test run, were serve not to catch it
         raise AssertionError("SIGTERM reached the handler serve found")
 
