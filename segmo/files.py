@@ -72,6 +72,23 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", encoding: str | None =
         raise
 
 
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside `path`, for a writer that needs a name (another program):
+    the file written there replaces `path` when the block ends without an exception, and
+    is removed when it raises."""
+    path = Path(path)
+    tmp = _temporary_path(path)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
     """Write `data` (text as UTF-8, or bytes) to `path` atomically; returns the path."""
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as f:

@@ -14,11 +14,13 @@ CLI: `segmo render FILE.npy --out OUT.gif [--title T] [--skeleton t2m] [--fps N]
 
 from __future__ import annotations
 
+import itertools
 import math
 import shutil
+import subprocess
 import textwrap
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,12 +28,12 @@ import numpy as np
 from PIL import Image
 
 from segmo.errors import ArgumentParser, SegmoError, finite_float, positive_int
-from segmo.files import atomic_open, file_above, npy_argument, remove_stale_temporaries
+from segmo.files import atomic_open, atomic_path, file_above, npy_argument, remove_stale_temporaries
 from segmo.motion.checks import joints_problem
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 
-__all__ = ["as_joints", "plot_motion", "save_animation", "main"]
+__all__ = ["as_joints", "ffmpeg_executable", "plot_motion", "save_animation", "main"]
 
 LEFT, RIGHT, CENTRE = "#1f5fbf", "#d62728", "#333333"
 FLOOR_HALF_SIZE = 1.0  # metres of floor shown around the root (at least)
@@ -224,8 +226,8 @@ def save_animation(
     segments: Sequence[tuple[str, int, int]] | None = None,
     progress: bool = False,
 ) -> Path:
-    """Write an animated stick figure to `path` (.gif with Pillow, .mp4 with ffmpeg), with
-    a frame and time counter under it.
+    """Write an animated stick figure to `path` (.gif with Pillow, .mp4 with ffmpeg:
+    `ffmpeg_executable`), with a frame and time counter under it.
 
     stride: render every stride-th frame (fps is divided accordingly, so playback speed
     is unchanged). fps: playback rate of the source frames; default the skeleton's.
@@ -237,8 +239,11 @@ def save_animation(
     suffix = path.suffix.lower()
     if suffix not in (".gif", ".mp4"):
         raise SegmoError(f"save_animation: unsupported output {path.name!r}; use .gif or .mp4")
-    if suffix == ".mp4" and shutil.which("ffmpeg") is None:
-        raise SegmoError("save_animation: writing .mp4 needs ffmpeg on PATH; write a .gif instead")
+    ffmpeg = ffmpeg_executable() if suffix == ".mp4" else None
+    if suffix == ".mp4" and ffmpeg is None:
+        raise SegmoError("save_animation: writing .mp4 needs ffmpeg: install segmo's video "
+                         "extra (pip install 'segmo[video]'), or put ffmpeg on PATH; or write "
+                         "a .gif")
     if stride < 1:
         raise SegmoError(f"save_animation: stride must be >= 1, got {stride}")
     if fps is not None and not (np.isfinite(fps) and fps > 0):
@@ -290,43 +295,86 @@ def save_animation(
         from tqdm import tqdm  # on use, like matplotlib
 
         frame_indices = tqdm(frame_indices, desc=f"render {path.name}", unit="frame", leave=False)
+    frames = _drawn_frames(fig, ax, counter, active, draw, frame_indices)
     if suffix == ".gif":
-        # The title never changes and the segment seldom does: the figure is drawn once
-        # without what moves, the segment's line drawn on a copy of that when it changes, and
-        # each frame draws only the axes and the counter over the copy (half the time a
-        # frame). The axes' white patch goes (the figure is white beneath it): drawn after
-        # the title, it would cut off the title's descenders.
-        ax.patch.set_visible(False)
-        for artist in (ax, counter, active):
-            if artist is not None:
-                artist.set_animated(True)
-        fig.canvas.draw()
-        background = blank = fig.canvas.copy_from_bbox(fig.bbox)
-        shown = None
-        images = []
-        for frame in frame_indices:
-            draw(frame)
-            if active is not None and active.get_text() != shown:  # the segment changed
-                fig.canvas.restore_region(blank)
-                fig.draw_artist(active)
-                background, shown = fig.canvas.copy_from_bbox(fig.bbox), active.get_text()
-            fig.canvas.restore_region(background)
-            fig.draw_artist(ax)
-            fig.draw_artist(counter)
-            rgb = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
-            images.append(rgb.quantize(colors=64, method=Image.Quantize.FASTOCTREE))
+        images = [Image.fromarray(rgb).quantize(colors=64, method=Image.Quantize.FASTOCTREE)
+                  for rgb in frames]
         with atomic_open(path, "wb") as f:  # a killed render leaves no half GIF
             images[0].save(f, format="GIF", save_all=True, append_images=images[1:], loop=0,
                            duration=int(round(1000 / rate)), disposal=2)
     else:
-        from matplotlib.animation import FFMpegWriter  # matplotlib on use, as in _figure
-
-        writer = FFMpegWriter(fps=rate)
-        with writer.saving(fig, str(path), dpi):
-            for frame in frame_indices:
-                draw(frame)
-                writer.grab_frame()
+        _write_mp4(frames, path, rate, ffmpeg)
     return path
+
+
+def _drawn_frames(fig, ax, counter, active, draw, frame_indices) -> Iterator[np.ndarray]:
+    """Each frame of the animation as (h, w, 3) uint8 RGB, after `draw(frame)` set it up.
+
+    The title never changes and the segment seldom does: the figure is drawn once without
+    what moves, the segment's line drawn on a copy of that when it changes, and each frame
+    draws only the axes and the counter over the copy (half the time a frame). The axes'
+    white patch goes (the figure is white beneath it): drawn after the title, it would cut
+    off the title's descenders."""
+    ax.patch.set_visible(False)
+    for artist in (ax, counter, active):
+        if artist is not None:
+            artist.set_animated(True)
+    fig.canvas.draw()
+    background = blank = fig.canvas.copy_from_bbox(fig.bbox)
+    shown = None
+    for frame in frame_indices:
+        draw(frame)
+        if active is not None and active.get_text() != shown:  # the segment changed
+            fig.canvas.restore_region(blank)
+            fig.draw_artist(active)
+            background, shown = fig.canvas.copy_from_bbox(fig.bbox), active.get_text()
+        fig.canvas.restore_region(background)
+        fig.draw_artist(ax)
+        fig.draw_artist(counter)
+        yield np.asarray(fig.canvas.buffer_rgba())[..., :3]
+
+
+def ffmpeg_executable() -> str | None:
+    """The ffmpeg that writes MP4s: the one imageio-ffmpeg ships (the `video` extra), else
+    ffmpeg on PATH; None when there is neither."""
+    try:
+        import imageio_ffmpeg  # optional, and 70 MB: on use
+    except ImportError:
+        return shutil.which("ffmpeg")
+    try:
+        return imageio_ffmpeg.get_ffmpeg_exe()  # IMAGEIO_FFMPEG_EXE, its own, then PATH's
+    except RuntimeError:  # no binary for this platform, and none on PATH
+        return None
+
+
+def _write_mp4(frames: Iterator[np.ndarray], path: Path, rate: float, ffmpeg: str) -> None:
+    """Pipe RGB frames to `ffmpeg` for an H.264 MP4 that replaces `path` only once whole
+    (a killed or failed render leaves an earlier file as it was). Players expect yuv420p,
+    which needs even sides: a white row or column is added where one is odd."""
+    first = next(frames)
+    height, width = first.shape[:2]
+    with atomic_path(path) as tmp:
+        command = [ffmpeg, "-v", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24",
+                   "-s", f"{width}x{height}", "-framerate", f"{rate:.6f}", "-i", "pipe:",
+                   "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2:color=white", "-vcodec", "h264",
+                   "-pix_fmt", "yuv420p", "-f", "mp4", str(tmp)]
+        process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.PIPE)
+        try:
+            try:
+                for rgb in itertools.chain([first], frames):
+                    process.stdin.write(rgb.tobytes())
+            except BrokenPipeError:  # ffmpeg stopped: its message says why
+                pass
+            _, error = process.communicate()
+        except BaseException:
+            process.kill()
+            process.wait()
+            raise
+        if process.returncode != 0:
+            lines = error.decode(errors="replace").strip().splitlines() or ["no message"]
+            raise SegmoError(f"save_animation: {ffmpeg} could not write {path.name} (exit "
+                             f"status {process.returncode}): {lines[-1]}")
 
 
 def main(argv: list[str] | None = None) -> None:

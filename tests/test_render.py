@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +11,9 @@ import pytest
 from conftest import cli_failure
 from PIL import Image
 
+from segmo.errors import SegmoError
 from segmo.motion import T2M
-from segmo.render import as_joints, main, plot_motion, save_animation
+from segmo.render import as_joints, ffmpeg_executable, main, plot_motion, save_animation
 
 FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "humanml3d"
 
@@ -78,7 +81,7 @@ def test_input_errors(tmp_path, monkeypatch):
         as_joints(np.zeros((10, 100)))
     with pytest.raises(ValueError, match="unsupported output"):
         save_animation(np.zeros((3, 22, 3)), tmp_path / "x.avi")
-    monkeypatch.setattr("segmo.render.shutil.which", lambda name: None)
+    monkeypatch.setattr("segmo.render.ffmpeg_executable", lambda: None)
     with pytest.raises(ValueError, match="ffmpeg"):
         save_animation(np.zeros((3, 22, 3)), tmp_path / "x.mp4")
 
@@ -141,3 +144,60 @@ def test_each_gif_frame_redraws_what_moves_and_keeps_the_title(tmp_path):
     assert all((f[figure] < 128).sum() > 500 for f in frames)  # the stick figure, in every frame
     # the floor moves under the figure the camera follows
     assert all(np.abs(frames[k][figure] - frames[k - 1][figure]).max() > 30 for k in range(1, 6))
+
+
+def _ffmpeg() -> str:
+    exe = ffmpeg_executable()
+    if exe is None:
+        pytest.skip("no ffmpeg: neither imageio-ffmpeg (the video extra) nor ffmpeg on PATH")
+    return exe
+
+
+def _mp4_frames(path: Path) -> np.ndarray:
+    """The frames of an MP4 as (n, h, w, 3) uint8, decoded by ffmpeg."""
+    probe = subprocess.run([_ffmpeg(), "-v", "error", "-i", str(path), "-f", "rawvideo",
+                            "-pix_fmt", "rgb24", "-"], capture_output=True, check=True)
+    header = subprocess.run([_ffmpeg(), "-i", str(path)], capture_output=True, text=True).stderr
+    width, height = map(int, re.search(r"Video: h264.*?, (\d+)x(\d+)", header).groups())
+    assert re.search(r"(\d+(\.\d+)?) fps", header).group(1) == "20"
+    return np.frombuffer(probe.stdout, np.uint8).reshape(-1, height, width, 3)
+
+
+def test_an_mp4_has_every_frame_at_the_motions_rate(tmp_path):
+    _ffmpeg()
+    joints = as_joints(np.zeros((23, 263)))
+    joints[:, :, 0] += np.linspace(0, 1, 23)[:, None]  # walks along x: frames differ
+    out = save_animation(joints, tmp_path / "walk.mp4", title="a person walks",
+                         segments=[("walks", 0, 12), ("stops", 12, 23)])
+    frames = _mp4_frames(out)
+    assert len(frames) == 23 and frames.shape[1] % 2 == 0 and frames.shape[2] % 2 == 0
+    assert np.abs(frames[0].astype(int) - frames[-1]).max() > 100  # the figure moved
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_an_mp4_that_fails_midway_leaves_the_earlier_file(tmp_path, monkeypatch):
+    _ffmpeg()
+    out = tmp_path / "walk.mp4"
+    out.write_bytes(b"yesterday's render")
+    calls = []
+
+    def fail_on_the_fifth(self, frame):
+        calls.append(frame)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+    monkeypatch.setattr("segmo.render._StickFigure.update", fail_on_the_fifth)
+    with pytest.raises(KeyboardInterrupt):
+        save_animation(np.zeros((30, 22, 3)), out)
+    assert out.read_bytes() == b"yesterday's render"
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_an_ffmpeg_that_fails_is_named_with_its_message(tmp_path, monkeypatch):
+    broken = tmp_path / "ffmpeg"
+    broken.write_text("#!/bin/sh\necho 'Unknown encoder h264' >&2\nexit 1\n")
+    broken.chmod(0o755)
+    monkeypatch.setattr("segmo.render.ffmpeg_executable", lambda: str(broken))
+    with pytest.raises(SegmoError, match=r"ffmpeg could not write x.mp4 \(exit status 1\): "
+                                         "Unknown encoder h264"):
+        save_animation(np.zeros((40, 22, 3)), tmp_path / "x.mp4")
+    assert not list(tmp_path.glob("*.mp4")) and not list(tmp_path.glob(".*.tmp"))
