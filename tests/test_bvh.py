@@ -198,6 +198,20 @@ def test_bvh_target_frame_rate(tmp_path):
     assert np.abs(_read(path, "bvh")[::3] - original).max() < 1e-4  # the 20 fps frames are kept
 
 
+@pytest.mark.parametrize("frames, fps, target_fps", [(76, 20, 22.4), (251, 12, 47.952)])
+def test_bvh_resampling_whose_last_frame_rounds_past_the_motions_end(tmp_path, frames, fps,
+                                                                      target_fps):
+    """The last resampled frame, k / target_fps, came out one rounding error after the
+    motion's end, and scipy's Slerp raised a ValueError after the whole fit."""
+    joints = np.concatenate([_corpus_joints(4)] * 4)[:frames]
+    path = joints_to_bvh(joints, tmp_path / "x.bvh", fps=fps, target_fps=target_fps,
+                         foot_lock=False)
+    resampled = _read(path, "bvh")
+    assert len(resampled) == int((frames - 1) / fps * target_fps + 1e-9) + 1
+    kept = _read(joints_to_bvh(joints, tmp_path / "same.bvh", fps=fps, foot_lock=False), "bvh")
+    assert np.abs(resampled[-1] - kept[-1]).max() < 1e-4  # the last frame is the motion's last
+
+
 @pytest.mark.parametrize("rates", [{"target_fps": 1e-9}, {"target_fps": 1000}, {"fps": 1e-9},
                                    {"fps": 20, "target_fps": float("nan")}])
 def test_bvh_refuses_a_frame_rate_out_of_range(tmp_path, rates):

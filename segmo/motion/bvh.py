@@ -146,6 +146,9 @@ def _resample(fit: SkeletonFit, fps: float, target_fps: float) -> tuple[np.ndarr
         return fit.root, fit.local
     times = np.arange(t) / fps
     new_times = np.arange(int(np.floor(times[-1] * target_fps + 1e-9)) + 1) / target_fps
+    # k / target_fps can pass the last time by a rounding error (75 / 20 -> 84 / 22.4), and
+    # Slerp refuses a time past its last
+    new_times = np.minimum(new_times, times[-1])
     root = np.stack([np.interp(new_times, times, fit.root[:, k]) for k in range(3)], -1)
     local = np.empty((len(new_times), *fit.local.shape[1:]))
     for joint in range(fit.local.shape[1]):
