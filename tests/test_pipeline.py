@@ -812,6 +812,56 @@ def test_a_save_does_not_replace_a_file_no_save_wrote(bundle, tmp_path):
     assert [e["file"] for e in json.loads((out / "prompts.json").read_text())] == ["sample_00"]
 
 
+def test_a_save_owns_the_files_it_wrote_not_every_file_of_its_motions_name(bundle, tmp_path):
+    """A save of the npy files listed 'sample_00', so a later save with BVH replaced the
+    user's sample_00.bvh put there between the two; one that wrote no file claimed all."""
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    output = model.generate([PROMPTS[0]], [16], generator=torch.Generator().manual_seed(0))
+    out = tmp_path / "u"
+    output.save(out, formats=("npy",))
+    (out / "sample_00.bvh").write_text("my hand-edited take")
+    with pytest.raises(SegmoError, match=r"sample_00\.bvh: a file that segmo did not write"):
+        output.save(out, formats=("npy", "bvh"))
+    assert (out / "sample_00.bvh").read_text() == "my hand-edited take"
+    (out / "sample_00.bvh").unlink()
+    output.save(out, formats=("bvh",))  # the npy files of the first save stay listed
+    output.save(out, formats=("npy", "bvh"))
+    [entry] = json.loads((out / "prompts.json").read_text())
+    assert entry["files"] == ["sample_00.bvh", "sample_00_features.npy", "sample_00_joints.npy",
+                              "sample_00_tokens.npy"]
+    empty = tmp_path / "empty"
+    output.save(empty, formats=())
+    (empty / "sample_00.gif").write_text("mine")
+    with pytest.raises(SegmoError, match=r"sample_00\.gif: a file that segmo did not write"):
+        output.save(empty, formats=("gif",))
+
+
+def test_a_save_before_files_were_listed_owns_every_format_of_its_motion(bundle, tmp_path):
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    output = model.generate([PROMPTS[0]], [16], generator=torch.Generator().manual_seed(0))
+    out = tmp_path / "old"
+    output.save(out, formats=("bvh",))
+    entries = json.loads((out / "prompts.json").read_text())
+    (out / "prompts.json").write_text(json.dumps([{k: v for k, v in e.items() if k != "files"}
+                                                  for e in entries]))
+    output.save(out, formats=("bvh",))
+    assert json.loads((out / "prompts.json").read_text())[0]["files"] == ["sample_00.bvh"]
+
+
+@pytest.mark.parametrize("prefix", ["x/y", "../p", "a\\b", "nul\0"])
+def test_a_save_refuses_a_prefix_that_is_no_part_of_a_file_name(bundle, tmp_path, prefix):
+    """prefix "x/y" moved x/y_00.bvh over the user's DIR/y_00.bvh without the check;
+    "../p" wrote outside the stage folder and failed with a FileNotFoundError."""
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    output = model.generate([PROMPTS[0]], [16], generator=torch.Generator().manual_seed(0))
+    out = tmp_path / "dir" / "sub"
+    out.mkdir(parents=True)
+    (out / "y_00.bvh").write_text("mine")
+    with pytest.raises(SegmoError, match=r"prefix .* must be part of a file name"):
+        output.save(out, formats=("npy", "bvh"), prefix=prefix)
+    assert [p.name for p in tmp_path.rglob("*")] == ["dir", "sub", "y_00.bvh"]
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),

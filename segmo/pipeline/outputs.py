@@ -140,6 +140,7 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
         for prefix, output in outputs.items():
             for i, text in enumerate(output.texts):
                 stem = stage / f"{prefix}_{i:02d}"
+                first = len(written)
                 features, joints = output.motion(i), output.motion_joints(i)
                 fit = None
                 if fixed_skeleton or "bvh" in formats:
@@ -165,12 +166,20 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
                     written.append(write_bvh(fit, f"{stem}.bvh", output.skeleton, fps=output.fps,
                                              target_fps=bvh_fps))
                 index.append({"file": stem.name, "text": text, "segments": output.segments[i],
-                              "frames": int(output.lengths[i])})
-        # An earlier save's entries stay listed, except those of the files written now. The
-        # list moves in first, so that every file a save moves in is listed even if the
-        # save is killed halfway.
-        rewritten = {entry["file"] for entry in index}
-        index = [entry for entry in earlier if entry["file"] not in rewritten] + index
+                              "frames": int(output.lengths[i]),
+                              "files": [path.name for path in written[first:]]})
+        # An earlier save's entries stay listed, except those of the motions written now,
+        # whose earlier files of other formats stay listed under the new entry. The list
+        # moves in first, so that every file a save moves in is listed even if the save is
+        # killed halfway.
+        replaced = {entry["file"]: entry for entry in earlier}
+        for entry in index:
+            if entry["file"] in replaced:
+                kept = {name for name in owned_files(replaced[entry["file"]])
+                        if (directory / name).exists()}
+                entry["files"] = sorted(kept | set(entry["files"]))
+        index = [entry for entry in earlier if entry["file"] not in
+                 {new_entry["file"] for new_entry in index}] + index
         listing = stage / "prompts.json"
         listing.write_text(json.dumps(index, indent=2) + "\n", encoding="utf-8")
         written.append(listing)
@@ -189,27 +198,41 @@ SUFFIXES = {"npy": ("_features.npy", "_joints.npy", "_tokens.npy"), "gif": (".gi
             "bvh": (".bvh",)}  # the files of one motion, by format
 
 
+def owned_files(entry: dict) -> set[str]:
+    """The names of the files a prompts.json entry says its save wrote: its "files"; an
+    entry of a save before segmo listed them (only "file", the motion) owns every file of
+    its motion's name."""
+    files = entry.get("files")
+    if isinstance(files, list):
+        return {name for name in files if isinstance(name, str)}
+    return {f"{entry['file']}{suffix}" for suffixes in SUFFIXES.values() for suffix in suffixes}
+
+
 def check_save_target(directory: str | Path, counts: Mapping[str, int],
                       formats: Sequence[str]) -> list[dict]:
     """What `save_outputs` checks before any work, for `counts[prefix]` motions of each
-    prefix in `formats`: SegmoError when `directory` holds a prompts.json that is not
-    segmo's, a folder where a file goes, or a file of the same name that no save wrote (no
-    prompts.json entry lists its motion: the user's). Returns the prompts.json entries."""
+    prefix in `formats`: SegmoError when a prefix is no part of a file name, when
+    `directory` holds a prompts.json that is not segmo's, a folder where a file goes, or a
+    file of the same name that no save wrote (no prompts.json entry lists it: the user's).
+    Returns the prompts.json entries."""
+    for prefix in counts:
+        if not isinstance(prefix, str) or any(c in prefix for c in "/\\\0"):
+            raise SegmoError(f"GenerationOutput.save: prefix {prefix!r} must be part of a file "
+                             "name (no '/', '\\' or NUL): choose the folder with `directory`")
     directory = Path(directory)
     earlier = read_prompts(directory)
-    stems = {f"{prefix}_{i:02d}{suffix}": f"{prefix}_{i:02d}" for prefix, count in counts.items()
-             for i in range(count) for kind in formats for suffix in SUFFIXES[kind]}
-    blocked = [name for name in ["prompts.json", *stems] if (directory / name).is_dir()]
+    names = [f"{prefix}_{i:02d}{suffix}" for prefix, count in counts.items()
+             for i in range(count) for kind in formats for suffix in SUFFIXES[kind]]
+    blocked = [name for name in ["prompts.json", *names] if (directory / name).is_dir()]
     if blocked:
         raise SegmoError(f"{directory / blocked[0]}: a folder where the save writes a file; move "
                          "it away or write elsewhere")
-    ours = {entry["file"] for entry in earlier}
-    foreign = [name for name, stem in stems.items() if stem not in ours
+    ours = set().union(*map(owned_files, earlier))
+    foreign = [name for name in names if name not in ours
                and ((directory / name).exists() or (directory / name).is_symlink())]
     if foreign:
         raise SegmoError(f"{directory / foreign[0]}: a file that segmo did not write (no "
-                         f"prompts.json there lists {stems[foreign[0]]!r}); move it away or write "
-                         "elsewhere")
+                         f"prompts.json there lists it); move it away or write elsewhere")
     return earlier
 
 
