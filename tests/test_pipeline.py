@@ -628,6 +628,26 @@ def test_cli_compose_writes_one_long_motion(bundle, tmp_path, hash_text_encoder,
         [*two, "--durations", "auto", "--durations", "1"], capsys)
 
 
+@pytest.mark.parametrize("length", [4, 12])
+def test_cli_generate_writes_a_gif_of_a_motion_too_short_to_ground_each_segment(
+        bundle, tmp_path, hash_text_encoder, capsys, length):
+    """The GIF's segment labels ground each segment on at least two tokens: a --length
+    under that (3 tokens for two segments) failed after the generation and wrote nothing."""
+    generate_main(["--model", str(bundle), "--text", PROMPTS[1], "--length", str(length),
+                   "--out", str(tmp_path)])
+    [entry] = json.loads((tmp_path / "prompts.json").read_text())
+    assert len(entry["segments"]) == 2 and entry["frames"] == length
+    assert _frames_of(tmp_path / "sample_00.gif") == length
+    assert (tmp_path / "sample_00.bvh").is_file()
+
+
+def _frames_of(gif: Path) -> int:
+    from PIL import Image
+
+    with Image.open(gif) as image:
+        return image.n_frames
+
+
 def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, capsys):
     from segmo.pipeline.cli import edit_main
 

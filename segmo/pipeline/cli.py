@@ -38,6 +38,7 @@ from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText
 from segmo.models.hub import is_hub_id
+from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.bvh import ANIMATION_FPS, MAX_BVH_FPS, MIN_BVH_FPS, check_bvh_fps
 from segmo.pipeline.bundle import KIT_GUIDANCE_SCALE, TEXT_SEGMENTERS
 from segmo.pipeline.compose import COMPOSE_TRANSITION
@@ -178,13 +179,29 @@ def generate_main(argv: list[str] | None = None) -> None:
                          guidance=args.guidance_mode,
                          temperature=args.temperature, generator=generator,
                          precision=args.precision, durations=durations)
-    spans = None
-    if "gif" in formats:  # which segment each frame shows, from the model's own attention
-        spans = [model.ground(text, out.motion(i), segments=out.segments[i], method="attention")
-                 .best_spans_frames for i, text in enumerate(out.texts)]
+    spans = _gif_spans(model, out) if "gif" in formats else None
     for path in out.save(args.out, formats, bvh_fps=args.bvh_fps, foot_lock=not args.no_foot_lock,
                          spans=spans, progress=True):
         print(path)
+
+
+def _gif_spans(model: SegMo, out) -> list[list[tuple[int, int]]]:
+    """Which segment each frame of each GIF shows, from the model's own attention
+    (`SegMo.ground`, method "attention"). A motion with fewer than MIN_TOKENS tokens a
+    segment (a short --length, or a short predicted one) is grounded with one-token spans,
+    and one with fewer tokens than segments gets no labels ([]): its files are written all
+    the same."""
+    spans = []
+    for i, text in enumerate(out.texts):
+        tokens, count = int(out.lengths[i]) // FRAMES_PER_TOKEN, len(out.segments[i])
+        if tokens < count:
+            spans.append([])
+            continue
+        grounding = model.ground(text, out.motion(i), segments=out.segments[i],
+                                 method="attention",
+                                 min_tokens=MIN_TOKENS if tokens >= count * MIN_TOKENS else 1)
+        spans.append(grounding.best_spans_frames)
+    return spans
 
 
 def _durations_per_text(parser: argparse.ArgumentParser, values: list[str] | None,
