@@ -20,9 +20,9 @@ from segmo.motion import (
     joints_to_features,
     rest_offsets,
 )
-from segmo.motion.bvh import ORDERS, continuous_euler, joints_to_bvh
+from segmo.motion.bvh import ORDERS, continuous_euler, joints_to_bvh, write_bvh
 from segmo.motion.quaternion import axis_angle_to_quat, euler_to_matrix
-from segmo.motion.skeleton_fit import fit_skeleton, foot_contacts, foot_skating
+from segmo.motion.skeleton_fit import fit_motion, fit_skeleton, foot_contacts, foot_skating
 from segmo.synth.sequence import sample_motion
 
 bvh = pytest.importorskip("bvh", reason="the `bvh` parser (dev extra) is not installed")
@@ -220,6 +220,28 @@ def test_bvh_refuses_a_frame_rate_out_of_range(tmp_path, rates):
     with pytest.raises(ValueError, match=rf"joints_to_bvh: {name}: expected a frame rate in \[12, 480\]"):
         joints_to_bvh(_corpus_joints(4), tmp_path / "x.bvh", foot_lock=False, **rates)
     assert not (tmp_path / "x.bvh").exists()
+
+
+def test_write_bvh_refuses_a_fit_of_another_skeleton(tmp_path):
+    """A t2m fit written with skeleton="kit" gave a KIT hierarchy carrying t2m rotations at
+    KIT's frame time, without a word (and a KIT fit with the default t2m an IndexError)."""
+    fit = fit_motion(_corpus_joints(4)[:8], foot_lock=False)
+    with pytest.raises(ValueError, match="write_bvh: the fit is of a skeleton of 22 joints "
+                                         "other than 'kit'"):
+        write_bvh(fit, tmp_path / "x.bvh", skeleton="kit")
+    assert not (tmp_path / "x.bvh").exists()
+
+
+def test_contacts_must_be_booleans_and_need_the_foot_lock(tmp_path):
+    """The features' contact channels (0.1-1.1) passed as contacts locked both feet in
+    every frame; contacts with foot_lock=False were ignored."""
+    joints = _corpus_joints(4)[:8]
+    with pytest.raises(ValueError, match=r"contacts must be booleans, got float64 \(threshold"):
+        joints_to_bvh(joints, tmp_path / "x.bvh", contacts=np.full((8, 4), 0.2))
+    with pytest.raises(ValueError, match="contacts given with foot_lock=False"):
+        joints_to_bvh(joints, tmp_path / "x.bvh", contacts=np.ones((8, 4), bool), foot_lock=False)
+    assert not (tmp_path / "x.bvh").exists()
+    assert joints_to_bvh(joints, tmp_path / "x.bvh", contacts=np.ones((8, 4), bool)).is_file()
 
 
 def test_bvh_rejects_wrong_shape(tmp_path):

@@ -174,6 +174,9 @@ def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec =
     MAX_BVH_FPS] (`check_bvh_fps`). scale multiplies lengths.
     """
     spec = get_skeleton(skeleton)
+    if tuple(fit.parents) != tuple(spec.parents):  # another skeleton's fit, or none
+        raise ValueError(f"write_bvh: the fit is of a skeleton of {len(fit.parents)} joints "
+                         f"other than {spec.name!r}; pass the skeleton it was fitted to")
     check_scale(scale, "write_bvh")
     fps = check_bvh_fps(spec.fps if fps is None else fps, "write_bvh: fps")
     target_fps = fps if target_fps is None else check_bvh_fps(target_fps, "write_bvh: target_fps")

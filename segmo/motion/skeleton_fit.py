@@ -314,8 +314,16 @@ def fit_motion(joints: Any, skeleton: str | SkeletonSpec = "t2m", foot_lock: boo
         joints = joints.detach().cpu().numpy()
     positions = np.asarray(joints, dtype=np.float64)
     weights = None
+    if contacts is not None:
+        contacts = np.asarray(contacts)
+        if contacts.dtype != bool:  # the features' contact channels (0.1-1.1) all read True
+            raise ValueError(f"fit_motion: contacts must be booleans, got {contacts.dtype} "
+                             "(threshold contact channels first, e.g. features[:, -4:] > 0.5)")
+        if not foot_lock:
+            raise ValueError("fit_motion: contacts given with foot_lock=False, which locks no "
+                             "foot; pass foot_lock=True or leave contacts out")
     if foot_lock and positions.ndim == 3 and positions.shape[1:] == (spec.num_joints, 3):
-        contacts = foot_contacts(positions, spec) if contacts is None else np.asarray(contacts, dtype=bool)
+        contacts = foot_contacts(positions, spec) if contacts is None else contacts
         if contacts.shape != (len(positions), 4):
             raise ValueError(f"fit_motion: contacts must be ({len(positions)}, 4), got {contacts.shape}")
         feet = list(spec.feet_left) + list(spec.feet_right)
