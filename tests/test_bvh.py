@@ -6,6 +6,10 @@ and the joints they compute must land on the input joints."""
 
 from __future__ import annotations
 
+import ast
+import json
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -344,3 +348,28 @@ def test_bvh_check_tool_at_the_exporters_frame_rates(tmp_path, capsys):
     with pytest.raises(SystemExit):
         tool.main(["--data", str(data), "--bvh-fps", "25"])
     assert "multiple of 20" in capsys.readouterr().err
+
+
+def test_the_blender_tool_knows_segmos_joint_order():
+    """Without --names the tool took Blender's bone order (the file's, depth first) for
+    the joints' own: every bone was compared with another joint (380 mm off on average)."""
+    tree = ast.parse((Path(__file__).resolve().parents[1] / "tools" / "blender_import.py").read_text())
+    [names] = [ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
+               and getattr(node.targets[0], "id", None) == "T2M_JOINTS"]
+    assert names == list(T2M.joint_names)
+
+
+def test_blender_imports_the_file_onto_the_joints(tmp_path):
+    """Blender's own BVH importer, where Blender is installed (Debian: apt install blender)."""
+    if shutil.which("blender") is None:
+        pytest.skip("Blender is not installed")
+    joints = _corpus_joints(4)[:24]
+    fit = fit_motion(joints)
+    np.save(tmp_path / "joints.npy", fit.joints)
+    path = joints_to_bvh(joints, tmp_path / "x.bvh", target_fps=60)
+    tool = Path(__file__).resolve().parents[1] / "tools" / "blender_import.py"
+    run = subprocess.run(["blender", "-b", "--python", str(tool), "--", str(path),
+                          str(tmp_path / "joints.npy")], capture_output=True, text=True, timeout=300)
+    [line] = [line for line in run.stdout.splitlines() if line.startswith("{")]
+    report = json.loads(line)
+    assert report["bones"] == 22 and report["every"] == 3 and report["max_mm"] < 1.0

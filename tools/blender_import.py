@@ -1,6 +1,8 @@
 """Import a segmo BVH into Blender headless and compare its bones with segmo's joints.
 
-    blender -b --python tools/blender_import.py -- MOTION.bvh JOINTS.npy
+    blender -b --python tools/blender_import.py -- MOTION.bvh JOINTS.npy [--names JSON]
+
+JOINTS are in t2m order (segmo's); --names gives another order as a JSON list of joint names.
 
 Runs inside Blender (its own Python, `bpy`): imports the file with Blender's own BVH
 importer (native per-bone rotation orders, y up converted to Blender's z up), plays every
@@ -25,6 +27,13 @@ import numpy as np
 _open = builtins.open
 builtins.open = lambda file, mode="r", *a, **k: _open(file, mode.replace("U", ""), *a, **k)
 
+# segmo.motion.T2M.joint_names: Blender's own Python cannot import segmo (a test checks it)
+T2M_JOINTS = [
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
+    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+    "left_wrist", "right_wrist",
+]
 argv = sys.argv[sys.argv.index("--") + 1:]
 bvh_path, joints_path = argv[0], argv[1]
 joints = np.load(joints_path).astype(np.float64)  # (t, j, 3), y up
@@ -54,8 +63,10 @@ for f in range(frames - 1):
 halves = np.asarray(halves)
 # Blender's axes from the file's y up, -z forward: (x, y, z)_bvh -> (x, -z, y)_blender
 expected = np.stack([joints[..., 0], -joints[..., 2], joints[..., 1]], -1)
-from_names = json.loads(argv[argv.index("--names") + 1]) if "--names" in argv else None
-order = [from_names.index(n) for n in names] if from_names else list(range(len(names)))
+# The joints' order, to find each bone's joint by name (Blender orders the bones as the file
+# lists them, depth first, not as the joints are stored).
+from_names = json.loads(argv[argv.index("--names") + 1]) if "--names" in argv else T2M_JOINTS
+order = [from_names.index(n) for n in names]
 error = np.linalg.norm(heads[::every] - expected[:, order], axis=-1) * 1000
 middle = (heads[1:] + heads[:-1]) / 2
 between = np.linalg.norm(halves - middle, axis=-1) * 1000 if len(halves) else np.zeros(1)
