@@ -348,6 +348,15 @@ def test_bvh_check_tool_at_the_exporters_frame_rates(tmp_path, capsys):
     with pytest.raises(SystemExit):
         tool.main(["--data", str(data), "--bvh-fps", "25"])
     assert "multiple of 20" in capsys.readouterr().err
+    # each was a traceback: write_bvh's range after the 20 fps check, max() of no motion
+    (data / "none.txt").write_text("\n")
+    for argv, message in ((["--bvh-fps", "500"], "in [12, 480], got 500"),
+                          (["--limit", "0"], "--limit: expected a whole number >= 1"),
+                          (["--split", "none"], "none.txt lists no motion"),
+                          (["--split", "val"], "--split val: no file")):
+        with pytest.raises(SystemExit):
+            tool.main(["--data", str(data), "--out", str(tmp_path / "x"), *argv])
+        assert message in capsys.readouterr().err
 
 
 def test_the_blender_tool_knows_segmos_joint_order():

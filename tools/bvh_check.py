@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from segmo.errors import non_negative_int, positive_int
 from segmo.motion import T2M
-from segmo.motion.bvh import ANIMATION_FPS, write_bvh
+from segmo.motion.bvh import ANIMATION_FPS, MAX_BVH_FPS, MIN_BVH_FPS, write_bvh
 from segmo.motion.skeleton_fit import fit_motion, foot_contacts, foot_skating
 
 
@@ -122,17 +123,24 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--data", required=True, help="dataset root (new_joints/, <split>.txt)")
     p.add_argument("--split", default="test")
     p.add_argument("--model", help="SegMo bundle: also check generated motions")
-    p.add_argument("--limit", type=int, default=None, help="first N motions of the split")
-    p.add_argument("--bvhio-files", type=int, default=20, help="files also read with bvhio")
+    p.add_argument("--limit", type=positive_int, default=None, help="first N motions of the split")
+    p.add_argument("--bvhio-files", type=non_negative_int, default=20,
+                   help="files also read with bvhio")
     p.add_argument("--bvh-fps", type=float, default=ANIMATION_FPS,
                    help=f"write the files at this rate, a whole multiple of 20 (default {ANIMATION_FPS:g}, "
                    "the exporter's; 20: the motions' own frames)")
     p.add_argument("--out", default="runs/bvh_check")
     args = p.parse_args(argv)
-    if args.bvh_fps <= 0 or args.bvh_fps % T2M.fps:
-        p.error(f"--bvh-fps must be a whole multiple of {T2M.fps:g}, got {args.bvh_fps:g}")
+    if not MIN_BVH_FPS <= args.bvh_fps <= MAX_BVH_FPS or args.bvh_fps % T2M.fps:
+        p.error(f"--bvh-fps must be a whole multiple of {T2M.fps:g} in [{MIN_BVH_FPS:g}, "
+                f"{MAX_BVH_FPS:g}], got {args.bvh_fps:g}")
     root = Path(args.data)
-    ids = (root / f"{args.split}.txt").read_text().split()[: args.limit]
+    split = root / f"{args.split}.txt"
+    if not split.is_file():
+        p.error(f"--split {args.split}: no file {split}")
+    ids = split.read_text().split()[: args.limit]
+    if not ids:
+        p.error(f"--split {args.split}: {split} lists no motion")
     corpus = [np.load(root / "new_joints" / f"{i}.npy").astype(np.float64) for i in ids]
     report: dict = {}
     start = time.perf_counter()
