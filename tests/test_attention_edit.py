@@ -17,6 +17,7 @@ from segmo.generation.attention_edit import (
     attention_edit_tokens,
     inject,
     segment_counterparts,
+    source_attention,
 )
 from segmo.models.attention_control import AttentionControl, Site, Stored
 from segmo.models.cpu_inference import use_cpu_kernels
@@ -175,6 +176,44 @@ def test_edit_text_through_the_pipeline(segmo_model):
         where = torch.nonzero(changed[row]).flatten()
         if len(where):  # the changed tokens form one span
             assert int(where.max() - where.min()) + 1 <= int(source.lengths[row]) // 4
+
+
+def test_edit_text_replays_the_durations_of_its_source(tmp_path, tokenizer_dir):
+    """A source generated with segment durations was replayed without them: the same text
+    or a reweight by 1 gave a generation without durations, and keep_outside's span came
+    from that generation's attention."""
+    stages = build_stages(tmp_path, tokenizer_dir["t2m"], segment_timing=True)
+    model = SegMo.from_stages(stages["tokenizer"], stages["mask"], stages["residual"],
+                              text_encoder=hash_encoder("hash", TEXT_DIM))
+    texts = ["a person walks forward, then jumps.", "someone waves, then sits"]
+
+    def generate(texts, durations=None):
+        return model.generate(texts, [64, 64], generator=torch.Generator().manual_seed(0),
+                              durations=durations)
+
+    source = generate(texts, [[1, 5], [5, 1]])
+    assert not torch.equal(source.tokens, generate(texts).tokens)  # the durations matter
+    assert torch.equal(model.edit_text(source, list(texts)).tokens, source.tokens)
+    one = model.edit_text(source, mode="reweight", weights={1: 1.0})
+    assert torch.equal(one.tokens, source.tokens)
+    # A target with as many segments keeps the source's durations, one with a segment
+    # added has its head's (inject_until=0 is plain generation from the target).
+    swapped = ["a person walks forward, then kicks.", "someone waves, then sits, then bows"]
+    plain = model.edit_text(source, swapped, inject_until=0.0)
+    assert torch.equal(plain.tokens, generate(swapped, [[1, 5], None]).tokens)
+    # keep_outside's span comes from the source's attention, replayed with its durations.
+    side = TextSide(*model.text_condition(texts)[:3], durations=source.durations)
+    replayed = source_attention(model.mask, model.residual, side, source.lengths,
+                                options=source.sampling, generator_state=source.generator_state)
+    control = AttentionControl({"mask": model.mask, "residual": model.residual})
+    with control.storing():
+        generate_tokens(model.mask, model.residual, side.sentence, side.segments,
+                        side.segment_mask, source.lengths, options=source.sampling,
+                        generator=torch.Generator().set_state(source.generator_state),
+                        durations=source.durations)
+    assert control.stored.keys() == replayed.stored.keys()
+    assert all(torch.equal(control.stored[k].weights, replayed.stored[k].weights)
+               for k in control.stored)
 
 
 def test_edit_text_refuses_what_it_cannot_do(segmo_model):

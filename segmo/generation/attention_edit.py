@@ -53,14 +53,16 @@ INJECT_UNTIL = 0.5
 @dataclass
 class TextSide:
     """What `generate_tokens` takes for one text: sentence (b, text_dim), segments
-    (b, a, text_dim), segment_mask (b, a) bool, and words (b, l, text_dim) and word_mask
-    (b, l) for models with word keys."""
+    (b, a, text_dim), segment_mask (b, a) bool, words (b, l, text_dim) and word_mask
+    (b, l) for models with word keys, and durations (b, a) of the segments for a mask
+    transformer with segment timing (None, or a row of 0: its timing head's)."""
 
     sentence: torch.Tensor
     segments: torch.Tensor
     segment_mask: torch.Tensor
     words: torch.Tensor | None = None
     word_mask: torch.Tensor | None = None
+    durations: torch.Tensor | None = None
 
 
 def segment_counterparts(source: list[str], target: list[str], mode: str) -> dict[int, int]:
@@ -156,7 +158,8 @@ def attention_edit_tokens(
     source's weights (default: each segment to the one in its place); reweight: per row,
     {key label ("segment k", "word w"): factor} ("reweight" mode, which needs no source
     pass); editable (b, n) bool with source_tokens (b, n, q): decode only those positions,
-    the others kept from source_tokens (an edit confined to a span); generator_state: the
+    the others kept from source_tokens (an edit confined to a span; decoded without segment
+    spans, as `edit_tokens` is, so the sides' durations are unused); generator_state: the
     state of the generator the source was drawn with (`torch.Generator.get_state()`), used
     for the source and for the target.
     """
@@ -176,7 +179,7 @@ def attention_edit_tokens(
             return generate_tokens(mask_model, residual_model, side.sentence, side.segments,
                                    side.segment_mask, lengths, options=options,
                                    generator=generator, precision=precision, words=side.words,
-                                   word_mask=side.word_mask)
+                                   word_mask=side.word_mask, durations=side.durations)
         token_mask = token_mask_from_lengths(lengths, mask_model.config.max_tokens)
         return fill_tokens(mask_model, residual_model, source_tokens, editable & token_mask,
                            token_mask, side.sentence, side.segments, side.segment_mask, options,
@@ -227,7 +230,8 @@ def source_attention(mask_model: MaskTransformer, residual_model: ResidualTransf
                         source.segment_mask, lengths, options=options,
                         generator=torch.Generator(device=source.sentence.device)
                         .set_state(generator_state), precision=precision,
-                        words=source.words, word_mask=source.word_mask)
+                        words=source.words, word_mask=source.word_mask,
+                        durations=source.durations)
     return control
 
 

@@ -168,6 +168,10 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         words, word_mask = model.word_condition(list(texts), used, source.sampling.word_text)
         sides.append((TextSide(sentence, vectors, segment_mask, words, word_mask), used))
     (source_side, _), (target_side, used) = sides
+    if source.durations is not None:  # the source was drawn with them: replay with them
+        source_side.durations = source.durations.to(device)
+        target_side.durations = target_durations(source, used,
+                                                 target_side.segment_mask.shape[1]).to(device)
     segment_map = [segment_counterparts(s, t, mode) for s, t in zip(source.segments, used)]
     reweight = None
     if mode == "reweight":
@@ -200,6 +204,19 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         editable=editable, source_tokens=None if editable is None else source.tokens.to(device),
         options=source.sampling, generator_state=source.generator_state, precision=precision)
     return model.decode(tokens, lengths, targets, used, precision)
+
+
+def target_durations(source: GenerationOutput, used: list[list[str]], slots: int
+                     ) -> torch.Tensor:
+    """The durations (b, slots) a target is decoded with, for a source generated with
+    durations: a row whose target has as many segments as the source's takes the source's
+    (segment k lasts as long as the source's k-th: a swap, a refinement, a reweight), the
+    others 0 (the timing head's: a segment added or removed)."""
+    out = source.durations.new_zeros(len(used), slots)
+    for i, segments in enumerate(used):
+        if len(segments) == len(source.segments[i]):
+            out[i, : len(segments)] = source.durations[i, : len(segments)]
+    return out
 
 
 def weight_labels(weights: dict[str | int, float], segments: list[str],

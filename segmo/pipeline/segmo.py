@@ -395,7 +395,7 @@ class SegMo:
                                  precision=precision, words=words, word_mask=word_mask,
                                  durations=timing)
         out = self.decode(tokens, lengths, texts, segments, precision)
-        out.sampling, out.generator_state = options, state
+        out.sampling, out.generator_state, out.durations = options, state, timing
         return out
 
     def segment_durations(self, durations: Any, segments: list[list[str]]
@@ -456,8 +456,11 @@ class SegMo:
         from 1, its text, or a key label "segment k" / "word w") to the factor its attention
         is multiplied by. keep_outside: decode only the tokens whose segment attention in the
         source went to a changed (or reweighted) segment, keeping every other token of the
-        source (a span edit whose span comes from the attention). The same text with any
-        `inject_until`, or factors of 1, gives the source's tokens bit for bit.
+        source (a span edit whose span comes from the attention). A source generated with
+        `durations` is replayed with them, and a target with as many segments as the
+        source's is decoded with them (one with a segment added, with its timing head's).
+        The same text with any `inject_until`, or factors of 1, gives the source's tokens
+        bit for bit.
         """
         return editing.edit_text(self, source, target_text, mode,
                                  target_segments=target_segments, weights=weights,
