@@ -216,6 +216,24 @@ def test_edit_text_replays_the_durations_of_its_source(tmp_path, tokenizer_dir):
                for k in control.stored)
 
 
+@pytest.mark.filterwarnings("ignore:bf16 on this CPU runs in torch's reference kernels")
+def test_edit_text_replays_the_precision_of_its_source(segmo_model):
+    """A bf16 source was replayed at edit_text's own "auto" (fp32 on a CPU without native
+    bf16, and the other way round on one with it): the same text was not the source."""
+    model = segmo_model
+    texts = ["a person walks forward, then jumps.", "someone waves, then sits"]
+    source = model.generate(texts, [48, 40], generator=torch.Generator().manual_seed(3),
+                            precision="bf16")
+    assert torch.equal(model.edit_text(source, texts).tokens, source.tokens)
+    assert source.precision == "bf16"
+    assert model.generate(texts, [48, 40], precision="fp32").precision == "fp32"
+    # An explicit precision runs as asked.
+    fp32 = model.generate(texts, [48, 40], generator=torch.Generator().manual_seed(3),
+                          precision="fp32")
+    assert not torch.equal(fp32.tokens, source.tokens)  # the precision matters here
+    assert torch.equal(model.edit_text(source, texts, precision="fp32").tokens, fp32.tokens)
+
+
 def test_edit_text_refuses_what_it_cannot_do(segmo_model):
     model = segmo_model
     source = model.generate(["a person walks, then jumps."], [40],

@@ -142,6 +142,8 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
                                               and 0.0 <= inject_until <= 1.0):
         raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
                          f"{inject_until!r}")
+    if precision == "auto" and source.precision is not None:  # replay as the source ran
+        precision = source.precision
     b = len(source)
     if target_text is not None and (not isinstance(target_text, (str, list, tuple)) or (
             not isinstance(target_text, str) and not all(isinstance(t, str) for t in target_text))):

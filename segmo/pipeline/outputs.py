@@ -53,12 +53,14 @@ class GenerationOutput:
     fps: float
     # How the tokens were drawn, so that an attention edit can replay the generation
     # (`SegMo.edit_text`): the sampling options, the generator's state just before the
-    # tokens were drawn, and the segments' durations given (`generate`'s durations as (b, a)
-    # float32 shares, a row of 0 for a text without; None when no text had any). None for
-    # motions that were not generated (edits, encodings).
+    # tokens were drawn, the segments' durations given (`generate`'s durations as (b, a)
+    # float32 shares, a row of 0 for a text without; None when no text had any) and the
+    # precision the passes ran at ("fp32" or "bf16", "auto" resolved on the device). None
+    # for motions that were not generated (edits, encodings).
     sampling: SamplingOptions | None = None
     generator_state: torch.Tensor | None = None
     durations: torch.Tensor | None = None
+    precision: str | None = None
     # Per sample, the (start, end) frames of each of its segments where known (a
     # composition's parts, `SegMo.compose`); `save` names them in the GIF.
     spans: list[list[tuple[int, int]]] | None = None

@@ -29,7 +29,13 @@ import torch
 
 from segmo.errors import SegmoError
 from segmo.generation.attention_edit import INJECT_UNTIL, EditMode
-from segmo.generation.generate import Precision, check_models, decode_tokens, generate_tokens
+from segmo.generation.generate import (
+    Precision,
+    check_models,
+    decode_tokens,
+    generate_tokens,
+    resolve_precision,
+)
 from segmo.generation.sampling import Sampler, SamplingOptions
 from segmo.models.attention_recorder import AttentionRecording, record_attention
 from segmo.models.cpu_inference import use_cpu_kernels
@@ -396,6 +402,7 @@ class SegMo:
                                  durations=timing)
         out = self.decode(tokens, lengths, texts, segments, precision)
         out.sampling, out.generator_state, out.durations = options, state, timing
+        out.precision = resolve_precision(precision, self.device)[0]
         return out
 
     def segment_durations(self, durations: Any, segments: list[list[str]]
@@ -459,8 +466,9 @@ class SegMo:
         source (a span edit whose span comes from the attention). A source generated with
         `durations` is replayed with them, and a target with as many segments as the
         source's is decoded with them (one with a segment added, with its timing head's).
-        The same text with any `inject_until`, or factors of 1, gives the source's tokens
-        bit for bit.
+        precision "auto" replays at the precision the source was generated at (an explicit
+        one runs as asked). The same text with any `inject_until`, or factors of 1, gives
+        the source's tokens bit for bit.
         """
         return editing.edit_text(self, source, target_text, mode,
                                  target_segments=target_segments, weights=weights,
