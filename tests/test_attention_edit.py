@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -263,6 +264,23 @@ def test_edit_text_refuses_what_it_cannot_do(segmo_model):
     edit = model.edit(source, (0, 8), "a person runs")
     with pytest.raises(SegmoError, match="generator state"):
         model.edit_text(edit, "a person runs, then jumps.")
+
+
+def test_reweight_key_labels_name_their_key_or_are_refused(segmo_model):
+    """'segment 01' (or 'segment  1', 'segment +1') passed the range check but matched no
+    key label ("segment 1"): the factor was ignored and the edit was the source; 'segment x'
+    was a ValueError, 'segment ' an IndexError."""
+    model = segmo_model
+    source = model.generate(["a person walks, then jumps."], [40],
+                            generator=torch.Generator().manual_seed(0))
+    four = model.edit_text(source, mode="reweight", weights={1: 4.0})
+    assert not torch.equal(four.tokens, source.tokens)
+    leading_zero = model.edit_text(source, mode="reweight", weights={"segment 01": 4.0})
+    assert torch.equal(leading_zero.tokens, four.tokens)
+    for key in ("segment  1", "segment +1", "segment x", "segment ", "word 1.5"):
+        with pytest.raises(SegmoError, match=re.escape(f"weights key {key!r} must be "
+                                                       "'segment k' or 'word w'")):
+            model.edit_text(source, mode="reweight", weights={key: 4.0})
 
 
 def test_an_output_of_another_model_is_refused(segmo_model, tmp_path, tokenizer_dir):

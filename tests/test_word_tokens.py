@@ -285,9 +285,13 @@ def test_reweighting_a_word_needs_word_keys():
     from segmo.errors import SegmoError
     from segmo.pipeline.editing import weight_labels
 
-    assert weight_labels({"word 2": 2.0}, ["walks"], True) == {"word 2": 2.0}
+    assert weight_labels({"word 2": 2.0}, ["walks"], 3) == {"word 2": 2.0}
     with pytest.raises(SegmoError, match="no word keys.*cross-attention"):
-        weight_labels({"word 2": 2.0}, ["walks"], False)
+        weight_labels({"word 2": 2.0}, ["walks"], None)
+    # A word number is checked against the caption's word keys and read as a number.
+    assert weight_labels({"word 02": 2.0}, ["walks"], 3) == {"word 2": 2.0}
+    with pytest.raises(SegmoError, match=r"'word 3': the caption has 3 word keys \(word 0 to word 2"):
+        weight_labels({"word 3": 2.0}, ["walks"], 3)
 
 
 def test_word_keys_can_read_the_segments_in_execution_order(tmp_path, tokenizer_dir, monkeypatch):

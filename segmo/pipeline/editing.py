@@ -180,7 +180,8 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         if not weights:
             raise SegmoError("SegMo.edit_text: mode 'reweight' needs weights, e.g. "
                              "{1: 2.0} or {'jumps': 2.0}")
-        reweight = [weight_labels(weights, segs, model.has_word_keys) for segs in used]
+        words = target_side.word_mask.sum(1).tolist() if model.has_word_keys else [None] * b
+        reweight = [weight_labels(weights, segs, n) for segs, n in zip(used, words)]
     editable = None
     if keep_outside:
         changed = [sorted({int(label.split()[1]) for label in row if label.startswith("segment ")})
@@ -222,8 +223,9 @@ def target_durations(source: GenerationOutput, used: list[list[str]], slots: int
 
 
 def weight_labels(weights: dict[str | int, float], segments: list[str],
-                   words: bool) -> dict[str, float]:
-    """`edit_text`'s weights → {key label: factor} for one caption's segments."""
+                  words: int | None) -> dict[str, float]:
+    """`edit_text`'s weights → {key label: factor} for one caption's segments and its
+    `words` word keys (None: the model has none)."""
     if not isinstance(weights, Mapping):
         raise SegmoError(f"SegMo.edit_text: weights must be a dict such as {{1: 2.0}} or "
                          f"{{'jumps': 2.0}}, got {type(weights).__name__}")
@@ -238,7 +240,12 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
         if isinstance(key, numbers.Integral) and not isinstance(key, bool):
             label = f"segment {int(key)}"
         elif isinstance(key, str) and (key.startswith("segment ") or key.startswith("word ")):
-            label = key
+            # Rebuilt from its number: "segment 01" names the key labelled "segment 1".
+            kind, _, number = key.partition(" ")
+            if not (number.isdecimal() and number.isascii()):
+                raise SegmoError(f"SegMo.edit_text: weights key {key!r} must be 'segment k' "
+                                 "or 'word w' with k, w whole numbers")
+            label = f"{kind} {int(number)}"
         elif isinstance(key, str) and key in segments:
             label = f"segment {segments.index(key) + 1}"
         elif isinstance(key, str) and any(c.isalnum() for c in key) \
@@ -251,12 +258,16 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
         else:
             raise SegmoError(f"SegMo.edit_text: weights key {key!r} names no segment of "
                              f"{segments!r} (give its number, its text, or 'segment k')")
-        if label.startswith("word ") and not words:
+        kind, number = label.split()
+        if kind == "word" and words is None:
             raise SegmoError(f"SegMo.edit_text: {label!r}: this model has no word keys "
                              "(text_tokens 'none', or words read by cross-attention)")
-        if label.startswith("segment ") and not 1 <= int(label.split()[1]) <= len(segments):
+        if kind == "segment" and not 1 <= int(number) <= len(segments):
             raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has "
                              f"{len(segments)} segments")
+        if kind == "word" and not 0 <= int(number) < words:
+            raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has {words} word keys "
+                             f"(word 0 to word {words - 1}, `SegMo.word_texts`)")
         if label in keys:  # the last one won without a word
             raise SegmoError(f"SegMo.edit_text: weights keys {keys[label]!r} and {key!r} both "
                              f"name {label}; give each segment one factor")

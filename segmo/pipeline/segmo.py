@@ -460,8 +460,9 @@ class SegMo:
         segment's text refined, e.g. a modifier added): the source's attention for the first
         `inject_until` share of the decoding steps, on the keys with a counterpart (segments
         matched by `segment_counterparts`). "reweight": `weights` maps a segment (its number
-        from 1, its text, or a key label "segment k" / "word w") to the factor its attention
-        is multiplied by. keep_outside: decode only the tokens whose segment attention in the
+        from 1, its text, or a key label "segment k" / "word w", k and w whole numbers, w
+        from 0 in `word_texts` order) to the factor its attention is multiplied by; a key
+        that names no key of the caption is refused. keep_outside: decode only the tokens whose segment attention in the
         source went to a changed (or reweighted) segment, keeping every other token of the
         source (a span edit whose span comes from the attention). A source generated with
         `durations` is replayed with them, and a target with as many segments as the
