@@ -10,7 +10,8 @@ from test_generation import TINY, text
 
 from segmo import cpu
 from segmo.generation import SamplingOptions, edit_tokens, generate_tokens
-from segmo.models.attention_recorder import record_attention
+from segmo.models.attention_control import AttentionControl
+from segmo.models.attention_recorder import is_recorded, record_attention
 from segmo.models.cpu_inference import matmul_attention, use_cpu_kernels
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
@@ -124,3 +125,28 @@ def test_weights_are_fp32_under_any_precision(precision):
     weights = recording.of("mask")[0].weights
     assert weights.dtype == torch.float32
     torch.testing.assert_close(weights.sum(-1), torch.ones(weights.shape[:3]), atol=1e-6, rtol=0)
+
+
+def test_a_recording_or_control_opened_inside_a_recording_leaves_it_recording():
+    """An edit (attention control) or attention grounding (a recording) inside an open
+    recording removed its trunk wrapper and unmarked its trunks on closing: the passes run
+    after them in the same recording were recorded no more."""
+    mask, residual = tiny_models()
+    mask, residual = use_cpu_kernels(mask), use_cpu_kernels(residual)
+    models = {"mask": mask, "residual": residual}
+    plain = run(mask, residual, "fp32")
+    with record_attention(models) as recording:
+        run(mask, residual, "fp32")
+        once = len(recording.maps)
+        with AttentionControl(models).storing():
+            run(mask, residual, "fp32")
+        with record_attention({"mask": mask}):
+            run(mask, residual, "fp32")
+        assert is_recorded(mask) and is_recorded(residual)
+        before = len(recording.maps)
+        assert torch.equal(run(mask, residual, "fp32"), plain)
+        assert len(recording.maps) - before == once
+    assert not is_recorded(mask) and not is_recorded(residual)
+    for model in (mask, residual):
+        assert all("forward_motion" not in m.__dict__ for m in model.modules() if isinstance(m, Trunk))
+        assert all(m.attend is matmul_attention for m in model.modules() if isinstance(m, SelfAttention))

@@ -90,7 +90,7 @@ class AttentionControl:
 
     @contextmanager
     def _wrapped(self, store: bool, edit: Edit | None) -> Iterator[None]:
-        restore: list[tuple[object, str]] = []
+        restore: list[tuple[object, str, object]] = []
         counters: dict[str, int] = {}
         state: dict = {"site": None}
 
@@ -111,8 +111,10 @@ class AttentionControl:
                 finally:
                     state["stage"] = None
 
+            # Another context's wrapper (a recording open around an edit) is put back after.
+            had = "forward_motion" in trunk.__dict__
+            restore.append((trunk, "forward_motion", original if had else None))
             trunk.forward_motion = forward_motion
-            restore.append((trunk, "forward_motion"))
             observe(trunk, True)
             for index, block in enumerate(trunk.blocks):
                 wrap_attention(index, block.attention)
@@ -137,7 +139,7 @@ class AttentionControl:
                 return torch.matmul(weights.to(v.dtype), v)
 
             had = "attend" in module.__dict__
-            restore.append((module, "attend") if not had else (module, ("attend", original)))
+            restore.append((module, "attend", original if had else None))
             module.attend = attend
 
         for stage, model in self.models.items():
@@ -149,10 +151,10 @@ class AttentionControl:
         try:
             yield
         finally:
-            for obj, name in reversed(restore):
-                if isinstance(name, tuple):
-                    setattr(obj, name[0], name[1])
+            for obj, name, previous in reversed(restore):
+                if name == "forward_motion":
+                    observe(obj, False)
+                if previous is None:
+                    obj.__dict__.pop(name, None)  # the class' method again
                 else:
-                    obj.__dict__.pop(name, None)
-                    if name == "forward_motion":
-                        observe(obj, False)
+                    setattr(obj, name, previous)

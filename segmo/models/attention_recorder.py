@@ -19,7 +19,8 @@ change an output, works on every attention path (SDPA and the CPU matmul path of
 `segmo.models.cpu_inference`), and costs nothing when no recording is open (nothing is
 wrapped then). While a recording is open, masked decoding runs every step's pass even where
 it could reuse the previous one (`is_recorded`), so that the recording has one pass per
-decoding step.
+decoding step. Recordings and attention controls nest: one opened inside another puts
+back the other's wrappers when it closes.
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ from torch import nn
 from segmo.models.text_prefix import prefix_labels
 from segmo.models.transformer import SelfAttention, Trunk
 
-# The trunks inside an open recording.
-_RECORDED: weakref.WeakSet[nn.Module] = weakref.WeakSet()
+# The trunks inside an open recording, and how many recordings and controls are open on
+# each (they nest: an edit inside a recording).
+_RECORDED: weakref.WeakKeyDictionary[nn.Module, int] = weakref.WeakKeyDictionary()
 
 
 def is_recorded(model: nn.Module) -> bool:
@@ -47,11 +49,13 @@ def is_recorded(model: nn.Module) -> bool:
 
 
 def observe(trunk: Trunk, on: bool) -> None:
-    """Mark `trunk` as observed (on) or not: while marked, decoding runs every pass."""
-    if on:
-        _RECORDED.add(trunk)
+    """One more context observing `trunk` (on) or one fewer: while any does, decoding runs
+    every pass."""
+    count = _RECORDED.get(trunk, 0) + (1 if on else -1)
+    if count > 0:
+        _RECORDED[trunk] = count
     else:
-        _RECORDED.discard(trunk)
+        _RECORDED.pop(trunk, None)
 
 
 @dataclass
@@ -155,8 +159,11 @@ def record_attention(models: dict[str, nn.Module]) -> Iterator[AttentionRecordin
             finally:
                 state.active = False
 
+        # Another context's wrapper (a control or recording open around this one) is put
+        # back after.
+        had = "forward_motion" in trunk.__dict__
+        restore.append((trunk, "forward_motion", original if had else None))
         trunk.forward_motion = forward_motion
-        restore.append((trunk, "forward_motion", None))
         observe(trunk, True)
         for index, block in enumerate(blocks):
             wrap_attention(index, block.attention)

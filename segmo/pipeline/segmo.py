@@ -510,7 +510,9 @@ class SegMo:
                 out = model.generate(["a person walks forward, then jumps"], 120)
             recording.of("mask")[0].weights   # step 0, block 0: (rows, heads, queries, keys)
 
-        Outputs are the same as without it."""
+        Outputs are the same as without it. Edits and attention grounding may run inside
+        it, and it records on after them; the passes of `edit_text` are counted among its
+        steps but not recorded (the edit computes their attention itself)."""
         models = {"mask": self.mask}
         if self.residual is not None:
             models["residual"] = self.residual
