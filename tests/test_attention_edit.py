@@ -266,6 +266,24 @@ def test_edit_text_refuses_what_it_cannot_do(segmo_model):
         model.edit_text(edit, "a person runs, then jumps.")
 
 
+def test_a_target_text_that_is_the_sources_keeps_its_segments(segmo_model):
+    """A source generated with segments given: its own text was segmented anew by the rule
+    segmenter, so the same text did not give the source back."""
+    model = segmo_model
+    texts = ["a person walks forward, then jumps.", "someone waves, then sits"]
+    given = [["walking forward", "jumping high"], ["waving", "sitting", "resting"]]
+    assert model.segment_texts(texts) != given
+    source = model.generate(texts, [48, 40], segments=given,
+                            generator=torch.Generator().manual_seed(3))
+    same = model.edit_text(source, texts)
+    assert same.segments == given and torch.equal(same.tokens, source.tokens)
+    # A changed text is segmented; target_segments are taken as given.
+    one = model.edit_text(source, [texts[0], "someone claps, then sits"])
+    assert one.segments == [given[0], ["someone claps", "someone sits"]]
+    other = [["walking", "jumping"], ["waving", "sitting"]]
+    assert model.edit_text(source, texts, target_segments=other).segments == other
+
+
 def test_reweight_key_labels_name_their_key_or_are_refused(segmo_model):
     """'segment 01' (or 'segment  1', 'segment +1') passed the range check but matched no
     key label ("segment 1"): the factor was ignored and the edit was the source; 'segment x'

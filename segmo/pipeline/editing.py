@@ -54,6 +54,8 @@ class EditingModel(Protocol):
 
     def weights_fingerprint(self) -> str: ...
 
+    def segment_texts(self, texts: list[str]) -> list[list[str]]: ...
+
     def text_condition(self, texts: list[str], segments: list[list[str]] | None = None
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[list[str]]]: ...
 
@@ -160,8 +162,11 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         targets = [target_text] * b if isinstance(target_text, str) else list(target_text)
     if len(targets) != b:
         raise SegmoError(f"SegMo.edit_text: {len(targets)} target texts for {b} samples")
-    if target_segments is None and target_text is None:
-        target_segments = source.segments
+    if target_segments is None:  # a source's own text keeps its segments (given, may be)
+        changed = [t for t, s in zip(targets, source.texts) if t != s]
+        fresh = iter(model.segment_texts(changed) if changed else [])
+        target_segments = [list(segments) if t == s else next(fresh)
+                           for t, s, segments in zip(targets, source.texts, source.segments)]
     device = model.device
     lengths = source.lengths.to(device)
     sides = []

@@ -449,8 +449,9 @@ class SegMo:
                   precision: Precision = "auto") -> GenerationOutput:
         """Edit generated motions by their attention (SALAD's zero-shot edits,
         `segmo.generation.attention_edit`): decode `target_text` (one for all samples or
-        one per sample; None: the source's texts, for "reweight") from the source's own
-        generator state while the attention is edited:
+        one per sample; None: the source's texts, for "reweight"; a target text that is its
+        source's keeps the source's segments, others are segmented unless `target_segments`
+        are given) from the source's own generator state while the attention is edited:
 
             out = model.generate(["a man walks forward, then jumps"], 120, generator=g)
             swapped = model.edit_text(out, "a man walks forward, then kicks")
