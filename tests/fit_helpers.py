@@ -72,3 +72,17 @@ class SaveStepWeights(L.Callback):
     def on_train_end(self, trainer, pl_module):
         Path(self.directory).mkdir(parents=True, exist_ok=True)
         torch.save(self.steps, Path(self.directory) / "steps.pt")
+
+
+
+class LastCheckpointSteps(L.Callback):
+    """Before each training step, notes the global step that the run's last.ckpt holds
+    (`steps`: {global step: last.ckpt's step, or None before there is one})."""
+
+    def __init__(self) -> None:
+        self.steps: dict[int, int | None] = {}
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        last = Path(trainer.checkpoint_callback.dirpath) / "last.ckpt"
+        self.steps[trainer.global_step] = (
+            torch.load(last, weights_only=False)["global_step"] if last.is_file() else None)

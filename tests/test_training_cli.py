@@ -151,6 +151,30 @@ def _load_eval_tokenizer():
     return load_tool("eval_tokenizer")
 
 
+def test_last_ckpt_holds_the_newest_state_when_the_metric_gets_worse(tmp_path, monkeypatch):
+    """Lightning 2.6 rewrote last.ckpt only when the monitored metric improved: after a
+    worse validation it kept the best step's weights, which `segmo export last.ckpt`
+    shipped and ``--ckpt_path last`` resumed from."""
+    from fit_helpers import LastCheckpointSteps
+
+    measured = RVQTask.mpjpe_mm
+
+    def worsening(self, motion, reconstruction, mask):  # the monitored metric: the step
+        return {**measured(self, motion, reconstruction, mask),
+                "mpjpe_mm": torch.tensor(float(self.global_step))}
+
+    monkeypatch.setattr(RVQTask, "mpjpe_mm", worsening)
+    root = make_dataset(tmp_path / "data")
+    cli = cli_main(["fit", "--config", str(REPO / "configs/rvq/synthetic.yaml"),
+                    *tiny_overrides(root, tmp_path / "runs"), "--trainer.max_steps=5",
+                    "--trainer.val_check_interval=2", "--trainer.callbacks+=fit_helpers.LastCheckpointSteps"])
+    checkpoints = tmp_path / "runs" / "rvq" / "synthetic" / "version_0" / "checkpoints"
+    assert sorted(p.name for p in checkpoints.iterdir()) == ["best-000-2.ckpt", "last.ckpt"]
+    seen = next(c for c in cli.trainer.callbacks if isinstance(c, LastCheckpointSteps)).steps
+    assert seen[3] == 2 and seen[4] == 4  # written at each validation (steps 2 and 4)
+    assert torch.load(checkpoints / "last.ckpt", weights_only=False)["global_step"] == 5  # and at the end
+
+
 @pytest.mark.slow
 def test_resuming_a_run_under_a_relative_runs_dir_updates_last_ckpt(tmp_path, monkeypatch):
     """`--runs_dir runs` (relative, as the README's commands) and `--ckpt_path

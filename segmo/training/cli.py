@@ -5,8 +5,9 @@ stage uses this same entry point. On top of Lightning's defaults it adds
 
 - a run directory `runs/<stage>/<name>/version_<k>` (`--runs_dir`, `--run_name`; stage =
   the task's `stage` attribute, name = the config file's stem) holding the resolved
-  `config.yaml`, CSV and TensorBoard logs and `checkpoints/` (`last.ckpt` and the best
-  one by the task's `monitor` metric, lower is better);
+  `config.yaml`, CSV and TensorBoard logs and `checkpoints/` (`last.ckpt`, the state at
+  the newest validation and at the end of training, and the best one by the task's
+  `monitor` metric, lower is better; `segmo.training.runs.RunCheckpoint`);
 - exact resume: `segmo fit ... --ckpt_path RUN/checkpoints/last.ckpt` continues in RUN
   (the same version directory; `segmo.training.runs`) with the data order, the loader's
   place in the epoch and the random states of the interrupted run, so it logs the losses
@@ -51,7 +52,13 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
 from segmo.export import read_checkpoint
 from segmo.training.config_errors import check_config_files, config_error, where_set
-from segmo.training.runs import RunCSVLogger, checkpoint_run, checkpoint_step, named_checkpoint
+from segmo.training.runs import (
+    RunCheckpoint,
+    RunCSVLogger,
+    checkpoint_run,
+    checkpoint_step,
+    named_checkpoint,
+)
 from segmo.training.trainer import SegmoTrainer
 
 SUBCOMMANDS = ("fit", "validate", "test")
@@ -161,7 +168,7 @@ class SegmoCLI(LightningCLI):
         fitting = self.subcommand == "fit"
         if fitting and not any(isinstance(c, ModelCheckpoint) for c in callbacks):
             callbacks.append(
-                ModelCheckpoint(
+                RunCheckpoint(  # last.ckpt: the newest state, whether the metric improved or not
                     monitor=monitor,
                     mode="min",
                     save_last=True,

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from lightning.fabric.loggers.csv_logs import _ExperimentWriter
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
@@ -54,6 +55,42 @@ def named_checkpoint(run: Path, which: str) -> Path:
 def checkpoint_step(ckpt_path: str | Path) -> int:
     """The global step a checkpoint was written at (`read_checkpoint`: checked, memory-mapped)."""
     return read_checkpoint(ckpt_path, "--ckpt_path", resume=True)["global_step"]
+
+
+class RunCheckpoint(ModelCheckpoint):
+    """`ModelCheckpoint` whose ``last.ckpt`` holds the state at every checkpoint check
+    (each validation, or each epoch's end) and at the end of training.
+
+    Lightning up to 2.5 rewrote last.ckpt at every check; 2.6 rewrites it only at a step
+    where it also wrote a top-k checkpoint, so with a monitored metric that got worse,
+    last.ckpt stayed at the last improvement: `segmo export .../last.ckpt` shipped old
+    weights and ``--ckpt_path last`` resumed from there. After Lightning's own saving, this
+    writes last.ckpt wherever it was not written at the current step."""
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        due = not self._should_skip_saving_checkpoint(trainer) and \
+            not self._should_save_on_train_epoch_end(trainer)
+        super().on_validation_end(trainer, pl_module)
+        if due:
+            self._save_last_if_older(trainer)
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
+        due = not self._should_skip_saving_checkpoint(trainer) and \
+            self._should_save_on_train_epoch_end(trainer)
+        super().on_train_epoch_end(trainer, pl_module)
+        if due:
+            self._save_last_if_older(trainer)
+
+    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
+        super().on_train_end(trainer, pl_module)
+        if not self._should_skip_saving_checkpoint(trainer):
+            self._save_last_if_older(trainer)
+
+    def _save_last_if_older(self, trainer: Any) -> None:
+        # Every save (top-k or last) records its step here, and Lightning writes last.ckpt
+        # after each top-k one: an equal step means last.ckpt holds this state already.
+        if self._last_global_step_saved != trainer.global_step:
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
 
 class _ResumedWriter(ExperimentWriter):
