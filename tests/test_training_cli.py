@@ -151,19 +151,25 @@ def _load_eval_tokenizer():
     return load_tool("eval_tokenizer")
 
 
-def test_last_ckpt_holds_the_newest_state_when_the_metric_gets_worse(tmp_path, monkeypatch):
+@pytest.fixture
+def worsening_metric(monkeypatch):
+    """The tokenizer's monitored metric (val/mpjpe_mm) is the global step: it gets worse at
+    every validation, and the best checkpoint is the first."""
+    measured = RVQTask.mpjpe_mm
+
+    def worsening(self, motion, reconstruction, mask):
+        return {**measured(self, motion, reconstruction, mask),
+                "mpjpe_mm": torch.tensor(float(self.global_step))}
+
+    monkeypatch.setattr(RVQTask, "mpjpe_mm", worsening)
+
+
+def test_last_ckpt_holds_the_newest_state_when_the_metric_gets_worse(tmp_path, worsening_metric):
     """Lightning 2.6 rewrote last.ckpt only when the monitored metric improved: after a
     worse validation it kept the best step's weights, which `segmo export last.ckpt`
     shipped and ``--ckpt_path last`` resumed from."""
     from fit_helpers import LastCheckpointSteps
 
-    measured = RVQTask.mpjpe_mm
-
-    def worsening(self, motion, reconstruction, mask):  # the monitored metric: the step
-        return {**measured(self, motion, reconstruction, mask),
-                "mpjpe_mm": torch.tensor(float(self.global_step))}
-
-    monkeypatch.setattr(RVQTask, "mpjpe_mm", worsening)
     root = make_dataset(tmp_path / "data")
     cli = cli_main(["fit", "--config", str(REPO / "configs/rvq/synthetic.yaml"),
                     *tiny_overrides(root, tmp_path / "runs"), "--trainer.max_steps=5",
@@ -173,6 +179,25 @@ def test_last_ckpt_holds_the_newest_state_when_the_metric_gets_worse(tmp_path, m
     seen = next(c for c in cli.trainer.callbacks if isinstance(c, LastCheckpointSteps)).steps
     assert seen[3] == 2 and seen[4] == 4  # written at each validation (steps 2 and 4)
     assert torch.load(checkpoints / "last.ckpt", weights_only=False)["global_step"] == 5  # and at the end
+
+
+def test_resuming_from_an_older_checkpoint_keeps_the_run_it_came_from(tmp_path, worsening_metric):
+    """`--ckpt_path best` continued in the best checkpoint's version folder: last.ckpt went
+    back to the best step, metrics.csv lost its later rows and TensorBoard its events."""
+    root = make_dataset(tmp_path / "data")
+    common = ["--config", str(REPO / "configs/rvq/synthetic.yaml"), *tiny_overrides(root, tmp_path / "runs"),
+              "--trainer.val_check_interval=2"]
+    cli_main(["fit", *common, "--trainer.max_steps=4"])
+    runs = tmp_path / "runs" / "rvq" / "synthetic"
+    before = {p: p.read_bytes() for p in (runs / "version_0").rglob("*") if p.is_file()}
+    cli_main(["fit", *common, "--trainer.max_steps=3", "--ckpt_path=best"])  # best: step 2
+    assert {p: p.read_bytes() for p in (runs / "version_0").rglob("*") if p.is_file()} == before
+    last = runs / "version_1" / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False)["global_step"] == 3
+    assert (runs / "version_1" / "config.yaml").is_file()
+    cli_main(["fit", *common, "--trainer.max_steps=5", f"--ckpt_path={last}"])  # the newest: in place
+    assert torch.load(last, weights_only=False)["global_step"] == 5
+    assert sorted(p.name for p in runs.iterdir()) == ["version_0", "version_1"]
 
 
 @pytest.mark.slow

@@ -11,7 +11,8 @@ stage uses this same entry point. On top of Lightning's defaults it adds
 - exact resume: `segmo fit ... --ckpt_path RUN/checkpoints/last.ckpt` continues in RUN
   (the same version directory; `segmo.training.runs`) with the data order, the loader's
   place in the epoch and the random states of the interrupted run, so it logs the losses
-  an uninterrupted run logs (`segmo.data.sampling`, `segmo.tasks.base`);
+  an uninterrupted run logs (`segmo.data.sampling`, `segmo.tasks.base`); a checkpoint
+  older than RUN's last.ckpt (``best``) continues in a new version beside RUN instead;
   ``--ckpt_path last`` / ``best`` name that checkpoint of the run's newest version;
 - a checkpoint is read without unpickling code (`segmo.export.read_checkpoint`), and one
   of another task, or a model setting given that differs from the one it records (from
@@ -52,13 +53,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
 from segmo.export import read_checkpoint
 from segmo.training.config_errors import check_config_files, config_error, where_set
-from segmo.training.runs import (
-    RunCheckpoint,
-    RunCSVLogger,
-    checkpoint_run,
-    checkpoint_step,
-    named_checkpoint,
-)
+from segmo.training.runs import RunCheckpoint, RunCSVLogger, named_checkpoint, resume_folder
 from segmo.training.trainer import SegmoTrainer
 
 SUBCOMMANDS = ("fit", "validate", "test")
@@ -135,9 +130,9 @@ class SegmoCLI(LightningCLI):
         config = self.config[self.subcommand]
         ckpt_path = config.get("ckpt_path")
         if self.subcommand == "fit" and ckpt_path and Path(ckpt_path).is_file():
-            run = checkpoint_run(ckpt_path)
-            if run is not None:
-                return (*run, checkpoint_step(ckpt_path))
+            folder = resume_folder(ckpt_path)
+            if folder is not None:
+                return folder
         folder = _run_folder(config, type(self.model))
         return folder.parent, folder.name, None, None
 

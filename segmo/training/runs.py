@@ -1,10 +1,13 @@
 """Run directories `runs/<stage>/<name>/version_<k>` and their logs across a resume.
 
 A fresh `segmo fit` takes the next free version. ``--ckpt_path`` pointing into a run
-directory (``.../version_<k>/checkpoints/*.ckpt``) continues that run: the loggers write
-into the same version directory, `metrics.csv` keeps the rows the interrupted run logged
-before the checkpoint's step and drops the ones after it (the resumed run logs those
-steps again), and TensorBoard purges its events from that step on. So that the rows up
+directory (``.../version_<k>/checkpoints/*.ckpt``) at that run's newest state (a step no
+earlier than its last.ckpt's) continues that run: the loggers write into the same version
+directory, `metrics.csv` keeps the rows the interrupted run logged before the checkpoint's
+step and drops the ones after it (the resumed run logs those steps again), and
+TensorBoard purges its events from that step on. An older checkpoint of the run
+(``--ckpt_path best``, an earlier periodic one) continues in the next free version
+instead, so that the run's later checkpoints and logs are kept (`resume_folder`). So that the rows up
 to a checkpoint are on disk when a run is killed, `RunCSVLogger` writes every row as it
 is logged instead of every 100 steps.
 """
@@ -21,6 +24,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
+from lightning.pytorch.utilities import rank_zero_info
 
 from segmo.errors import SegmoError
 from segmo.export import read_checkpoint
@@ -55,6 +59,34 @@ def named_checkpoint(run: Path, which: str) -> Path:
 def checkpoint_step(ckpt_path: str | Path) -> int:
     """The global step a checkpoint was written at (`read_checkpoint`: checked, memory-mapped)."""
     return read_checkpoint(ckpt_path, "--ckpt_path", resume=True)["global_step"]
+
+
+def resume_folder(ckpt_path: str | Path) -> tuple[Path, str, str, int | None] | None:
+    """(save_dir, name, version, resume step) of the run directory that a fit resumed from
+    ``ckpt_path`` writes into, or None when the checkpoint lies in no run directory.
+
+    The checkpoint's own version folder when the checkpoint holds that run's newest state
+    (its step is no earlier than the folder's last.ckpt's, or there is none); else the next
+    free version beside it, with resume step None (fresh logs): continuing in place from
+    an older state would replace the run's last.ckpt and drop its later metrics and
+    TensorBoard events."""
+    run = checkpoint_run(ckpt_path)
+    if run is None:
+        return None
+    save_dir, name, version = run
+    step = checkpoint_step(ckpt_path)
+    last = save_dir / name / version / "checkpoints" / "last.ckpt"
+    try:
+        newest = checkpoint_step(last) if last.is_file() else step
+    except SegmoError:  # torn by a kill: which state is newer is unknown; keep both
+        newest = step + 1
+    if step >= newest:
+        return save_dir, name, version, step
+    taken = [int(p.name[8:]) for p in (save_dir / name).glob("version_*") if p.name[8:].isdigit()]
+    branch = f"version_{max(taken) + 1}"
+    rank_zero_info(f"--ckpt_path {ckpt_path}: step {step}, older than {last} (step {newest}); "
+                   f"continuing in {save_dir / name / branch}, which keeps {version} as it is")
+    return save_dir, name, branch, None
 
 
 class RunCheckpoint(ModelCheckpoint):
