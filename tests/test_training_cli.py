@@ -200,6 +200,46 @@ def test_resuming_from_an_older_checkpoint_keeps_the_run_it_came_from(tmp_path, 
     assert sorted(p.name for p in runs.iterdir()) == ["version_0", "version_1"]
 
 
+def test_a_resumed_fit_refuses_other_data_settings_and_keeps_its_config(tmp_path):
+    """A resumed fit took another batch size, window or data seed silently (the saved loader
+    position counts batches of the recorded order; the data seed is the tokenizer's too),
+    and rewrote the run's config.yaml with the resumed command's settings."""
+    root = make_dataset(tmp_path / "data")
+    common = ["--config", str(REPO / "configs/rvq/synthetic.yaml"), *tiny_overrides(root, tmp_path / "runs"),
+              "--trainer.val_check_interval=2"]
+    cli_main(["fit", *common, "--trainer.max_steps=2"])
+    run = tmp_path / "runs" / "rvq" / "synthetic" / "version_0"
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    last = run / "checkpoints" / "last.ckpt"
+    for given, recorded in (("--data.batch_size=8", 4), ("--data.init_args.window=32", 64),
+                            ("--data.seed=5", 0)):
+        line = cli_failure_line(["fit", *common, "--trainer.max_steps=4", "--ckpt_path=last", given])
+        key, value = given[2:].replace("init_args.", "").split("=")
+        assert line == (f"argument {given}: data.init_args.{key.split('.')[1]}={value}, but "
+                        f"--ckpt_path {last} was trained with {recorded}; a resumed run continues "
+                        "its checkpoint's data order and model, so leave it as it was, or start a new run")
+        assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before  # nothing written
+    config = (run / "config.yaml").read_bytes()
+    cli_main(["fit", *common, "--trainer.max_steps=3", "--ckpt_path=last",
+              "--data.init_args.preload=false", "--data.init_args.num_workers=0"])  # how it is read
+    assert torch.load(last, weights_only=False)["global_step"] == 3
+    assert (run / "config.yaml").read_bytes() == config  # what the run started with
+    resumed = yaml.safe_load((run / "config-resumed-at-2.yaml").read_text())
+    assert resumed["trainer"]["max_steps"] == 3 and resumed["data"]["init_args"]["preload"] is False
+
+
+def test_a_resumed_mask_fit_refuses_another_linked_max_segments(tmp_path):
+    """It was a size-mismatch traceback from loading the weights, after the run's
+    config.yaml had been rewritten."""
+    ckpt = _checkpoint(tmp_path / "runs/mask/synthetic/version_0/checkpoints/last.ckpt",
+                       "segmo.tasks.mask.MaskTask", datamodule_hyper_parameters={"max_segments": 5})
+    line = cli_failure_line(["fit", "--config", str(REPO / "configs/mask/synthetic.yaml"),
+                             f"--runs_dir={tmp_path / 'runs'}", "--ckpt_path=last", "--data.max_segments=6"])
+    assert line.startswith("argument --data.max_segments=6: data.init_args.max_segments=6, but "
+                           f"--ckpt_path {ckpt} was trained with 5;"), line
+    assert [p for p in (tmp_path / "runs").rglob("*") if p.is_file()] == [ckpt]
+
+
 @pytest.mark.slow
 def test_resuming_a_run_under_a_relative_runs_dir_updates_last_ckpt(tmp_path, monkeypatch):
     """`--runs_dir runs` (relative, as the README's commands) and `--ckpt_path

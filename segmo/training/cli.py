@@ -16,7 +16,8 @@ stage uses this same entry point. On top of Lightning's defaults it adds
   ``--ckpt_path last`` / ``best`` name that checkpoint of the run's newest version;
 - a checkpoint is read without unpickling code (`segmo.export.read_checkpoint`), and one
   of another task, or a model setting given that differs from the one it records (from
-  which Lightning rebuilds the model), is refused; `validate` and `test` need one;
+  which Lightning rebuilds the model), is refused, and so is a data setting of a resumed
+  fit (`RESUMABLE_DATA` may change); `validate` and `test` need one;
 - `--trainer.default_root_dir` is refused: the run directory is set by `--runs_dir` and
   `--run_name`, and Lightning would use default_root_dir only where no logger is given,
   which segmo always gives, so it would be silently ignored;
@@ -63,6 +64,14 @@ SUBCOMMANDS = ("fit", "validate", "test")
 LINKS = (("data.init_args.max_segments", "model.init_args.max_segments"),
          ("data.init_args.text_tokens", "model.init_args.text_tokens"),
          ("data.init_args.seed", "model.init_args.seed"))
+
+# Data settings a resumed fit may change: how the same samples are read (num_workers,
+# preload), where the corpus lies now (root: moved, or given relative to another folder;
+# the checkpoint records nothing of its content to compare), checks that refuse a motion
+# rather than change the samples (strict, max_abs_z), and the obsolete unit_length (unset
+# and 4 mean the same). Any other changes the batches that the saved loader position
+# counts (batch_size, window, seed, max_motions, ...) or, through LINKS, the model.
+RESUMABLE_DATA = ("root", "num_workers", "preload", "strict", "max_abs_z", "unit_length")
 
 
 class SegmoCLI(LightningCLI):
@@ -124,6 +133,8 @@ class SegmoCLI(LightningCLI):
         checkpoint = read_checkpoint(ckpt_path, "--ckpt_path", resume=True)
         _check_checkpoint_task(checkpoint, ckpt_path, config, task, list(args or []),
                                resuming=self.config["subcommand"] == "fit")
+        if self.config["subcommand"] == "fit":
+            _check_checkpoint_data(checkpoint, ckpt_path, config, list(args or []))
 
     def _run_directory(self) -> tuple[Path, str, str | None, int | None]:
         """(save_dir, name, version or None for the next free one, resume step or None)."""
@@ -151,6 +162,11 @@ class SegmoCLI(LightningCLI):
             check(self.datamodule)  # before the Trainer's banners, as the data's checks
         trainer_config = self._get(self.config_init, "trainer", default={})
         save_dir, name, version, resume_step = self._run_directory()
+        if resume_step is not None:
+            # The run's config.yaml keeps the settings it started with, which its checkpoints
+            # match; the resumed command's (a later max_steps, its ckpt_path) goes beside it.
+            self.save_config_kwargs = {**self.save_config_kwargs,
+                                       "config_filename": f"config-resumed-at-{resume_step}.yaml"}
         if trainer_config.get("logger") in (None, True):
             csv = RunCSVLogger(save_dir, name=name, version=version, resume_step=resume_step)
             # Both loggers write into the same version directory.
@@ -236,6 +252,25 @@ def _check_checkpoint_task(checkpoint: dict, ckpt_path: str, config: Any, task: 
                 f"{places[0]}: model.init_args.{key}={given[key]!r}, but --ckpt_path "
                 f"{ckpt_path} was trained with {saved!r}, and the model is built from its "
                 f"checkpoint's settings; {advice}")
+
+
+def _check_checkpoint_data(checkpoint: dict, ckpt_path: str, config: Any, argv: list[str]) -> None:
+    """A data setting of a resumed fit that differs from the one its checkpoint records
+    (other than those of `RESUMABLE_DATA`): one SegmoError naming where it is set. The
+    saved loader position counts batches of the recorded order, and the linked settings
+    (`LINKS`) would change the model that the checkpoint's weights are loaded into (a
+    size-mismatch traceback) or its seed."""
+    saved = checkpoint.get("datamodule_hyper_parameters") or {}
+    given = (config.get("data") or {}).get("init_args") or {}
+    for key, recorded in saved.items():
+        if key.startswith("_") or key in RESUMABLE_DATA or key not in given:
+            continue
+        if _setting(key, given[key]) != _setting(key, recorded):
+            where = (where_set(f"data.init_args.{key}", argv) or [("data.init_args", None)])[0][0]
+            raise SegmoError(
+                f"{where}: data.init_args.{key}={given[key]!r}, but --ckpt_path {ckpt_path} "
+                f"was trained with {recorded!r}; a resumed run continues its checkpoint's data "
+                "order and model, so leave it as it was, or start a new run")
 
 
 def _setting(key: str, value: Any) -> Any:

@@ -90,14 +90,14 @@ def _plain(path: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 def where_set(key: str, argv: list[str]) -> list[tuple[str, str | None]]:
     """Every place that sets ``key`` (dotted), as ``("FILE:LINE" or "argument --ARG", the
-    value there when it is a scalar)``: command-line arguments first, then the config files
-    from the last one."""
+    value there when it is a scalar)``, the one in effect first: command-line arguments from
+    the last one, then the config files from the last one."""
     wanted = _plain(key.split("."))
     places: list[tuple[str, str | None]] = []
     for i, arg in enumerate(argv):
         if arg.startswith("--") and _plain(arg[2:].split("=", 1)[0].split(".")) == wanted:
             given = arg.split("=", 1)[1] if "=" in arg else (argv[i + 1] if i + 1 < len(argv) else None)
-            places.append((f"argument {arg}", given))
+            places.insert(0, (f"argument {arg}", given))
     for name in reversed(config_files(argv)):
         try:
             root = yaml.compose(Path(name).read_text(encoding="utf-8"))
