@@ -414,6 +414,10 @@ HOSTILE = {
     "invalid YAML": (("trainer:\n", "trainer: [\n"), [],
                      "not valid YAML: expected ',' or ']', but got ':' (while parsing a flow "
                      "sequence started at line {line})"),
+    "key set twice in YAML": (("betas: [0.9", "lr: 1.0\n    betas: [0.9"), [],  # the last one won
+                              "{yaml}:{line}: key 'model.init_args.lr' set twice (also line "),
+    "section set twice in YAML": (("trainer:\n  max_steps", "data:\n  init_args:\n    batch_size: 8\n"
+                                   "trainer:\n  max_steps"), [], "{yaml}:{line}: key 'data' set twice (also line "),
     "missing config file": (None, ["--config", "{tmp}/none.yaml"], "--config {tmp}/none.yaml: no such file"),
     "misspelt argument": (None, ["--data.init_args.bach_size=3"],
                           "argument --data.init_args.bach_size=3: data.init_args.bach_size: "

@@ -42,7 +42,8 @@ def config_files(argv: list[str]) -> list[str]:
 
 
 def check_config_files(argv: list[str]) -> None:
-    """Each ``--config`` file exists and is a YAML mapping, or one `SegmoError`."""
+    """Each ``--config`` file exists and is a YAML mapping that sets each key once, or one
+    `SegmoError`."""
     for name in config_files(argv):
         path = Path(name)
         if not path.is_file():
@@ -64,6 +65,31 @@ def check_config_files(argv: list[str]) -> None:
         if not isinstance(data, dict):
             raise SegmoError(f"{name}: expected a mapping of keys (trainer:, model:, data:, ...), "
                              f"got a YAML {type(data).__name__}")
+        repeated = _repeated_key(yaml.compose(path.read_text(encoding="utf-8")))
+        if repeated is not None:
+            key, line, first = repeated
+            # YAML parsers keep the last value silently: a pasted section or an edited
+            # copy of a line would replace the setting above it without a word.
+            raise SegmoError(f"{name}:{line}: key {key!r} set twice (also line {first})")
+
+
+def _repeated_key(node: yaml.Node, prefix: str = "") -> tuple[str, int, int] | None:
+    """The first key that a mapping of a YAML node tree sets twice, as (dotted key, its
+    second line, its first line), or None."""
+    items = node.value if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)) else []
+    if isinstance(node, yaml.MappingNode):
+        first: dict[str, int] = {}
+        for key, _ in items:
+            line = key.start_mark.line + 1
+            if isinstance(key, yaml.ScalarNode) and key.value in first:
+                return f"{prefix}{key.value}", line, first[key.value]
+            first.setdefault(str(key.value), line)
+    for item in items:
+        key, value = item if isinstance(node, yaml.MappingNode) else (None, item)
+        found = _repeated_key(value, f"{prefix}{key.value}." if key is not None else prefix)
+        if found is not None:
+            return found
+    return None
 
 
 def _key_lines(node: yaml.Node, prefix: tuple[str, ...] = ()
