@@ -382,3 +382,22 @@ def test_blender_imports_the_file_onto_the_joints(tmp_path):
     [line] = [line for line in run.stdout.splitlines() if line.startswith("{")]
     report = json.loads(line)
     assert report["bones"] == 22 and report["every"] == 3 and report["max_mm"] < 1.0
+
+
+def test_the_rest_pose_is_a_t_pose(tmp_path):
+    """The rest pose hung the arms down from the collars (the raw offsets of HumanML3D's
+    features), with the head in front of the neck; animation tools and retargeting expect
+    the arms out and the head up, as the docs said."""
+    path = joints_to_bvh(_corpus_joints(4)[:8], tmp_path / "x.bvh", foot_lock=False)
+    mocap = bvh.Bvh(path.read_text())
+    rest = {}
+    for name in mocap.get_joints_names():
+        parent = mocap.joint_parent(name)
+        offset = np.asarray(mocap.joint_offset(name), dtype=np.float64)
+        rest[name] = offset + (rest[parent.name] if parent is not None else 0)
+    for side, sign in (("left", 1), ("right", -1)):
+        arm = [rest[f"{side}_{joint}"] for joint in ("collar", "shoulder", "elbow", "wrist")]
+        assert all(np.abs(b[1:] - arm[0][1:]).max() < 1e-6 for b in arm)  # level with the collar
+        assert all(sign * (b[0] - a[0]) > 0.1 for a, b in zip(arm, arm[1:]))  # outwards
+    head = rest["head"] - rest["neck"]
+    assert head[1] > 0.09 and np.abs(head[[0, 2]]).max() < 1e-6

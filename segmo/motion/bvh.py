@@ -205,7 +205,7 @@ def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec =
         for child in children[joint]:
             write(child, depth + 1)
         if not children[joint]:
-            tip = np.asarray(spec.raw_offsets[joint], dtype=np.float64) * END_SITE_LENGTH / spec.unit * scale
+            tip = np.asarray(spec.tpose_directions[joint], dtype=np.float64) * END_SITE_LENGTH / spec.unit * scale
             lines.append(f"{pad}  End Site")
             lines.append(f"{pad}  {{")
             lines.append(f"{pad}    OFFSET {tip[0]:.6f} {tip[1]:.6f} {tip[2]:.6f}")

@@ -19,6 +19,10 @@ class SkeletonSpec:
     # Unit direction of each bone in the rest pose (HumanML3D `raw_offsets`), used by the
     # inverse kinematics of the rotation features.
     raw_offsets: tuple[tuple[float, float, float], ...]
+    # Unit direction of each bone in the rest pose of the skeleton that a BVH file carries
+    # (`segmo.motion.skeleton_fit`): a T-pose, arms out along x and head up, which is what
+    # animation tools and retargeting expect (the raw offsets hang the arms down).
+    tpose_directions: tuple[tuple[float, float, float], ...]
     # Bone length of each joint to its parent (metres for t2m) of the reference subject that
     # joints are retargeted to. None: keep the subject's own proportions.
     reference_bone_lengths: tuple[float, ...] | None
@@ -97,6 +101,12 @@ T2M = SkeletonSpec(
         (-1, 0, 0), (0, 0, 1), (0, -1, 0), (0, -1, 0), (0, -1, 0), (0, -1, 0), (0, -1, 0),
         (0, -1, 0),
     ),
+    tpose_directions=(  # raw_offsets but shoulders, elbows, wrists along their collar; head up
+        (0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, -1, 0), (0, 1, 0),
+        (0, -1, 0), (0, -1, 0), (0, 1, 0), (0, 0, 1), (0, 0, 1), (0, 1, 0), (1, 0, 0),
+        (-1, 0, 0), (0, 1, 0), (1, 0, 0), (-1, 0, 0), (1, 0, 0), (-1, 0, 0), (1, 0, 0),
+        (-1, 0, 0),
+    ),
     reference_bone_lengths=(
         0.0, 0.1031, 0.1099, 0.1316, 0.3936, 0.3902, 0.1432, 0.4324, 0.4256, 0.0574, 0.1434,
         0.1494, 0.2194, 0.1375, 0.1434, 0.1030, 0.1316, 0.1230, 0.2568, 0.2631, 0.2660, 0.2699,
@@ -127,6 +137,11 @@ KIT = SkeletonSpec(
     raw_offsets=(
         (0, 0, 0), (0, 1, 0), (0, 1, 0), (0, 1, 0), (0, 1, 0), (1, 0, 0), (0, -1, 0),
         (0, -1, 0), (-1, 0, 0), (0, -1, 0), (0, -1, 0), (1, 0, 0), (0, -1, 0), (0, -1, 0),
+        (0, 0, 1), (0, 0, 1), (-1, 0, 0), (0, -1, 0), (0, -1, 0), (0, 0, 1), (0, 0, 1),
+    ),
+    tpose_directions=(  # raw_offsets but elbows and wrists along their shoulder
+        (0, 0, 0), (0, 1, 0), (0, 1, 0), (0, 1, 0), (0, 1, 0), (1, 0, 0), (1, 0, 0),
+        (1, 0, 0), (-1, 0, 0), (-1, 0, 0), (-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, -1, 0),
         (0, 0, 1), (0, 0, 1), (-1, 0, 0), (0, -1, 0), (0, -1, 0), (0, 0, 1), (0, 0, 1),
     ),
     reference_bone_lengths=None,

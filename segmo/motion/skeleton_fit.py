@@ -12,12 +12,15 @@ Convention (the BVH one): a joint's rotation turns its child bones; the world ro
 joint p is ``W_p = W_parent(p) @ L_p`` and a child's position is
 ``x_c = x_p + W_p @ offset_c``. Leaves turn nothing and keep their parent's rotation.
 
-The rest pose: bones along the skeleton's ``raw_offsets`` (a T-pose for t2m) with the
-skeleton's reference bone lengths (``bone_lengths="skeleton"``, so that every file of one
-skeleton shares one rest pose) or the motion's median bone lengths (``"motion"``); the
-children of a joint with several children (pelvis: hips and spine; spine3: neck and
-collars) keep the motion's own layout, averaged over its frames, because their directions
-in the raw offsets are only nominal.
+The rest pose: a T-pose, bones along the skeleton's ``tpose_directions`` (arms out along
+x, head up), with the skeleton's reference bone lengths (``bone_lengths="skeleton"``) or
+the motion's median bone lengths (``"motion"``); the children of a joint with several
+children (pelvis: hips and spine; spine3: neck and collars) keep the motion's own layout,
+averaged over its frames and turned as a whole onto those directions, because their
+directions there are only nominal. So the files of one skeleton share their bone lengths
+and limb directions, but those children's offsets differ from motion to motion by up to a
+few centimetres (and `segmo.motion.bvh` picks each file's Euler orders): give each file
+its own armature rather than one file's action another's.
 
 Solving: the shortest-arc rotation of each bone (single child) or the Kabsch rotation
 (several children) gives the start; a few L-BFGS iterations (torch, float64) then
@@ -113,7 +116,7 @@ def _kabsch(rest: np.ndarray, observed: np.ndarray) -> np.ndarray:
 
 def _rest_offsets(positions: np.ndarray, spec: SkeletonSpec, children: list[list[int]],
                   lengths: np.ndarray) -> np.ndarray:
-    offsets = np.asarray(spec.raw_offsets, dtype=np.float64) * lengths[:, None]
+    offsets = np.asarray(spec.tpose_directions, dtype=np.float64) * lengths[:, None]
     for p, kids in enumerate(children):
         if len(kids) < 2:
             continue
@@ -124,7 +127,7 @@ def _rest_offsets(positions: np.ndarray, spec: SkeletonSpec, children: list[list
         mean = np.einsum("tji,tkj->ki", rotations, observed) / len(observed)  # R^T observed
         # Turned as a whole onto the nominal directions (hips along x, spine up, ...), so
         # that the rest pose faces the skeleton's front as the raw offsets do.
-        nominal = np.asarray(spec.raw_offsets, dtype=np.float64)[kids] * lengths[kids, None]
+        nominal = np.asarray(spec.tpose_directions, dtype=np.float64)[kids] * lengths[kids, None]
         mean = mean @ _kabsch(mean, nominal[None])[0].T
         for k, c in enumerate(kids):
             offsets[c] = mean[k] / max(np.linalg.norm(mean[k]), 1e-12) * lengths[c]
