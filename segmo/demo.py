@@ -35,6 +35,7 @@ import torch
 from segmo.data.layout import read_ground_truth, read_motion, read_split
 from segmo.errors import ArgumentParser, non_negative_int
 from segmo.export import export
+from segmo.files import output_folder
 from segmo.pipeline import SegMo
 from segmo.pipeline.grounding import plot_similarity_map
 from segmo.synth import build_corpus
@@ -257,20 +258,21 @@ def _generate_and_render(out: Path, root: Path, tokenizer: Path, mask: Path, res
 
 def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="segmo demo", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
+    parser.add_argument("--out", type=output_folder, default="runs/demo", help="output folder")
     parser.add_argument("--budget", type=parse_budget, default="20m",
                         help="wall-clock time for the whole demo, e.g. 20m (default), 45m, 1h; "
                              "quick: a smoke run for the tests")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     args = parser.parse_args(argv)
-    if args.out.exists() and not args.out.is_dir():
-        parser.error(f"--out {args.out}: exists and is not a folder")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        parser.error(f"--out {out}: exists and is not a folder")
     start = time.perf_counter()
-    timings = run(args.out, args.budget, args.seed)
+    timings = run(out, args.budget, args.seed)
     total = time.perf_counter() - start
     print("\nTimings: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items())
           + f"; total {total / 60:.1f} min")
-    print(f"Outputs in {args.out}: model/ (load with segmo.SegMo.from_pretrained), samples/ "
+    print(f"Outputs in {out}: model/ (load with segmo.SegMo.from_pretrained), samples/ "
           "(npy, gif, bvh), grounding.png, runs/ (logs), corpus/")
 
 

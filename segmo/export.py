@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 from segmo.errors import ArgumentParser, SegmoError
-from segmo.files import foreign_entries, replacing_folder
+from segmo.files import foreign_entries, replaced_folder, replacing_folder
 from segmo.models.hub import portable_path
 from segmo.models.pretrained import CONFIG_FILE, WEIGHTS_FILE, read_config, read_json
 
@@ -222,7 +222,8 @@ def main(argv: list[str] | None = None) -> None:
         prog="segmo export", description="export a training checkpoint to a model directory"
     )
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) written by `segmo fit`")
-    parser.add_argument("--out", required=True, help="model directory to write")
+    parser.add_argument("--out", type=replaced_folder, required=True,
+                        help="model directory to write")
     parser.add_argument(
         "--task", default=None,
         help="task class path, e.g. segmo.tasks.tokenizer.RVQTask (default: recorded in the checkpoint)",

@@ -125,6 +125,7 @@ def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
     when it raises. A reader finds the old folder or the new one, never a mix of both; a
     killed writer leaves ``NAME.tmp-<pid>-<n>`` (or ``NAME.old-<pid>-<n>``) beside it,
     which the next writer of `folder` clears up (`_recover`)."""
+    check_replaceable_place(folder)
     target = Path(folder).resolve()  # a symbolic link keeps pointing at the new folder
     _recover(target)
     suffix = f"{os.getpid()}-{next(_counter)}"
@@ -142,6 +143,21 @@ def replacing_folder(folder: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_replaceable_place(folder: str | os.PathLike) -> None:
+    """Refuse a `folder` that must never be replaced whole: the current folder or one above
+    it (``--out ""`` is the current folder), the home folder or one above it (the root).
+    Replacing one deletes everything the user has there, not just an earlier output."""
+    target = Path(folder).resolve()
+    for place, name in ((Path.cwd().resolve(), "the current folder"),
+                        (Path.home().resolve(), "your home folder")):
+        if target == place:
+            raise SegmoError(f"{folder}: is {name}; a folder written whole "
+                             "replaces all it holds: name a new folder")
+        if target in place.parents:
+            raise SegmoError(f"{folder}: holds {name}; a folder written whole "
+                             "replaces all it holds: name a new folder")
 
 
 def _recover(target: Path) -> None:
@@ -343,6 +359,28 @@ def _read_holder(handle: IO[str]) -> str:
         return "another process"
     host = f" on {note['host']}" if note.get("host") not in (None, socket.gethostname()) else ""
     return f"PID {note['pid']}{host} ({note.get('command', '?')}, since {note.get('since', '?')})"
+
+
+def output_folder(text: str) -> str:
+    """argparse type of an --out folder that a command writes files into (the text as
+    given). An empty string (an unset shell variable, quoted) would be the current folder
+    without the user saying so."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a folder, got an empty string (an unset "
+                                         "variable?)")
+    return text
+
+
+def replaced_folder(text: str) -> str:
+    """argparse type of an --out folder that a command writes whole, replacing what it
+    held (export, bundle, synth): `output_folder`, and never the current folder, the home
+    folder or one above either (`check_replaceable_place`)."""
+    output_folder(text)
+    try:
+        check_replaceable_place(text)
+    except SegmoError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
 
 
 def npy_argument(parser: argparse.ArgumentParser, flag: str, path: str | os.PathLike):

@@ -57,3 +57,26 @@ def test_a_killed_writers_temporary_is_removed_by_the_next_writer_of_the_file(tm
         path.write_bytes(b"GIF")
     remove_stale_temporaries(tmp_path / "out.gif")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([busy.name, other.name])
+
+
+def test_the_current_folder_and_those_above_it_are_never_replaced(tmp_path, monkeypatch):
+    """`export(ckpt, "")` (an unset `$OUT`) replaced everything in the current folder by
+    the model; a folder above it went the same way with `..`."""
+    import pytest
+
+    from segmo.errors import SegmoError
+    from segmo.synth import build_corpus
+
+    here = tmp_path / "work"
+    here.mkdir()
+    (here / "notes.txt").write_text("mine")
+    monkeypatch.chdir(here)
+    for folder, says in (("", "is the current folder"), (".", "is the current folder"),
+                         ("..", "holds the current folder"), ("/", "holds the current folder")):
+        with pytest.raises(SegmoError, match=says):
+            with replacing_folder(folder):
+                pass
+    with pytest.raises(SegmoError, match="is the current folder"):
+        build_corpus("", 3, overwrite=True, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]
+    assert [p.name for p in here.iterdir()] == ["notes.txt"]

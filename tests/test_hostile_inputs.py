@@ -6,8 +6,9 @@ asserts the exception type and that its message names what is wrong. The cases a
 table in docs/hostile-inputs.md; a test keeps the two in step.
 
 Placeholders in a CLI case's argv are filled from the `world` fixture: {bundle} (a tiny
-random SegMo bundle), {corpus} (a tiny built-in corpus), {tmp} (a scratch folder) and the
-corrupt files `_corrupt_files` writes there.
+random SegMo bundle), {corpus} (a tiny built-in corpus), {tmp} (a scratch folder), {empty}
+(an empty argument) and the corrupt files `_corrupt_files` writes there. A case runs in
+`world["cwd"]`, a folder holding a file of the user's that must survive it.
 
 Regenerate the table with the messages of this run:
     SEGMO_HOSTILE_TABLE=docs/hostile-inputs.md python -m pytest tests/test_hostile_inputs.py
@@ -99,6 +100,9 @@ CLI_CASES = [
         "--out", "`--out` naming an existing file"),
     Cli("generate-out-through-file", "generate --model {bundle} --text walk --out {file}/sub",
         "is a file, not a directory", "`--out` inside a file (was refused after the generation)"),
+    Cli("generate-out-empty", "generate --model {bundle} --text walk --out {empty}",
+        "argument --out: expected a folder", "`--out \"\"` (an unset variable; wrote into the "
+        "current folder)"),
     Cli("generate-out-foreign-prompts", "generate --model {bundle} --text walk --out {theirs}",
         "not a prompts.json written by segmo", "`--out` holding a prompts.json of the user's"),
     Cli("compose-out-user-file", "compose --model {bundle} --text walk --length 40 --out {notes}",
@@ -198,6 +202,13 @@ CLI_CASES = [
         "--guidance nan --out {tmp}/b", "--guidance", "`--guidance nan`"),
     Cli("bundle-out-is-file", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
         "--out {file}", "--out", "`--out` naming an existing file"),
+    Cli("bundle-out-empty", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
+        "--out {empty} --overwrite", "argument --out: expected a folder, got an empty string",
+        "`--out \"\"` (an unset variable) with `--overwrite` (the current folder's files were "
+        "replaced by the bundle)"),
+    Cli("bundle-out-parent", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
+        "--out .. --overwrite", "..: holds the current folder", "`--out ..` with `--overwrite` "
+        "(the folder above was replaced, the current one with it)"),
     Cli("bundle-push-to-hub-id", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
         "--out {tmp}/bh --push-to-hub nope", "repo_id must look like 'owner/name'",
         "`--push-to-hub` with no repository id (was refused after the bundle was written)"),
@@ -244,6 +255,11 @@ CLI_CASES = [
         "a folder holding someone else's files"),
     Cli("synth-derived-data", "synth --out {corpus} --num-motions 7", "text_features",
         "a rebuild that would delete text features built in the folder"),
+    Cli("synth-out-empty", "synth --out {empty} --num-motions 3 --overwrite",
+        "argument --out: expected a folder", "`--out \"\"` with `--overwrite` (was 'Device or "
+        "resource busy' after the build, leaving a .tmp- corpus in the current folder)"),
+    Cli("synth-out-current", "synth --out . --num-motions 3 --overwrite",
+        ".: is the current folder", "`--out .` with `--overwrite`"),
     # -- segmo evaluate
     Cli("evaluate-model-required", "evaluate --data {corpus} --evaluator {tmp} --out {tmp}/e",
         "--model", "no `--model` and no `--real-only`"),
@@ -283,6 +299,9 @@ CLI_CASES = [
         "a torch file that is no Lightning checkpoint"),
     Cli("export-bad-task", "export {junk_ckpt} --task segmo.tasks.nope.Task --out {tmp}/m",
         "junk.ckpt", "`--task` naming a class that does not exist"),
+    Cli("export-out-empty", "export {junk_ckpt} --out {empty} --overwrite",
+        "argument --out: expected a folder", "`--out \"\"` with `--overwrite` (the current "
+        "folder's files were replaced by the model)"),
     Cli("fit-missing-config", "fit --config {tmp}/none.yaml", "none.yaml",
         "a YAML config that does not exist"),
     Cli("fit-data-missing", "fit --config configs/rvq/synthetic.yaml --data.root {tmp}/nope",
@@ -584,7 +603,10 @@ def world(tmp_path_factory, tokenizer_dir) -> dict[str, Path]:
     (corpus / "text_features").mkdir()  # something a rebuild of the corpus would delete
     tmp = root / "tmp"
     tmp.mkdir()
-    return {"bundle": root / "bundle", "corpus": corpus, "tmp": tmp,
+    cwd = root / "cwd"  # the current folder while a case runs, holding a file of the user's
+    cwd.mkdir()
+    (cwd / "notes.txt").write_text("mine")
+    return {"bundle": root / "bundle", "corpus": corpus, "tmp": tmp, "cwd": cwd, "empty": "",
             **_corrupt_files(tmp, root / "bundle")}
 
 
@@ -612,10 +634,11 @@ def _argv(case: Cli, world: dict[str, Path]) -> list[str]:
 
 
 @pytest.mark.parametrize("case", CLI_CASES, ids=lambda c: c.id)
-def test_cli_refuses_with_one_line(case: Cli, world, capsys):
+def test_cli_refuses_with_one_line(case: Cli, world, capsys, monkeypatch):
     argv = _argv(case, world)
     if case.id == "generate-empty-text":
         argv.append("")
+    monkeypatch.chdir(world["cwd"])
     before = sorted(p.name for p in world["tmp"].iterdir())
     line = cli_failure(argv, capsys)
     MESSAGES[case.id] = line.replace(str(world["tmp"].parent), "…")
@@ -624,6 +647,7 @@ def test_cli_refuses_with_one_line(case: Cli, world, capsys):
     assert len(line) < 600, "one line, not a dump"
     # Nothing the user had is gone, and a refused command leaves no half-written output.
     assert sorted(p.name for p in world["tmp"].iterdir()) == before
+    assert [p.name for p in world["cwd"].iterdir()] == ["notes.txt"]
     assert (world["foreign"] / "thesis.tex").exists() and (world["corpus"] / "text_features").exists()
 
 

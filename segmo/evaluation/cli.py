@@ -78,7 +78,7 @@ from segmo.evaluation.sections import (
     raw_features,
     segmo_retrieval,
 )
-from segmo.files import write_atomic
+from segmo.files import output_folder, write_atomic
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
 from segmo.generation.sampling import Remasking, SamplingOptions, SegmentTiming, WordText
@@ -398,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help="SegMo bundle directory (`segmo bundle`)")
     p.add_argument("--data", help="dataset root (HumanML3D layout)")
     p.add_argument("--evaluator", help="T2M evaluator model directory")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", type=output_folder, required=True, help="output directory")
     p.add_argument("--name", help="row name in the tables (default: the model directory's name)")
     p.add_argument("--split", default="test")
     p.add_argument("--repeats", type=positive_int, default=20)

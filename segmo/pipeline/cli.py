@@ -33,7 +33,7 @@ from segmo.errors import (
     parse_durations,
     positive_int,
 )
-from segmo.files import file_above, npy_argument
+from segmo.files import file_above, npy_argument, output_folder, replaced_folder
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText
@@ -106,7 +106,7 @@ def _output_arguments(parser: argparse.ArgumentParser) -> None:
     write motions (generate, edit, compose)."""
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                         help="auto: bf16 on CPUs with native bf16 (AVX512-BF16, AMX), else fp32")
-    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--out", type=output_folder, required=True, help="output directory")
     parser.add_argument("--formats", default=",".join(FORMATS),
                         help=f"comma-separated subset of {','.join(FORMATS)}")
     parser.add_argument("--bvh-fps", type=_bvh_fps, default=ANIMATION_FPS,
@@ -475,7 +475,8 @@ def bundle_main(argv: list[str] | None = None) -> None:
                         help="metrics.json of `segmo evaluate` (or its folder) for the model card")
     parser.add_argument("--push-to-hub", metavar="REPO_ID", default=None,
                         help="also upload the bundle to this Hugging Face hub repository")
-    parser.add_argument("--out", required=True, help="bundle directory to write")
+    parser.add_argument("--out", type=replaced_folder, required=True,
+                        help="bundle directory to write")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a folder that holds something else than this bundle")
     args = parser.parse_args(argv)

@@ -45,7 +45,7 @@ from segmo.data.layout import (
     texts_file,
 )
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
-from segmo.files import LOCK_FILE, FolderLock
+from segmo.files import LOCK_FILE, FolderLock, check_replaceable_place, replaced_folder
 from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.synth.actions import ACTIONS
 from segmo.synth.captions import HELD_OUT_TEMPLATES, Caption, make_captions, pos_tag
@@ -177,6 +177,7 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
                          f"got {version!r}")
     if out.exists() and not out.is_dir():
         raise SegmoError(f"build_corpus: {out} exists and is not a folder")
+    check_replaceable_place(out)  # before the lock, whose file would land there
     with FolderLock(out, "segmo synth"):
         remove_leftovers(out)
         existing = _corpus_of(out)
@@ -280,7 +281,7 @@ def _write_summary(root: Path, results: list[dict], splits: list[str], seed: int
 
 def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="segmo synth", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--out", required=True, type=replaced_folder, help="output folder")
     parser.add_argument("--num-motions", type=positive_int, default=2000)
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--workers", type=positive_int, default=min(2, os.cpu_count() or 1))
