@@ -10,7 +10,8 @@ The mask and residual tasks are rebuilt around the exported tokenizer they were 
 with, at the path the checkpoint records (absolute since `segmo fit` resolves it; older
 checkpoints name it relative to the folder training ran in); `--tokenizer` names another.
 The model directory is written whole (`segmo.files.replacing_folder`); a non-empty `--out`
-that holds anything else than such a directory is refused unless `--overwrite`.
+that holds anything else than such a directory, or a model of another kind, is refused
+unless `--overwrite`.
 
 A checkpoint whose tensors are not all finite (a run that diverged) is refused, naming
 the tensors; so is a file that is not a checkpoint of `segmo fit`, and a tokenizer that
@@ -177,14 +178,16 @@ def training_data(hparams: dict, resolved_root: str | None = None) -> dict:
 def export(checkpoint_path: str | Path, out: str | Path, task: str | None = None,
            tokenizer: str | Path | None = None, overwrite: bool = False) -> Path:
     """Write the model directory of `checkpoint_path` to `out`, replacing it whole; returns
-    `out`. Without `overwrite`, a non-empty `out` must be a model directory holding nothing
-    else (exporting again is fine)."""
+    `out`. Without `overwrite`, a non-empty `out` must be a model directory of the same
+    kind holding nothing else (exporting again is fine)."""
     out = Path(out)
     if not overwrite:
         check_replaceable(out)
     module, class_path, checkpoint = load_task(checkpoint_path, task, tokenizer=tokenizer)
     from segmo.tasks.base import DATA_ROOT_KEY  # Lightning is imported by now
     model = module.export_model().eval()
+    if not overwrite:
+        check_same_kind(out, model.kind)
     meta = {
         "task": class_path,
         "checkpoint": portable_path(checkpoint_path),
@@ -215,6 +218,18 @@ def check_replaceable(out: Path) -> None:
     if extra:
         raise SegmoError(f"{out} holds another model and {', '.join(extra)}, which the export "
                          "would delete; pass overwrite=True (--overwrite) or choose another folder")
+
+
+def check_same_kind(out: Path, kind: str) -> None:
+    """Refuse an `out` holding a model of another kind than `kind`: exporting the mask
+    checkpoint to `models/rvq` (a slip copying a README line) deleted the tokenizer."""
+    if not (out / CONFIG_FILE).is_file():
+        return
+    existing = read_config(out)["kind"]
+    if existing != kind:
+        raise SegmoError(f"{out} holds a {existing!r} model; exporting a {kind!r} model there "
+                         "would delete it; pass overwrite=True (--overwrite) or choose another "
+                         "folder")
 
 
 def main(argv: list[str] | None = None) -> None:

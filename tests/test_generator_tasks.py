@@ -243,7 +243,15 @@ def test_export_replaces_only_its_own_model_directory(text_dataset, tokenizer_di
     line = cli_failure(["export", ckpt, "--out", str(user)], capsys)
     assert "is not empty and holds no segmo model" in line and "--overwrite" in line
     assert (user / "config.json").read_text() == '{"mine": 1}\n'
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["final.ckpt", "out", "runs", "user"]
+    # A model of another kind (--out models/rvq for the length model: a slip copying a
+    # README line) was replaced without a word, and the tokenizer was gone.
+    rvq = tmp_path / "rvq"
+    shutil.copytree(tokenizer_dir["t2m"], rvq)
+    line = cli_failure(["export", ckpt, "--out", str(rvq)], capsys)
+    assert f"{rvq} holds a 'rvq' model; exporting a 'length' model" in line and "--overwrite" in line
+    assert load_pretrained(rvq).kind == "rvq"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["final.ckpt", "out", "runs", "rvq",
+                                                           "user"]
 
 
 def test_gt_token_spans_and_segment_top1():
