@@ -469,3 +469,17 @@ def test_workers_end_quietly_with_a_killed_parent(tmp_path):
         state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
         assert state == "Z", f"worker {pid} still runs after its parent was killed"  # or a zombie
     assert "Traceback" not in err
+
+
+def test_a_corpus_written_through_a_symbolic_link_lands_in_its_target(tmp_path):
+    """`segmo synth --out LINK` renamed the link itself away, put the corpus where the link
+    was and failed "Cannot call rmtree on a symbolic link", the target left empty."""
+    target = tmp_path / "disk" / "corpus"
+    target.mkdir(parents=True)
+    link = tmp_path / "corpus"
+    link.symlink_to(target)
+    main(["--out", str(link), "--num-motions", "3", "--workers", "1"])
+    assert link.is_symlink() and link.resolve() == target.resolve()
+    assert (target / "corpus.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["corpus", "disk"]
+    assert sorted(p.name for p in target.parent.iterdir()) == ["corpus"]

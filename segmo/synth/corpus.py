@@ -45,7 +45,13 @@ from segmo.data.layout import (
     texts_file,
 )
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
-from segmo.files import LOCK_FILE, FolderLock, check_replaceable_place, replaced_folder
+from segmo.files import (
+    LOCK_FILE,
+    FolderLock,
+    check_replaceable_place,
+    replaced_folder,
+    replacing_folder,
+)
 from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.synth.actions import ACTIONS
 from segmo.synth.captions import HELD_OUT_TEMPLATES, Caption, make_captions, pos_tag
@@ -199,12 +205,11 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
 
 def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool,
            version: int) -> Path:
-    tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    for sub in FOLDERS:
-        (tmp / sub).mkdir(parents=True)
-    try:
+    # replacing_folder follows a symbolic link `out` and replaces its target: renaming the
+    # link itself left the corpus where the link was and the target empty.
+    with replacing_folder(out) as tmp:
+        for sub in FOLDERS:
+            (tmp / sub).mkdir()
         splits = split_assignment(num_motions, seed)
         jobs = [(str(tmp), seed, i, splits[i], version) for i in range(num_motions)]
         if workers > 1:
@@ -222,13 +227,6 @@ def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool,
             finally:
                 torch.set_num_threads(threads)
         _write_summary(tmp, results, splits, seed, num_motions, version)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = out.parent / f"{out.name}.old-{os.getpid()}"
-    out.rename(old)  # exists: the lock file lives in it
-    tmp.rename(out)
-    shutil.rmtree(old)
     return out
 
 
