@@ -384,6 +384,26 @@ def test_ground_truth_spans_follow_the_crop(tmp_path):
         MotionDataset(tmp_path)
 
 
+def test_the_ground_truth_of_another_motion_is_refused_naming_both_files(tmp_path):
+    """A segments file of another motion (164 frames beside a 63-frame motion) was read
+    without a word: its spans were cut to the motion, [(0, 63), (63, 63)], empty ones too."""
+    from segmo.data.actions import ActionFrameDataset
+
+    write_dataset(tmp_path, {"a": 63}, captions={"a": ["walk then wave#w/X#0#0"]})
+    gt = {"id": "b", "fps": 20.0, "num_frames": 164,
+          "actions": [{"action": "walk", "start": 0, "end": 80},
+                      {"action": "wave", "start": 80, "end": 164}],
+          "captions": [{"text": "walk then wave", "segments": [
+              {"text": "walk", "start": 0, "end": 80}, {"text": "wave", "start": 80, "end": 164}]}]}
+    (tmp_path / "segments").mkdir()
+    (tmp_path / "segments" / "a.json").write_text(json.dumps(gt))
+    named = (r"segments/a\.json: num_frames 164, but \S*new_joint_vecs/a\.npy has 63 frames")
+    with pytest.raises(SegmoError, match=named):
+        MotionDataset(tmp_path)
+    with pytest.raises(SegmoError, match=named):
+        ActionFrameDataset(tmp_path, "train", classes=["walk", "wave"])
+
+
 def test_text_cache_features_and_collate(tmp_path):
     write_dataset(tmp_path, {"a": 60, "b": 81})
     seg = tmp_path / "text_segments" / "rule"

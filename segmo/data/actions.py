@@ -73,7 +73,8 @@ class ActionFrameDataset(Dataset):
                 self.labels[mid] = attribute_frame_labels(self.root, mid, self.motions.lengths[mid])
                 continue
             labels = np.full(self.motions.lengths[mid], IGNORE, dtype=np.int64)
-            for action, (start, end) in zip(*read_actions(self.root, mid), strict=True):
+            for action, (start, end) in zip(*read_actions(self.root, mid, len(labels)),
+                                            strict=True):
                 labels[start:end] = index.get(action, IGNORE)
             self.labels[mid] = labels
         self.summary = report.finish(f"{self.root.name}/{split}", len(self.ids), len(self.ids))

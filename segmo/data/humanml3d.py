@@ -285,8 +285,8 @@ class MotionDataset(Dataset):
         segments = self._read_segments(seg_dir, mid, text_path, lines, report)
         if segments is None:
             return []
-        spans = caption_spans(self.root, mid, len(lines))
         t_full = self.motions.lengths[mid]
+        spans = caption_spans(self.root, mid, len(lines), t_full)
         out, parsed = [], 0
         for index, line in enumerate(lines):
             try:

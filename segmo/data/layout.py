@@ -232,14 +232,28 @@ def first_captions(root: str | Path, split: str) -> list[tuple[str, dict[str, An
     return out
 
 
-def caption_spans(root: str | Path, motion_id: str, num_lines: int
+def _check_num_frames(root: str | Path, motion_id: str, record: dict[str, Any],
+                      num_frames: int) -> None:
+    """Refuse a ground-truth record made for a motion of another length than the motion's
+    `num_frames` (the file of another motion, copied or renamed): its spans would be cut to
+    the motion, empty ones included, without a word."""
+    recorded = record.get("num_frames")
+    if recorded is not None and recorded != num_frames:
+        raise SegmoError(f"{ground_truth_file(root, motion_id)}: num_frames {recorded}, but "
+                         f"{motion_file(root, motion_id)} has {num_frames} frames (the ground "
+                         "truth of another motion?)")
+
+
+def caption_spans(root: str | Path, motion_id: str, num_lines: int, num_frames: int
                   ) -> list[tuple[tuple[int, int], ...]] | None:
     """Per caption line of ``texts/<id>.txt``, the frame spans (start, end exclusive) of its
-    ground-truth segments; None when the motion has no ground truth."""
+    ground-truth segments; None when the motion has no ground truth. The record must be
+    of a motion of `num_frames` frames, the motion's."""
     path = ground_truth_file(root, motion_id)
     if not path.is_file():
         return None
     record = read_ground_truth(root, motion_id)
+    _check_num_frames(root, motion_id, record, num_frames)
     try:
         captions = record["captions"]
         spans = [tuple((int(s["start"]), int(s["end"])) for s in c["segments"]) for c in captions]
@@ -252,12 +266,17 @@ def caption_spans(root: str | Path, motion_id: str, num_lines: int
     return spans
 
 
-def read_actions(root: str | Path, motion_id: str) -> tuple[list[str], list[tuple[int, int]]]:
+def read_actions(root: str | Path, motion_id: str, num_frames: int | None = None
+                 ) -> tuple[list[str], list[tuple[int, int]]]:
     """Action names and frame spans (end exclusive) of a motion's ground truth; arm overlays
-    ("with") are left out: the main action names the span."""
+    ("with") are left out: the main action names the span. Given the motion's
+    `num_frames`, the record must be of a motion that long."""
     path = ground_truth_file(root, motion_id)
+    record = read_ground_truth(root, motion_id)
+    if num_frames is not None:
+        _check_num_frames(root, motion_id, record, num_frames)
     try:
-        actions = read_ground_truth(root, motion_id)["actions"]
+        actions = record["actions"]
         return [a["action"] for a in actions], [(int(a["start"]), int(a["end"])) for a in actions]
     except (KeyError, TypeError, ValueError) as error:
         raise SegmoError(f"{path}: not a ground-truth file (actions[i].action/start/end "
