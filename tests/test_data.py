@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -402,6 +403,31 @@ def test_the_ground_truth_of_another_motion_is_refused_naming_both_files(tmp_pat
         MotionDataset(tmp_path)
     with pytest.raises(SegmoError, match=named):
         ActionFrameDataset(tmp_path, "train", classes=["walk", "wave"])
+
+
+def test_an_action_that_is_no_name_is_refused_naming_the_file(tmp_path):
+    """`"action": null` in a ground-truth file was a TypeError traceback from sorting the
+    action names, when the action classifier's fit began."""
+    from segmo.data.actions import ActionFrameDataset, action_classes
+
+    write_dataset(tmp_path, {"a": 63}, captions={"a": ["walk then wave#w/X#0#0"]})
+    (tmp_path / "segments").mkdir()
+    for action, segment_action in ((None, "walk"), (7, "walk"), ("", "walk"), ("walk", None)):
+        gt = {"id": "a", "fps": 20.0, "num_frames": 63,
+              "actions": [{"action": action, "start": 0, "end": 30},
+                          {"action": "wave", "start": 30, "end": 63}],
+              "captions": [{"text": "walk then wave", "segments": [
+                  {"text": "walk", "action": segment_action, "start": 0, "end": 30},
+                  {"text": "wave", "action": "wave", "start": 30, "end": 63}]}]}
+        (tmp_path / "segments" / "a.json").write_text(json.dumps(gt))
+        where, bad = ("actions[0]", action) if segment_action else \
+            ("captions[0].segments[0]", segment_action)
+        named = re.escape(f"segments/a.json: not a ground-truth file ({where}: action {bad!r}: "
+                          "expected a name")
+        with pytest.raises(SegmoError, match=named):
+            action_classes(tmp_path, "train")
+        with pytest.raises(SegmoError, match=named):
+            ActionFrameDataset(tmp_path, "train", classes=["walk", "wave"])
 
 
 def test_text_cache_features_and_collate(tmp_path):

@@ -179,19 +179,23 @@ def ground_truth_problem(record: dict[str, Any]) -> str | None:
     Checked where present (a reader asks for the keys it needs): ``num_frames`` a whole
     number ≥ 1; each span of ``actions`` and of every caption's ``segments`` (a non-empty
     list) whole frames with 0 ≤ start < end ≤ num_frames, in order and not overlapping, as
-    `segmo synth` writes them (docs/design.md)."""
+    `segmo synth` writes them (docs/design.md); each action's ``action`` (and a caption
+    segment's, where given) a name, a non-empty string."""
     frames = record.get("num_frames")
     if "num_frames" in record and not (_is_frame(frames) and frames >= 1):
         return f"num_frames {frames!r}: expected a whole number >= 1"
     end_limit = frames if "num_frames" in record else None
 
-    def spans_problem(where: str, spans: Any) -> str | None:
+    def spans_problem(where: str, spans: Any, action_required: bool) -> str | None:
         if not isinstance(spans, list) or not spans:
             return f"{where}: expected a non-empty list"
         previous_end = 0
         for j, span in enumerate(spans):
             if not isinstance(span, dict):
                 return f"{where}[{j}]: expected an object"
+            action = span.get("action")
+            if (action_required or "action" in span) and not (isinstance(action, str) and action):
+                return f"{where}[{j}]: action {action!r}: expected a name (a non-empty string)"
             start, end = span.get("start"), span.get("end")
             if not (_is_frame(start) and _is_frame(end)):
                 return f"{where}[{j}]: start {start!r}, end {end!r}: expected whole frames"
@@ -203,7 +207,7 @@ def ground_truth_problem(record: dict[str, Any]) -> str | None:
         return None
 
     if "actions" in record:
-        problem = spans_problem("actions", record["actions"])
+        problem = spans_problem("actions", record["actions"], action_required=True)
         if problem:
             return problem
     if "captions" in record:
@@ -213,7 +217,8 @@ def ground_truth_problem(record: dict[str, Any]) -> str | None:
         for i, caption in enumerate(captions):
             if not isinstance(caption, dict) or "segments" not in caption:
                 return f"captions[{i}]: expected an object with segments"
-            problem = spans_problem(f"captions[{i}].segments", caption["segments"])
+            problem = spans_problem(f"captions[{i}].segments", caption["segments"],
+                                    action_required=False)
             if problem:
                 return problem
     return None
