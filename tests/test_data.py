@@ -334,6 +334,18 @@ def test_text_segments_and_errors(tmp_path):
     (seg / "b.txt").write_text(" # \nx\n")
     with pytest.raises(ValueError, match=r"rule/b\.txt:1: no text segment"):
         MotionDataset(tmp_path, text_segments="rule")
+    # A segment without words on a caption's line (made by hand) was reported missing from
+    # the text-feature cache, with advice to run encode-texts, which never encodes one.
+    (seg / "b.txt").write_text("x\ny#...\n")
+    with pytest.raises(SegmoError, match=r"rule/b\.txt:2: text segment '\.\.\.' holds no words"):
+        MotionDataset(tmp_path, text_segments="rule")
+    # The placeholder line of a caption without words is no segment of anything: the caption
+    # line is skipped, as before.
+    (tmp_path / "texts" / "b.txt").write_text("a person does b#a/DET#0.0#0.0\n...#.#0.0#0.0\n")
+    (seg / "b.txt").write_text("x\n...\n")
+    with pytest.warns(UserWarning, match=r"caption without words"):
+        ds = MotionDataset(tmp_path, text_segments="rule")
+    assert [s["segments"] for s in ds][2:] == [["x"]]
 
 
 def test_ground_truth_spans_follow_the_crop(tmp_path):

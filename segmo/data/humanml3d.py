@@ -58,7 +58,13 @@ from segmo.files import read_npy_shape
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.text.cache import TextFeatureCache
-from segmo.text.captions import CaptionLine, parse_text_line, read_caption_lines, texts_file
+from segmo.text.captions import (
+    CaptionLine,
+    has_words,
+    parse_text_line,
+    read_caption_lines,
+    texts_file,
+)
 from segmo.text.manifest import load_manifest
 from segmo.text.rules import MAX_SEGMENTS
 
@@ -337,10 +343,16 @@ class MotionDataset(Dataset):
             raise SegmoError(f"{path} has {len(seg_lines)} lines but {text_path} has "
                              f"{len(lines)}; line i of one must match line i of the other")
         out = []
-        for line in seg_lines:
+        for line, caption in zip(seg_lines, lines, strict=True):
             segs = tuple(s.strip() for s in line.text.split("#") if s.strip())
             if not segs:
                 raise SegmoError(f"{path}:{line.lineno}: no text segment on the line")
+            # `segmo encode-texts` encodes no text without words, as the model takes none; a
+            # caption without words has a placeholder line, and its caption line is skipped.
+            wordless = [s for s in segs if not has_words(s)]
+            if wordless and has_words(caption.caption):
+                raise SegmoError(f"{path}:{line.lineno}: text segment {wordless[0]!r} holds no "
+                                 "words; describe a motion or remove the segment")
             if len(segs) > self.max_segments:
                 raise SegmoError(f"{path}:{line.lineno}: {len(segs)} text segments, more than "
                                  f"max_segments={self.max_segments}")
