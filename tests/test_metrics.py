@@ -158,6 +158,33 @@ def test_evaluate_generation_protocol() -> None:
     assert set(real_only) == {"real"} and real_only["real"]["top1"]["mean"] == 1.0
 
 
+def test_every_seed_the_evaluation_takes_seeds_its_generators() -> None:
+    """`segmo evaluate --seed 20000000000000` (below 2^63, so accepted) derived generation
+    seeds beyond 2^64: a ValueError traceback from torch after the real rows were scored."""
+    from segmo.errors import LARGEST_WHOLE_NUMBER
+
+    n, d, t = 32, 4, 4
+    codes = torch.randn(n, d, generator=torch.Generator().manual_seed(0))
+    batches = [{"motion": codes[s:s + 16][:, None].expand(-1, t, -1).clone(),
+                "lengths": torch.full((16,), t), "id": [f"{r:03d}" for r in range(s, s + 16)],
+                "caption": [f"c{r}" for r in range(s, s + 16)]} for s in (0, 16)]
+    seeds = []
+
+    def generate(captions, lengths, seed):
+        seeds.append(seed)
+        g = torch.Generator().manual_seed(seed)
+        return torch.randn(len(captions), 1, d, generator=g).expand(-1, t, -1)
+
+    for seed in (20_000_000_000_000, LARGEST_WHOLE_NUMBER):
+        evaluate_generation(lambda c, rows: codes[[int(x[1:]) for x in c]].numpy(),
+                            lambda m, lengths: m[:, 0].numpy(), generate, batches, repeats=2,
+                            diversity_pairs=8, mm_prompts=2, mm_repeats=12, mm_pairs=5, seed=seed)
+    assert seeds and all(0 <= s < 2**63 for s in seeds)
+    from segmo.evaluation.metrics import generation_seed
+
+    assert generation_seed(3, 10_007 + 5) == 3 * 1_000_003 + 10_007 + 5  # what it always was
+
+
 def test_evaluate_generation_reconstruction_and_segment_buckets() -> None:
     """A perfect reconstruction scores as the real motions; buckets by number of segments
     add up, appear only when captions have them, and leave R-precision out of a bucket

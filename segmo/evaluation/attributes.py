@@ -22,6 +22,7 @@ import torch
 from segmo.data.attributes import ATTRIBUTES, attribute_labels, named_attributes
 from segmo.data.collate import IGNORE
 from segmo.data.layout import read_ground_truth
+from segmo.evaluation.metrics import generation_seed
 from segmo.evaluation.sections import EvaluateConfig, first_rows, ground_truth, raw_features
 
 MIN_FRAMES = 4  # a span shorter than one token is not read
@@ -85,7 +86,7 @@ def attribute_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[dict
             chunk = queries[s:s + cfg.batch_size]
             lengths = torch.stack([b["lengths"][r] for b, r, _ in chunk])
             features, got = generate.raw([b["caption"][r] for b, r, _ in chunk], lengths,
-                                         cfg.seed * 1_000_003 + 11_000_000 + s)
+                                         generation_seed(cfg.seed, 11_000_000 + s))
             motions += [features[k, : int(got[k])].numpy() for k in range(len(chunk))]
         result["generated"] = _score(clf, queries, motions)
     return result

@@ -31,6 +31,7 @@ from segmo.evaluation.grounding import auto_windows, grounding_metrics
 from segmo.evaluation.metrics import (
     SEGMENT_BUCKETS,
     euclidean_distance_matrix,
+    generation_seed,
     segment_bucket,
     t2m_embedders,
 )
@@ -354,7 +355,7 @@ def action_order_section(cfg: EvaluateConfig, clf: Any, ds: Any, batches: list[d
         chunk = firsts[s:s + cfg.batch_size]
         captions = [b["caption"][r] for b, r in chunk]
         lengths = torch.stack([b["lengths"][r] for b, r in chunk])
-        features, got = generate.raw(captions, lengths, cfg.seed * 1_000_003 + 9_000_000 + s)
+        features, got = generate.raw(captions, lengths, generation_seed(cfg.seed, 9_000_000 + s))
         preds["generated"] += [clf.predict_sequence(features[k, : int(got[k])].numpy()) for k in range(len(chunk))]
     if reconstruct is not None:
         preds["reconstruction"] = [clf.predict_sequence(reconstruct.raw(b["id"][r])) for b, r in firsts]
