@@ -127,7 +127,8 @@ def prune_requests(root: Path, keep: int) -> None:
     files by then; other entries of `root` are left alone."""
     if not root.is_dir():
         return
-    folders = sorted(p for p in root.iterdir() if p.is_dir() and p.name.isdigit())
+    folders = sorted(p for p in root.iterdir()
+                     if p.is_dir() and p.name.isascii() and p.name.isdigit())
     for old in folders[:max(len(folders) - keep, 0)]:
         shutil.rmtree(old, ignore_errors=True)
 

@@ -273,6 +273,9 @@ CLI_CASES = [
         "--split dev", "--split", "a split without a split file"),
     Cli("evaluate-window", "evaluate --real-only --data {corpus} --evaluator {tmp} "
         "--out {tmp}/e --grounding-window 4,x", "--grounding-window", "a bad grounding window"),
+    Cli("evaluate-window-superscript", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --grounding-window ²", "--grounding-window", "`--grounding-window ²`, "
+        "a digit int() refuses (was a ValueError traceback)"),
     Cli("evaluate-evaluator-kind", "evaluate --real-only --data {corpus} --evaluator "
         "{bundle}/mask --out {tmp}/e", "--evaluator", "a mask stage as evaluator"),
     Cli("evaluate-device", "evaluate --real-only --data {corpus} --evaluator {tmp} "

@@ -137,8 +137,9 @@ def test_old_request_folders_are_pruned_and_other_entries_stay(tmp_path):
         (tmp_path / f"{i:06d}").mkdir()
         (tmp_path / f"{i:06d}" / "sample_00.gif").write_bytes(b"GIF")
     (tmp_path / "notes").mkdir()
+    (tmp_path / "²").mkdir()  # a digit to str.isdigit(), not a request folder
     prune_requests(tmp_path, 2)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["000004", "000005", "notes"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["000004", "000005", "notes", "²"]
     prune_requests(tmp_path / "missing", 2)  # nothing served yet: nothing to do
 
 

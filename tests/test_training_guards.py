@@ -127,3 +127,15 @@ def test_no_checkpoint_with_non_finite_tensors_is_written_or_exported(text_datas
     assert f"{tmp_path / 'nan.ckpt'}: 2 of " in line
     assert "model.encoder.layers.0.weight, model.quantizer.codebooks" in line
     assert not (tmp_path / "model").exists()
+
+
+def test_a_version_folder_named_with_a_superscript_digit_is_not_a_version(tmp_path):
+    """`--ckpt_path last` beside a folder `version_²` (a digit to str.isdigit(), not to
+    int()) was a ValueError traceback."""
+    from segmo.training.runs import named_checkpoint
+
+    last = tmp_path / "version_3" / "checkpoints" / "last.ckpt"
+    last.parent.mkdir(parents=True)
+    last.write_bytes(b"")
+    (tmp_path / "version_²" / "checkpoints").mkdir(parents=True)
+    assert named_checkpoint(tmp_path, "last") == last

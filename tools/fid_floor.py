@@ -305,7 +305,7 @@ def table(rows: dict[str, dict[str, Any]], split: str, other: str) -> str:
 def sizes_argument(text: str) -> list[int]:
     """`--sizes`: whole numbers of at least 2, comma-separated."""
     parts = [s.strip() for s in text.split(",") if s.strip()]
-    if not all(p.isdigit() and int(p) >= 2 for p in parts):
+    if not all(p.isascii() and p.isdigit() and int(p) >= 2 for p in parts):
         raise argparse.ArgumentTypeError(f"{text!r}: expected whole numbers of at least 2, separated by commas")
     return [int(p) for p in parts]
 

@@ -490,7 +490,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.action_classifier not in (None, "train") and not Path(args.action_classifier).is_dir():
         parser.error(f"--action-classifier {args.action_classifier}: no such directory (or 'train')")
     window = args.grounding_window
-    if window != "auto" and not all(w.strip().isdigit() and int(w) >= 1 for w in window.split(",")):
+    # ASCII digits: str.isdigit() takes '²', which int() refuses (a ValueError traceback).
+    if window != "auto" and not all(w.strip().isascii() and w.strip().isdigit() and int(w) >= 1
+                                    for w in window.split(",")):
         parser.error(f"argument --grounding-window: 'auto' or window sizes >= 1 such as 5 or "
                      f"4,8,16, got {window!r}")
     skip = tuple(x for x in args.skip.split(",") if x)

@@ -158,7 +158,7 @@ def remove_leftovers(out: Path) -> None:
     for kind in ("tmp", "old"):
         for leftover in out.parent.glob(f"{out.name}.{kind}-*"):
             pid = leftover.name.removeprefix(f"{out.name}.{kind}-")
-            if (pid.isdigit() and leftover.is_dir() and not leftover.is_symlink()
+            if (pid.isascii() and pid.isdigit() and leftover.is_dir() and not leftover.is_symlink()
                     and all(p.name in CORPUS_ENTRIES for p in leftover.iterdir())):
                 shutil.rmtree(leftover, ignore_errors=True)
 

@@ -46,7 +46,10 @@ def named_checkpoint(run: Path, which: str) -> Path:
     (RUNS_DIR/STAGE/NAME) that has one (Lightning would look only in the new run's own,
     empty, folder, and start from scratch with a warning)."""
     pattern = "last.ckpt" if which == "last" else "best-*.ckpt"
-    versions = sorted((p for p in run.glob("version_*") if p.name[8:].isdigit()),
+    # ASCII digits, as Lightning writes them: str.isdigit() takes 'version_²', which int()
+    # refuses (a ValueError traceback).
+    versions = sorted((p for p in run.glob("version_*") if p.name[8:].isascii()
+                       and p.name[8:].isdigit()),
                       key=lambda p: int(p.name[8:]), reverse=True)
     for version in versions:
         found = sorted((version / "checkpoints").glob(pattern), key=lambda p: p.stat().st_mtime)
