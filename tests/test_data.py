@@ -111,6 +111,24 @@ def test_a_split_file_that_cannot_be_read_is_one_line_naming_it(tmp_path):
     assert read_split(tmp_path, "train") == ["a"]
 
 
+def test_an_id_listed_twice_is_refused_and_shared_splits_are_told(tmp_path):
+    """A split listing one motion twice (sampled twice as often, counted twice in a score)
+    and test motions that are also train motions were read without a word."""
+    from segmo.data import MotionDataModule
+
+    write_dataset(tmp_path, {"a": 60, "b": 60, "c": 60},
+                  splits={"train": ["a", "b"], "val": ["c"], "test": ["c", "a"]})
+    (tmp_path / "train.txt").write_text("a\nb\n\n a \n")
+    with pytest.raises(SegmoError, match=r"train\.txt:4: id 'a' again \(first on line 1\)"):
+        read_split(tmp_path, "train")
+    (tmp_path / "train.txt").write_text("a\nb\n")
+    with pytest.warns(UserWarning) as told:
+        MotionDataModule(str(tmp_path), batch_size=2).setup("fit")
+    shared = [str(w.message) for w in told if "share" in str(w.message)]
+    assert shared == [f"{tmp_path}: the splits share motions: 1 in both train.txt and test.txt "
+                      "(first: a); 1 in both val.txt and test.txt (first: c)"]
+
+
 def test_samples_are_zscored_cropped_and_stats_untouched(tmp_path):
     raw = write_dataset(tmp_path, {"a": 61, "b": 80})
     mean_file, std_file = np.load(tmp_path / "Mean.npy"), np.load(tmp_path / "Std.npy")

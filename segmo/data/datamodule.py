@@ -6,6 +6,7 @@ absurd values (`segmo.data.checks`), and texts missing from the text-feature cac
 
 from __future__ import annotations
 
+import warnings
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
@@ -19,7 +20,7 @@ from segmo.data.actions import ActionFrameDataset, action_classes
 from segmo.data.checks import MAX_ABS_Z, missing_texts
 from segmo.data.collate import collate
 from segmo.data.humanml3d import MotionDataset
-from segmo.data.layout import load_stats, split_file
+from segmo.data.layout import load_stats, shared_ids, split_file
 from segmo.data.sampling import EpochSampler, ResumableDataLoader
 from segmo.data.windows import MotionWindowDataset
 from segmo.errors import LARGEST_WHOLE_NUMBER, SegmoError
@@ -150,6 +151,9 @@ class MotionDataModule(LightningDataModule):
         if split not in ("train", "val", "test"):
             raise ValueError(f"unknown split {split!r}; expected 'train', 'val' or 'test'")
         if split not in self.datasets:
+            shared = shared_ids(self.root) if not self.datasets else None  # once, at the first
+            if shared:
+                warnings.warn(shared, stacklevel=2)
             self.datasets[split] = self._build(split)
         return self.datasets[split]
 

@@ -34,7 +34,7 @@ STATISTICS = ("Mean.npy", "Std.npy")
 __all__ = ["GROUND_TRUTH", "JOINTS", "MOTIONS", "SPLITS", "STATISTICS", "caption_spans",
            "check_stats", "ground_truth_file", "has_ground_truth", "joints_file", "load_stats",
            "motion_file", "read_actions", "read_ground_truth", "read_motion", "read_split",
-           "resolve_stats", "split_file", "stats_files", "texts_file"]
+           "resolve_stats", "shared_ids", "split_file", "stats_files", "texts_file"]
 
 
 # ----------------------------------------------------------------------------- paths
@@ -70,16 +70,43 @@ def has_ground_truth(root: str | Path) -> bool:
 
 
 def read_split(root: str | Path, split: str) -> list[str]:
-    """Ids of ``ROOT/<split>.txt``, one per non-blank line, in file order."""
+    """Ids of ``ROOT/<split>.txt``, one per non-blank line, in file order; an id listed
+    twice is refused (it would be sampled twice as often, and counted twice in a score)."""
     path = split_file(root, split)
     if path.is_dir():
         raise SegmoError(f"{path}: is a folder, not a split file (one motion id per line)")
     if not path.exists():  # a broken link too
         raise FileNotFoundError(f"split file not found: {path}")
-    ids = [line.strip() for line in read_text(path).splitlines() if line.strip()]
-    if not ids:
+    line_of: dict[str, int] = {}
+    for number, line in enumerate(read_text(path).splitlines(), 1):
+        motion_id = line.strip()
+        if not motion_id:
+            continue
+        if motion_id in line_of:
+            raise SegmoError(f"{path}:{number}: id {motion_id!r} again (first on line "
+                             f"{line_of[motion_id]}); list each motion once")
+        line_of[motion_id] = number
+    if not line_of:
         raise SegmoError(f"split file lists no ids: {path}")
-    return ids
+    return list(line_of)
+
+
+def shared_ids(root: str | Path) -> str | None:
+    """One line naming the motions that two split files of `root` both list (a test motion
+    also trained on makes the test score one of memory), None when the splits are disjoint.
+    Split files that are missing or unreadable are left to the readers that need them."""
+    ids = {}
+    for split in SPLITS:
+        try:
+            ids[split] = set(read_split(root, split))
+        except (OSError, SegmoError):
+            continue
+    shared = [(a, b, sorted(ids[a] & ids[b])) for i, a in enumerate(ids) for b in list(ids)[i + 1:]]
+    parts = [f"{len(common)} in both {a}.txt and {b}.txt (first: {common[0]})"
+             for a, b, common in shared if common]
+    if not parts:
+        return None
+    return f"{root}: the splits share motions: {'; '.join(parts)}"
 
 
 def read_motion(root: str | Path, motion_id: str) -> np.ndarray:
