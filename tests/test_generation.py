@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from segmo.errors import SegmoError
 from segmo.generation import (
     SamplingOptions,
     decode_tokens,
@@ -15,7 +16,7 @@ from segmo.generation import (
     sample_tokens,
 )
 from segmo.generation import generate as generate_module
-from segmo.generation.sampling import top_k_count
+from segmo.generation.sampling import MAX_SCALE, SCALES, top_k_count
 from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
 from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
 
@@ -84,6 +85,24 @@ def test_sample_tokens(sampler):
     expected = (probs.log() / 2.0).softmax(-1)
     torch.testing.assert_close(freq[:4], expected, rtol=0, atol=0.015)
     assert float(freq[4:].sum()) == 0.0
+
+
+@pytest.mark.parametrize("sampler", ["categorical", "gumbel"])
+def test_a_tiny_temperature_draws_the_best_token(sampler):
+    # 1e-40: values / temperature overflowed to inf, the probabilities were NaN and the
+    # categorical draw took the worst token.
+    logits = torch.tensor([[1.0, 3.0, 2.0, 0.5], [0.0, -1.0, 4.0, 2.0]])
+    for temperature in (1e-3, 1e-30, 1e-40):
+        tokens, confidence = sample_tokens(logits, 1.0, temperature, sampler,
+                                           torch.Generator().manual_seed(0))
+        assert tokens.tolist() == [1, 2] and confidence.tolist() == [1.0, 1.0], temperature
+
+
+@pytest.mark.parametrize("name", SCALES)
+def test_a_scale_that_would_overflow_the_guided_logits_is_refused(name):
+    SamplingOptions(**{name: MAX_SCALE})
+    with pytest.raises(SegmoError, match=f"{name} must be in"):
+        SamplingOptions(**{name: 1e308})
 
 
 def test_guidance_scale_one_equals_conditional(models):

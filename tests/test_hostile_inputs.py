@@ -63,6 +63,8 @@ CLI_CASES = [
         "`--guidance nan`"),
     Cli("generate-guidance-inf", GEN + " --text walk --guidance inf", "--guidance",
         "`--guidance inf`"),
+    Cli("generate-guidance-huge", GEN + " --text walk --guidance 1e308", "guidance_scale",
+        "`--guidance 1e308` (the guided logits overflowed: drew the worst tokens)"),
     Cli("generate-temperature-negative", GEN + " --text walk --temperature -1", "--temperature",
         "a negative temperature"),
     Cli("generate-bvh-fps-zero", GEN + " --text walk --bvh-fps 0", "--bvh-fps", "a BVH frame rate of 0"),

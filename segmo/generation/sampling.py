@@ -28,6 +28,12 @@ Remasking = Literal["confidence", "segments"]
 # The most decoding steps: far above any useful schedule (MoMask decodes in 10, the demo
 # bundle in 4), so that a typo cannot make the schedule itself take gigabytes.
 MAX_STEPS = 1000
+# The largest guidance scale or weight (in size): far above any useful one (bundles use 2
+# to 5), and small enough that the guided float32 logits cannot overflow to inf, which
+# turns every probability into NaN and draws the worst token.
+MAX_SCALE = 1e6
+SCALES = ("guidance_scale", "residual_guidance_scale", "segment_guidance", "ctrl_lambda",
+          "ctrl_k_base", "ctrl_alpha", "sink_ratio", "choice_temperature")
 
 
 def check_word_text(value: object) -> None:
@@ -86,8 +92,8 @@ class SamplingOptions:
         log-confidence plus τ·(1 − t)·Gumbel noise, t the step's time in [0, 1], so early
         steps do not fix only the tokens the model is surest of.
 
-    Raises SegmoError naming the first option a generation cannot use (NaN guidance,
-    0 steps...).
+    Raises SegmoError naming the first option a generation cannot use (NaN guidance, a
+    scale or weight beyond ±`MAX_SCALE`, 0 steps...).
 
         >>> SamplingOptions(steps=20, temperature=0.5)
     """
@@ -119,6 +125,11 @@ class SamplingOptions:
             if isinstance(value, bool) or not isinstance(value, numbers.Real) \
                     or not math.isfinite(value):
                 raise SegmoError(f"SegMo: {name} must be a finite number, got {value!r}")
+        for name in SCALES:
+            if abs(getattr(self, name)) > MAX_SCALE:
+                raise SegmoError(f"SegMo: {name} must be in [-{MAX_SCALE:g}, {MAX_SCALE:g}] "
+                                 f"(beyond, the guided logits overflow), got "
+                                 f"{getattr(self, name)!r}")
         if self.temperature < 0:
             raise SegmoError(f"SegMo: temperature must be >= 0 (0 = greedy), got "
                              f"{self.temperature!r}")
@@ -201,7 +212,11 @@ def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: f
         values = values.gather(-1, order)
     else:
         values, candidates = logits, None
-    scaled = values / temperature if temperature > 0 else values
+    # Less the row's largest first: a tiny temperature then takes the others to −inf and
+    # keeps the best at 0, where values / 1e-40 overflowed to inf, NaN probabilities and
+    # the worst token.
+    scaled = (values - values.amax(dim=-1, keepdim=True)) / temperature if temperature > 0 \
+        else values
     probs = torch.softmax(scaled, dim=-1)
     if temperature == 0:
         choice = values.argmax(dim=-1, keepdim=True)
