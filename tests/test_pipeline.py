@@ -460,6 +460,29 @@ def test_retrieval_ranks(model, generated):
     assert [s for _, s in ranked] == sorted((s for _, s in ranked), reverse=True)
 
 
+def test_a_model_left_in_train_mode_grounds_and_retrieves_as_in_eval_mode(bundle, generated):
+    """Grounding, retrieval and generation run without dropout whatever mode the caller left
+    the stages in (fine-tuning in a notebook), and give the caller's mode back."""
+    model = SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM))
+    text, motion, candidates = PROMPTS[0], generated.motion(0), PROMPTS + ["a woman kicks."]
+
+    def results():
+        return (model.ground(text, motion).similarity,
+                model.ground(text, motion, method="attention").similarity,
+                model.retrieve_texts(motion, candidates, top_k=3),
+                model.retrieve_motions(text, [motion, generated.motion(1)]),
+                model.generate(PROMPTS, [48, 32], generator=seeded()).features)
+
+    expected = results()
+    for stage in model.modules():
+        stage.train()
+    for seed in (0, 1):  # dropout would draw from the global generator
+        torch.manual_seed(seed)
+        for got, want in zip(results(), expected):
+            assert torch.equal(got, want) if isinstance(want, torch.Tensor) else got == want
+    assert all(stage.training for stage in model.modules())
+
+
 def test_no_alignment_head_is_a_clear_error(tmp_path, tokenizer_dir, generated):
     dirs = build_stages(tmp_path, tokenizer_dir["t2m"], alignment=False)
     plain = SegMo.from_stages(dirs["tokenizer"], dirs["mask"],

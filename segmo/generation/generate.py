@@ -193,9 +193,11 @@ def _autocast(precision: Precision, device: torch.device) -> torch.autocast:
 
 
 @contextmanager
-def _inference(models: list[nn.Module], precision: Precision, device: torch.device
-               ) -> Iterator[None]:
-    """Eval mode (restored afterwards), inference mode and, for bf16, autocast."""
+def inference(models: list[nn.Module], precision: Precision = "fp32",
+              device: torch.device | str = "cpu") -> Iterator[None]:
+    """Eval mode (restored afterwards), inference mode and, for bf16, autocast: how every
+    pass of the pipeline runs, so that a model left in train mode (fine-tuned in a
+    notebook) gives the same numbers as in eval mode, without dropout."""
     autocast = _autocast(precision, device)
     modes = [(model, model.training) for model in models]
     for model, _ in modes:
@@ -485,7 +487,7 @@ def fill_tokens(mask_model: MaskTransformer, residual_model: ResidualTransformer
     False. Generation is the case editable = token_mask.
     """
     models = [mask_model] + ([residual_model] if residual_model is not None else [])
-    with _inference(models, precision, sentence.device):
+    with inference(models, precision, sentence.device):
         condition = guidance_condition(mask_model, sentence, segments, segment_mask, words, word_mask,
                                        options.unconditional, spans)
         per_segment = segment_guidance_condition(
@@ -539,7 +541,7 @@ def generate_tokens(
     q = residual_model.config.num_quantizers if residual_model is not None else 1
     empty = torch.full((*token_mask.shape, q), -1, device=sentence.device)
     options = options or SamplingOptions()
-    with torch.no_grad():
+    with inference([mask_model], "fp32", sentence.device):
         spans = segment_spans(mask_model, segments, segment_mask, token_mask,
                               options.segment_timing, durations)
     return fill_tokens(mask_model, residual_model, empty, token_mask, token_mask, sentence,

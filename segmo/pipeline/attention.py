@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from segmo.generation.generate import inference
 from segmo.models.attention_recorder import AttentionMap
 
 
@@ -23,14 +24,14 @@ def motion_attention(model: Any, texts: Sequence[str], segments: Sequence[Sequen
     real ones whose segment spans are known): one conditional pass with every base token of
     the motion visible, recorded (`SegMo.record_attention`). Row i of each map is motion i."""
     sentence, vectors, segment_mask, _ = model.text_condition(list(texts), [list(s) for s in segments])
-    tokens = [model.encode_motion(motion)[0, :, 0] for motion in motions]
+    tokens = [model.encode_motion(motion)[0, :, 0] for motion in motions]  # in eval mode
     n = max(len(t) for t in tokens)
     indices = torch.zeros(len(tokens), n, dtype=torch.long, device=model.device)
     token_mask = torch.zeros(len(tokens), n, dtype=torch.bool, device=model.device)
     for i, t in enumerate(tokens):
         indices[i, :len(t)], token_mask[i, :len(t)] = t, True
     words, word_mask = model.word_condition(list(texts), [list(s) for s in segments])
-    with torch.inference_mode(), model.record_attention() as recording:
+    with inference([model.mask], "fp32", model.device), model.record_attention() as recording:
         condition = model.mask.condition(sentence, vectors, segment_mask, words=words,
                                          word_mask=word_mask)
         model.mask.forward_condition(indices, token_mask, condition)

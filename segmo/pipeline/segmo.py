@@ -34,6 +34,7 @@ from segmo.generation.generate import (
     check_models,
     decode_tokens,
     generate_tokens,
+    inference,
     resolve_precision,
 )
 from segmo.generation.sampling import Sampler, SamplingOptions
@@ -300,14 +301,14 @@ class SegMo:
 
     def encode_motion(self, motion: Any) -> torch.Tensor:
         """Raw features (t, d) → tokens (1, t // 4, q) long (all tokenizer layers)."""
-        with torch.inference_mode():
+        with inference([self.tokenizer], "fp32", self.device):
             return self.tokenizer.encode(self.normalize_motion(motion)[0])
 
     def decode(self, tokens: torch.Tensor, lengths: torch.Tensor, texts: list[str],
                segments: list[list[str]], precision: Precision = "auto") -> GenerationOutput:
         """tokens (b, n, q) + lengths (b,) frames → GenerationOutput (raw features, joints)."""
-        z = decode_tokens(self.tokenizer, tokens, lengths, precision)
-        with torch.inference_mode():
+        with inference([self.tokenizer], "fp32", self.device):  # decode_tokens: bf16 itself
+            z = decode_tokens(self.tokenizer, tokens, lengths, precision)
             features = self.tokenizer.denormalize(z)
         valid = (torch.arange(features.shape[1], device=features.device)
                  < lengths[:, None])[..., None]
@@ -334,7 +335,7 @@ class SegMo:
         if self.length is None:
             raise SegmoError("SegMo: no lengths given and the bundle has no length estimator; "
                              "pass lengths=[frames, ...]")
-        with torch.inference_mode():
+        with inference([self.length], "fp32", self.device):
             lengths = self.length.sample(self.encode_texts(check_texts(texts)), generator=generator)
         # The estimator may know longer motions than the mask transformer accepts.
         return lengths.clamp(FRAMES_PER_TOKEN, self.max_frames).long()

@@ -25,6 +25,7 @@ from typing import Any, Protocol
 import torch
 
 from segmo.errors import SegmoError
+from segmo.generation.generate import inference
 from segmo.models.alignment import AlignmentHead, segment_similarity
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.models.tokenizer import FRAMES_PER_TOKEN, RVQVAE
@@ -97,7 +98,7 @@ def embed_segments(tokenizer: RVQVAE, mask: MaskTransformer, z: torch.Tensor,
     word features for a model with word keys (`SegMo.word_condition`).
     """
     head = alignment_head(mask)
-    with torch.inference_mode():
+    with inference([tokenizer, mask], "fp32", z.device):
         latents = tokenizer.latents(z)
         base = tokenizer.quantize(latents)[..., 0]
         num_tokens = frames // FRAMES_PER_TOKEN
