@@ -59,7 +59,8 @@ def cli_failure(argv: list[str], capsys) -> str:
 
 def hash_vector(text: str, dim: int) -> torch.Tensor:
     generator = torch.Generator().manual_seed(zlib.crc32(text.encode()))
-    return torch.nn.functional.normalize(torch.randn(dim, generator=generator), dim=0)
+    return torch.nn.functional.normalize(
+        torch.randn(dim, generator=generator, dtype=torch.float32), dim=0)
 
 
 def hash_encoder(name: str, dim: int):
@@ -73,7 +74,7 @@ def hash_encoder(name: str, dim: int):
         def encode(self, texts, batch_size=64):
             words = [t.split()[:8] for t in texts]
             length = max([len(w) for w in words] + [1])
-            tokens = torch.zeros(len(texts), length, dim)
+            tokens = torch.zeros(len(texts), length, dim, dtype=torch.float32)
             mask = torch.zeros(len(texts), length, dtype=torch.bool)
             for i, ws in enumerate(words):
                 for j, w in enumerate(ws):

@@ -483,6 +483,32 @@ def test_a_model_left_in_train_mode_grounds_and_retrieves_as_in_eval_mode(bundle
     assert all(stage.training for stage in model.modules())
 
 
+def test_a_float64_default_dtype_changes_no_result(model, generated, bundle):
+    """torch.set_default_dtype(torch.float64), common in scientific notebooks, before or
+    after loading: the pipeline builds its tensors in float32 itself (was a dtype
+    RuntimeError from nn.Linear in generate, ground and edit_text)."""
+    def results(m):
+        return (m.generate(PROMPTS, [48, 32], generator=seeded()).features,
+                m.generate(PROMPTS, [48, 32], guidance="sink_ctrl", sampler="gumbel",
+                           generator=seeded()).tokens,
+                m.ground(PROMPTS[0], generated.motion(0)).similarity,
+                m.ground(PROMPTS[0], generated.motion(0), method="attention").similarity,
+                m.edit_text(generated, "a person walks forward, then jumps.").features,
+                m.compose([("walk", 40), ("run", 40)], generator=seeded()).features,
+                m.embed_pairs(PROMPTS, [generated.motion(0), generated.motion(1)])[1])
+
+    expected = results(model)
+    torch.set_default_dtype(torch.float64)
+    try:
+        after = results(model)
+        before = results(SegMo.from_pretrained(bundle, text_encoder=hash_encoder("hash", TEXT_DIM)))
+    finally:
+        torch.set_default_dtype(torch.float32)
+    for got in (after, before):
+        for value, want in zip(got, expected):
+            assert value.dtype == want.dtype and torch.equal(value, want)
+
+
 def test_no_alignment_head_is_a_clear_error(tmp_path, tokenizer_dir, generated):
     dirs = build_stages(tmp_path, tokenizer_dir["t2m"], alignment=False)
     plain = SegMo.from_stages(dirs["tokenizer"], dirs["mask"],

@@ -102,6 +102,17 @@ def test_clip_shapes_and_masks(tiny_clip):
     torch.testing.assert_close(last, out.sentence, atol=1e-5, rtol=1e-5)
 
 
+def test_a_float64_default_dtype_encodes_in_float32(tiny_clip):
+    expected = tiny_clip.encode(TEXTS)
+    torch.set_default_dtype(torch.float64)  # as scientific notebooks do
+    try:
+        out, empty = tiny_clip.encode(TEXTS), tiny_clip.encode([])
+    finally:
+        torch.set_default_dtype(torch.float32)
+    assert torch.equal(out.sentence, expected.sentence) and torch.equal(out.tokens, expected.tokens)
+    assert empty.sentence.dtype == empty.tokens.dtype == torch.float32
+
+
 def test_clip_truncates_to_77_tokens(tiny_clip):
     out = tiny_clip.encode(["a" * 300, "b"])
     assert out.tokens.shape[1] == 77 and int(out.token_mask[0].sum()) == 77

@@ -189,7 +189,8 @@ def attention_edit_tokens(
         factors = reweight or [{} for _ in range(b)]
 
         def edit(site: Site, weights: torch.Tensor, stored: Stored | None) -> torch.Tensor:
-            scale = torch.ones(weights.shape[0], weights.shape[3], device=weights.device)
+            scale = torch.ones(weights.shape[0], weights.shape[3], dtype=weights.dtype,
+                               device=weights.device)
             for row, chosen in enumerate(factors[: site.conditional]):
                 for label, factor in chosen.items():
                     if label in site.labels:

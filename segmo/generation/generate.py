@@ -247,7 +247,7 @@ class SinkControl:
                  device: torch.device) -> None:
         self.options = options
         self.k = options.ctrl_k_base * (1.0 + options.ctrl_alpha * options.sink_ratio)
-        self.previous = torch.zeros(*shape, vocabulary, device=device)
+        self.previous = torch.zeros(*shape, vocabulary, dtype=torch.float32, device=device)
 
     def guided(self, logits: torch.Tensor, positions: torch.Tensor | None,
                picked: torch.Tensor) -> torch.Tensor:
@@ -364,13 +364,14 @@ def masked_decode(model: MaskTransformer, ids: torch.Tensor, editable: torch.Ten
         return ids
     groups = (token_groups(spans, ids.shape[1])
               if options.remasking == "segments" and spans is not None else None)
-    scores = torch.zeros(ids.shape, device=ids.device).masked_fill(~editable, math.inf)
+    scores = torch.zeros(ids.shape, dtype=torch.float32, device=ids.device).masked_fill(
+        ~editable, math.inf)
     mask2 = torch.cat([token_mask, token_mask])
     control = SinkControl(options, ids.shape, model.config.codebook_size, ids.device) \
         if options.guidance == "sink_ctrl" else None
     reuse = not is_recorded(model)
     previous: tuple | None = None  # (ids, sink, logits, logits of the segment rows)
-    for t in torch.linspace(0, 1, options.steps).tolist():
+    for t in torch.linspace(0, 1, options.steps, dtype=torch.float32).tolist():
         ranked = scores
         if options.choice_temperature and 0 < t < 1:  # t = 0 masks all, t = 1 no noise
             ranked = noisy_confidence(scores, options.choice_temperature * (1 - t), generator)

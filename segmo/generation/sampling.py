@@ -183,7 +183,7 @@ def gumbel_noise(shape: torch.Size, generator: torch.Generator | None = None,
                  device: torch.device | None = None) -> torch.Tensor:
     """Standard Gumbel noise of `shape`, −log(−log u), one uniform draw u per element from
     `generator` (the Gumbel-max draw of `sample_tokens`, MaskGIT's choice noise)."""
-    u = torch.rand(shape, generator=generator, device=device)
+    u = torch.rand(shape, generator=generator, dtype=torch.float32, device=device)
     return -torch.log((-torch.log(u.clamp(min=1e-20))).clamp(min=1e-20))
 
 
@@ -222,7 +222,8 @@ def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: f
         choice = values.argmax(dim=-1, keepdim=True)
     elif sampler == "categorical":
         cdf = probs.cumsum(dim=-1)
-        u = torch.rand((*cdf.shape[:-1], 1), generator=generator, device=cdf.device)
+        u = torch.rand((*cdf.shape[:-1], 1), generator=generator, dtype=cdf.dtype,
+                       device=cdf.device)
         choice = torch.searchsorted(cdf, u * cdf[..., -1:], right=True).clamp(max=k - 1)
     else:
         choice = (scaled + gumbel_noise(scaled.shape, generator, scaled.device)).argmax(

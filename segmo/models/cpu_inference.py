@@ -122,7 +122,7 @@ def attention_weights(q: torch.Tensor, k: torch.Tensor, key_valid: torch.Tensor)
     """The post-softmax weights of `matmul_attention`, fp32 (b, heads, l, m): what its
     second matmul multiplies the values by (`segmo.models.attention_control` edits them)."""
     mask = key_valid[:, None, None, :]
-    bias = torch.zeros(mask.shape, device=q.device).masked_fill(~mask, -math.inf)
+    bias = torch.zeros(mask.shape, dtype=torch.float32, device=q.device).masked_fill(~mask, -math.inf)
     scores = torch.matmul(q, k.transpose(-1, -2)).float()  # a new fp32 tensor: edit in place
     scores.mul_(q.shape[-1] ** -0.5).add_(bias)  # (a broadcast masked_fill_ is 6× slower)
     return torch.softmax(scores, dim=-1)

@@ -127,7 +127,7 @@ class Pretrained:
         check_weight_shapes(directory, {k: tuple(v.shape) for k, v in shell.state_dict().items()},
                             weight_shapes(directory))
         del shell
-        model = cls(config)
+        model = cls(config).float()  # the weights' float32, whatever torch's default dtype
         model.meta = payload.get("meta", {})
         model.load_state_dict(read_weights(directory, model, map_location))
         return model.to(map_location).eval()

@@ -78,7 +78,7 @@ def sinusoidal_positions(length: int, dim: int) -> torch.Tensor:
         raise ValueError(f"sinusoidal_positions: dim must be even, got {dim}")
     position = torch.arange(length, dtype=torch.float32)[:, None]
     frequency = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-math.log(10000.0) / dim))
-    table = torch.zeros(length, dim)
+    table = torch.zeros(length, dim, dtype=torch.float32)
     table[:, 0::2] = torch.sin(position * frequency)
     table[:, 1::2] = torch.cos(position * frequency)
     return table

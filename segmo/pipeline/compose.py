@@ -106,7 +106,8 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
                          words=words, word_mask=word_mask)
     decoded = model.decode(filled, window_lengths, pairs, segments, precision).features
     pieces, all_tokens, part_spans, at = [], [], [], 0
-    ramp = torch.linspace(0, 1, blend + 2, device=out.features.device)[1:-1, None]
+    ramp = torch.linspace(0, 1, blend + 2, dtype=out.features.dtype,
+                          device=out.features.device)[1:-1, None]
     for i in range(len(parts)):
         part = out.features[i, :int(lengths[i])].clone()
         if i > 0:  # fade in from the transition window's decoding of the same frames

@@ -98,7 +98,7 @@ class TextConditioning:
                                  f"text_dim={self.model.text_dim}")
             self._sentence_cache.update(zip(missing, sentence))
         if not texts:
-            return torch.zeros(0, self.model.text_dim, device=self.device)
+            return torch.zeros(0, self.model.text_dim, dtype=torch.float32, device=self.device)
         return torch.stack([self._sentence_cache[t] for t in texts]).to(self.device)
 
     def segment(self, texts: list[str]) -> list[list[str]]:
@@ -126,7 +126,9 @@ class TextConditioning:
                                  f"takes 1..{limit}")
         a = max(len(s) for s in segments)
         flat = self.encode([t for s in segments for t in s])
-        vectors = torch.zeros(len(texts), a, flat.shape[-1], device=self.device)
+        # float32 whatever torch's default dtype is (a notebook may set float64)
+        vectors = torch.zeros(len(texts), a, flat.shape[-1], dtype=torch.float32,
+                              device=self.device)
         mask = torch.zeros(len(texts), a, dtype=torch.bool, device=self.device)
         k = 0
         for i, segs in enumerate(segments):
@@ -165,7 +167,8 @@ class TextConditioning:
                 self._word_cache[text] = out.tokens[i][out.token_mask[i].bool()].float().cpu()
         rows = [self._word_cache[t][: self.model.max_words] for t in texts]
         length = max(len(r) for r in rows)
-        words = torch.zeros(len(texts), length, self.model.text_dim, device=self.device)
+        words = torch.zeros(len(texts), length, self.model.text_dim, dtype=torch.float32,
+                            device=self.device)
         mask = torch.zeros(len(texts), length, dtype=torch.bool, device=self.device)
         for i, row in enumerate(rows):
             words[i, : len(row)], mask[i, : len(row)] = row.to(self.device), True

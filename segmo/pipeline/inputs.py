@@ -176,7 +176,7 @@ def segment_durations(durations: Any, segments: list[list[str]]) -> torch.Tensor
             or len(durations) != len(segments):
         raise SegmoError(f"SegMo.generate: durations must be one list per text "
                          f"({len(segments)}), got {durations!r:.80}")
-    out = torch.zeros(len(segments), max(len(s) for s in segments))
+    out = torch.zeros(len(segments), max(len(s) for s in segments), dtype=torch.float32)
     for i, (values, segs) in enumerate(zip(durations, segments)):
         if values is None:
             continue

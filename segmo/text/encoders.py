@@ -102,12 +102,14 @@ class TextEncoder:
             raise ValueError(f"TextEncoder.encode: batch_size must be >= 1, got {batch_size}")
         n = len(texts)
         if n == 0:
-            return TextEncoding(torch.zeros(0, self.dim), torch.zeros(0, 0, self.dim),
+            return TextEncoding(torch.zeros(0, self.dim, dtype=torch.float32),
+                                torch.zeros(0, 0, self.dim, dtype=torch.float32),
                                 torch.zeros(0, 0, dtype=torch.bool))
         lengths = [len(ids) for ids in self._tokenize(list(texts), pad=False)["input_ids"]]
         order = sorted(range(n), key=lambda i: -lengths[i])  # longest first: peak memory early
-        sentence = torch.zeros(n, self.dim)
-        tokens = torch.zeros(n, max(lengths), self.dim)
+        # float32 whatever torch's default dtype is (a notebook may set float64)
+        sentence = torch.zeros(n, self.dim, dtype=torch.float32)
+        tokens = torch.zeros(n, max(lengths), self.dim, dtype=torch.float32)
         mask = torch.zeros(n, max(lengths), dtype=torch.bool)
         with torch.inference_mode():
             for start in range(0, n, batch_size):
