@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from segmo.errors import SegmoError
-from segmo.pipeline.grounding import all_spans, check_search, ordered_spans
+from segmo.pipeline.grounding import all_spans, check_search, ordered_spans, sliding_windows
 
 
 def brute_force_cut(similarity: np.ndarray, spans: np.ndarray, n: int, min_tokens: int):
@@ -90,3 +90,9 @@ def test_search_arguments() -> None:
         with pytest.raises(SegmoError, match=message) as error:
             check_search(*args)
         assert "\n" not in str(error.value)
+
+
+def test_a_numpy_window_is_a_window():
+    # check_search takes numpy integers; sliding_windows tried to iterate one (TypeError)
+    assert sliding_windows(10, np.int64(3), np.int64(2)).tolist() == sliding_windows(10, 3, 2).tolist()
+    assert check_search(None, np.int64(3), np.int64(2), 2) == "window"

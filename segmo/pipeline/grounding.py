@@ -188,7 +188,7 @@ def sliding_windows(num_tokens: int, window: int | Sequence[int], stride: int | 
     sequence, and the last window of each size is aligned to the end so the tail is covered."""
     if num_tokens < 1:
         raise ValueError(f"sliding_windows: num_tokens={num_tokens} must be >= 1")
-    sizes = [window] if isinstance(window, int) else list(window)
+    sizes = [window] if isinstance(window, (int, np.integer)) else list(window)
     spans: list[tuple[int, int]] = []
     for w in sizes:
         if w < 1:
