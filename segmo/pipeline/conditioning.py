@@ -115,9 +115,7 @@ class TextConditioning:
         if segments is None:
             segments = self.segment(texts)
         else:
-            if isinstance(segments, str) or len(segments) != len(texts):
-                raise SegmoError(f"SegMo: segments must be one list of strings per text "
-                                 f"({len(texts)}), got {segments!r:.80}")
+            check_segment_lists(segments, texts)
             segments = [check_texts(s, f"text {i}, segment") for i, s in enumerate(segments)]
         limit = self.model.max_segments
         for text, segs in zip(texts, segments):
@@ -148,8 +146,7 @@ class TextConditioning:
             return texts
         if segments is None:
             segments = self.segment(texts)
-        if len(segments) != len(texts):
-            raise SegmoError(f"SegMo: {len(segments)} segment lists for {len(texts)} texts")
+        check_segment_lists(segments, texts)
         return [ordered_text(list(s)) for s in segments]
 
     def words(self, texts: list[str], segments: list[list[str]] | None, word_text: str
@@ -184,3 +181,14 @@ class TextConditioning:
             return [[] for _ in texts]
         sources = self.word_sources(texts, segments, word_text)
         return [pieces[: self.model.max_words] for pieces in self.encoder.token_texts(sources)]
+
+
+def check_segment_lists(segments: Any, texts: list[str]) -> None:
+    """SegmoError unless `segments` is a list (or tuple) of one entry per text (a number
+    or a generator has no entries to count, a string would be read letter by letter)."""
+    if not isinstance(segments, (list, tuple)):
+        raise SegmoError(f"SegMo: segments must be one list of strings per text "
+                         f"({len(texts)}), got a {type(segments).__name__}")
+    if len(segments) != len(texts):
+        raise SegmoError(f"SegMo: segments must be one list of strings per text "
+                         f"({len(texts)}), got {segments!r:.80}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numbers
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -118,6 +119,10 @@ def retrieve_motions(model: SegmentModel, text: str, motions: list, top_k: int =
     """Rank motions (raw features (t_i, d)) for a text → [(index, score)], best first."""
     if not isinstance(text, str):
         raise SegmoError(f"retrieve_motions: text must be a string, got {text!r:.80}")
+    if not isinstance(motions, (list, tuple, np.ndarray, torch.Tensor)):
+        # a generator or None has no length to batch by
+        raise SegmoError(f"retrieve_motions: motions must be a list of (t, d) motions, got a "
+                         f"{type(motions).__name__}")
     if len(motions) == 0:
         raise SegmoError("retrieve_motions: no motions")
     segments = model.segment_texts([text])
