@@ -420,6 +420,21 @@ API_CASES = [
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
         "RuntimeError)"),
+    Api("api-save-spans-count",
+        lambda m, w: m.generate(["walk", "run"], [40, 40]).save(
+            w["tmp"] / "spans", formats=("gif",), spans=[[(0, 40)]]), SegmoError,
+        "spans must be one list of (start, end) frame spans per sample (2)",
+        "`save(spans=...)` with fewer span lists than samples (was an IndexError)"),
+    Api("api-save-spans-segments",
+        lambda m, w: m.generate(["walk", "run"], [40, 40]).save(
+            w["tmp"] / "spans", formats=("gif",), spans=[[(0, 40)], [(0, 20), (20, 40)]]),
+        SegmoError, "spans[1] must be one (start, end) per segment of sample 1",
+        "`save(spans=...)` with two spans for a sample of one segment (no label, without a word)"),
+    Api("api-save-spans-words",
+        lambda m, w: m.generate(["walk"], [40]).save(
+            w["tmp"] / "spans", formats=("gif",), spans=[[("start", "end")]]), SegmoError,
+        "spans[0]: span must be (start, end) whole frames",
+        "`save(spans=...)` of words, not frames (was a ValueError from the GIF)"),
     Api("api-from-pretrained-none", lambda m, w: SegMo.from_pretrained(None), SegmoError,
         "expected a model folder or a hub id", "`SegMo.from_pretrained(None)` (was a TypeError)"),
     Api("api-from-pretrained-long-name", lambda m, w: SegMo.from_pretrained("a" * 5000),

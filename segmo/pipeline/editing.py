@@ -107,10 +107,7 @@ def edit(model: EditingModel, motion: GenerationOutput | Any, span: tuple[int, i
         raise SegmoError(f"SegMo.edit: the motion has {tokens.shape[1] * FRAMES_PER_TOKEN} "
                          f"frames, more than the {model.max_frames} the model reads at once; "
                          "edit one part of a composition before composing")
-    start, end = check_span(span, "SegMo.edit")
-    if not 0 <= start < end <= int(lengths.min()):
-        raise SegmoError(f"SegMo.edit: span must satisfy 0 ≤ start < end ≤ "
-                         f"{int(lengths.min())} frames, got {(start, end)}")
+    start, end = check_span(span, "SegMo.edit", int(lengths.min()))
     b = tokens.shape[0]
     texts = [text] * b
     sentence, vectors, segment_mask, used = model.text_condition(

@@ -39,13 +39,20 @@ def check_texts(texts: Any, what: str = "text", words: bool = True) -> list[str]
     return list(texts)
 
 
-def check_span(span: Any, what: str) -> tuple[int, int]:
-    """(start, end) of a frame span given as two whole numbers, or SegmoError naming `what`
-    (a fraction would be cut to a whole frame without a word)."""
+def check_span(span: Any, what: str, limit: int | None = None, unit: str = "frames"
+               ) -> tuple[int, int]:
+    """(start, end) of a span given as two whole numbers with 0 ≤ start < end (≤ `limit`
+    where given), or SegmoError naming `what`: a fraction would be cut to a whole frame, a
+    negative start clamped and a reversed span dropped, each without a word."""
     if not (isinstance(span, (tuple, list)) and len(span) == 2
             and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in span)):
-        raise SegmoError(f"{what}: span must be (start, end) whole frames, got {span!r:.80}")
-    return int(span[0]), int(span[1])
+        raise SegmoError(f"{what}: span must be (start, end) whole {unit}, got {span!r:.80}")
+    start, end = int(span[0]), int(span[1])
+    if not 0 <= start < end or (limit is not None and end > limit):
+        bound = "" if limit is None else f" ≤ {limit}"
+        raise SegmoError(f"{what}: span must satisfy 0 ≤ start < end{bound} {unit}, got "
+                         f"{(start, end)}")
+    return start, end
 
 
 def check_generator(generator: Any, what: str) -> None:

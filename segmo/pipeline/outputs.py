@@ -25,6 +25,7 @@ from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.bvh import ANIMATION_FPS, check_bvh_fps, write_bvh
 from segmo.motion.skeleton import SkeletonSpec
 from segmo.motion.skeleton_fit import fit_motion
+from segmo.pipeline.inputs import check_span
 from segmo.render import save_animation
 
 FORMATS = ("npy", "gif", "bvh")
@@ -98,9 +99,29 @@ class GenerationOutput:
         lists texts, segments and lengths (`save_outputs` writes several outputs into one
         directory with one `prompts.json`). Returns the written paths.
         """
-        output = self if spans is None else replace(self, spans=list(spans))
+        output = self if spans is None else replace(self, spans=spans)
         return save_outputs(directory, {prefix: output}, formats, bvh_fps=bvh_fps,
                             foot_lock=foot_lock, progress=progress, fixed_skeleton=fixed_skeleton)
+
+
+def check_spans(output: GenerationOutput) -> None:
+    """SegmoError naming the sample unless `output.spans` is None or, per sample, one
+    (start, end) span of whole frames in [0, length] per text segment (they were dropped
+    from the GIF, or failed with an IndexError, without a word)."""
+    spans = output.spans
+    if spans is None:
+        return
+    if isinstance(spans, (str, bytes)) or not isinstance(spans, Sequence) \
+            or len(spans) != len(output.texts):
+        raise SegmoError(f"GenerationOutput.save: spans must be one list of (start, end) frame "
+                         f"spans per sample ({len(output.texts)}), got {spans!r:.80}")
+    for i, (row, segments) in enumerate(zip(spans, output.segments)):
+        if isinstance(row, (str, bytes)) or not isinstance(row, Sequence) \
+                or len(row) != len(segments):
+            raise SegmoError(f"GenerationOutput.save: spans[{i}] must be one (start, end) per "
+                             f"segment of sample {i} ({len(segments)}), got {row!r:.80}")
+        for span in row:
+            check_span(span, f"GenerationOutput.save: spans[{i}]", int(output.lengths[i]))
 
 
 def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
@@ -121,6 +142,8 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
     if unknown:
         raise SegmoError(f"GenerationOutput.save: unknown format(s) {sorted(unknown)}; "
                          f"choose from {FORMATS}")
+    for output in outputs.values():  # before any work: a GIF label must not fail halfway
+        check_spans(output)
     if bvh_fps is not None:  # before any file is written
         check_bvh_fps(bvh_fps, "GenerationOutput.save: bvh_fps")
     directory = Path(directory)
@@ -161,9 +184,9 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
                         np.save(path, array)
                         written.append(path)
                 if "gif" in formats:
-                    labels, spans = None, output.spans
-                    if spans is not None and len(spans[i]) == len(output.segments[i]):
-                        labels = [(seg, s, e) for seg, (s, e) in zip(output.segments[i], spans[i])]
+                    labels = None if output.spans is None else [
+                        (seg, int(s), int(e)) for seg, (s, e) in zip(output.segments[i],
+                                                                     output.spans[i])]
                     written.append(save_animation(joints, f"{stem}.gif", skeleton=output.skeleton,
                                                   title=text, fps=output.fps, segments=labels,
                                                   progress=progress))

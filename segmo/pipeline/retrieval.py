@@ -102,10 +102,7 @@ def retrieve_texts(model: SegmentModel, motion: Any, candidates: list[str],
     check_texts(candidates, "candidate")
     region = None
     if span is not None:
-        start, end = check_span(span, "retrieve_texts")
-        if not 0 <= start < end:
-            raise SegmoError(f"retrieve_texts: span must satisfy 0 ≤ start < end, got {span}")
-        region = token_span((start, end))
+        region = token_span(check_span(span, "retrieve_texts"))
     scores = []
     for i in range(0, len(candidates), BATCH):
         chunk = list(candidates[i: i + BATCH])
