@@ -60,15 +60,30 @@ def embed_pairs(model: SegmentModel, texts: list[str], motions: Any, spans: Any,
         present = spans[..., 1] > spans[..., 0]
         spans = torch.where(present[..., None], spans + start[:, None, None], spans)
     else:
-        spans = torch.as_tensor(spans, device=space.text.device).long()
-        if spans.shape != (b, a, 2):
-            raise SegmoError(f"embed_pairs: explicit spans must be (b={b}, a={a}, 2) token "
-                             f"spans, got {tuple(spans.shape)}")
-        if bool((spans[..., 1] > n_valid[:, None]).any()):
-            raise SegmoError("embed_pairs: a span ends past its motion's token count")
+        spans = explicit_spans(spans, b, a, n_valid.tolist())
     spans = spans.to(space.text.device)
     mask = segment_mask & (spans[..., 1] > spans[..., 0])
     return space.text, space.motion(spans), mask
+
+
+def explicit_spans(spans: Any, b: int, a: int, num_tokens: list[int]) -> torch.Tensor:
+    """`embed_pairs`' explicit token spans → (b, a, 2) long, or SegmoError naming the span
+    that is not (0, 0) (an absent slot) or whole tokens with 0 ≤ start < end ≤ its motion's
+    tokens (fractions were truncated, negative starts clamped and reversed spans dropped,
+    without a word)."""
+    try:
+        shape = tuple(torch.as_tensor(spans).shape)
+    except (TypeError, ValueError, RuntimeError):
+        shape = None
+    if shape != (b, a, 2):
+        raise SegmoError(f"embed_pairs: explicit spans must be (b={b}, a={a}, 2) token spans, "
+                         f"got {shape if shape is not None else repr(spans)[:80]}")
+    rows = spans.tolist() if isinstance(spans, (torch.Tensor, np.ndarray)) else spans
+    for i, row in enumerate(rows):
+        for k, span in enumerate(row):
+            if list(span) != [0, 0]:
+                check_span(tuple(span), f"embed_pairs: spans[{i}][{k}]", num_tokens[i], "tokens")
+    return torch.as_tensor(spans).long()
 
 
 def pair_scores(text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
