@@ -931,6 +931,24 @@ def test_a_save_refuses_a_prefix_that_is_no_part_of_a_file_name(bundle, tmp_path
     assert [p.name for p in tmp_path.rglob("*")] == ["dir", "sub", "y_00.bvh"]
 
 
+def test_cli_generate_help_names_the_bundle_for_the_defaults_it_records(capsys):
+    """An unset sampling option takes the bundle's value (segmo.json), so its help must not
+    promise SamplingOptions' default (--steps said "default 10"; the demo bundle has 4)."""
+    with pytest.raises(SystemExit):
+        generate_main(["--help"])
+    helps: dict[str, str] = {}  # option → its help, continuation lines joined
+    flag = None
+    for line in capsys.readouterr().out.splitlines():
+        if line.startswith("  -"):
+            flag = line.split()[0]
+            helps[flag] = line
+        elif flag is not None and line.startswith("    "):
+            helps[flag] += line
+    for flag in ("--guidance", "--residual-guidance", "--guidance-mode", "--steps",
+                 "--residual-guided-layers", "--word-text"):
+        assert "bundle" in helps[flag], helps[flag]
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--model", "/nonexistent/model"], "--model /nonexistent/model: no such directory"),
     (["--length", "30"], "multiples of 4"),

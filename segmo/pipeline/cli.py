@@ -133,9 +133,11 @@ def generate_main(argv: list[str] | None = None) -> None:
                         help="the same for the residual tokens (bundle default)")
     parser.add_argument("--guidance-mode", choices=("cfg", "sink_ctrl"), default=None,
                         help="base-token guidance: cfg, or MLA-Gen's sink_ctrl (bundle default)")
-    # Unset options take the defaults of SamplingOptions (SegMo.generate).
+    # Unset options take the bundle's sampling defaults (SegMo.sampling), and those of
+    # SamplingOptions for what a bundle does not record (the temperature).
     parser.add_argument("--steps", type=positive_int, default=None,
-                        help=f"masked-decoding steps (default {SamplingOptions.steps})")
+                        help=f"masked-decoding steps (bundle default; {SamplingOptions.steps} "
+                             "unless it says otherwise)")
     parser.add_argument("--residual-guided-layers", type=non_negative_int, default=None,
                         help="how many residual layers, from the first, are guided (bundle "
                              "default; all unless it says otherwise)")
