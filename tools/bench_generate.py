@@ -70,10 +70,10 @@ import torch
 from segmo import cpu
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import (
-    _inference,
     decode_tokens,
     generate_tokens,
     guidance_condition,
+    inference,
     masked_count,
     resolve_precision,
 )
@@ -189,7 +189,7 @@ def floor_passes(mask, residual, text, n: int, steps: int, precision: str) -> No
     b = text[0].shape[0]
     token_mask = torch.ones(2 * b, n, dtype=torch.bool)
     ids = torch.full((2 * b, n), mask.mask_id)
-    with _inference([mask, residual], precision, text[0].device):
+    with inference([mask, residual], precision, text[0].device):
         condition = guidance_condition(mask, *text)
         for m in sampled_counts(n, steps):
             positions = None if m == n else torch.arange(m).expand(2 * b, m)
@@ -236,7 +236,7 @@ def gemm_gmacs(precision: str, dim: int = 384, tokens: int = 49, repeats: int = 
     against it."""
     layer = PackedLinear(dim, 3 * dim).eval()
     x = torch.randn(64, tokens, dim)
-    with _inference([layer], precision, x.device):
+    with inference([layer], precision, x.device):
         layer(x)
         start = time.perf_counter()
         for _ in range(repeats):

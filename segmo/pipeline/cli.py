@@ -187,17 +187,17 @@ def generate_main(argv: list[str] | None = None) -> None:
         print(path)
 
 
-def _gif_spans(model: SegMo, out) -> list[list[tuple[int, int]]]:
+def _gif_spans(model: SegMo, out) -> list[list[tuple[int, int]] | None]:
     """Which segment each frame of each GIF shows, from the model's own attention
     (`SegMo.ground`, method "attention"). A motion with fewer than MIN_TOKENS tokens a
     segment (a short --length, or a short predicted one) is grounded with one-token spans,
-    and one with fewer tokens than segments gets no labels ([]): its files are written all
-    the same."""
+    and one with fewer tokens than segments gets no labels (None): its files are written
+    all the same."""
     spans = []
     for i, text in enumerate(out.texts):
         tokens, count = int(out.lengths[i]) // FRAMES_PER_TOKEN, len(out.segments[i])
         if tokens < count:
-            spans.append([])
+            spans.append(None)
             continue
         grounding = model.ground(text, out.motion(i), segments=out.segments[i],
                                  method="attention",

@@ -94,8 +94,8 @@ class GenerationOutput:
         `foot_lock` is False. With `fixed_skeleton` (default) the joints file and the GIF show that same skeleton, so
         that every file of a sample is one motion (the decoder's joints can stretch a bone;
         `motion_joints` keeps them); False writes the decoder's joints. spans: per sample, a
-        (start, end) frame span per text segment (e.g. `SegMo.ground(method="attention")`):
-        the GIF names the segment of each frame. progress: progress bars while rendering. A `prompts.json`
+        (start, end) frame span per text segment (e.g. `SegMo.ground(method="attention")`),
+        or None: the GIF names the segment of each frame. progress: progress bars while rendering. A `prompts.json`
         lists texts, segments and lengths (`save_outputs` writes several outputs into one
         directory with one `prompts.json`). Returns the written paths.
         """
@@ -105,9 +105,10 @@ class GenerationOutput:
 
 
 def check_spans(output: GenerationOutput) -> None:
-    """SegmoError naming the sample unless `output.spans` is None or, per sample, one
-    (start, end) span of whole frames in [0, length] per text segment (they were dropped
-    from the GIF, or failed with an IndexError, without a word)."""
+    """SegmoError naming the sample unless `output.spans` is None or, per sample, None
+    (a GIF without segment labels) or one (start, end) span of whole frames in [0, length]
+    per text segment (they were dropped from the GIF, or failed with an IndexError,
+    without a word)."""
     spans = output.spans
     if spans is None:
         return
@@ -116,6 +117,8 @@ def check_spans(output: GenerationOutput) -> None:
         raise SegmoError(f"GenerationOutput.save: spans must be one list of (start, end) frame "
                          f"spans per sample ({len(output.texts)}), got {spans!r:.80}")
     for i, (row, segments) in enumerate(zip(spans, output.segments)):
+        if row is None:
+            continue
         if isinstance(row, (str, bytes)) or not isinstance(row, Sequence) \
                 or len(row) != len(segments):
             raise SegmoError(f"GenerationOutput.save: spans[{i}] must be one (start, end) per "
@@ -184,7 +187,7 @@ def save_outputs(directory: str | Path, outputs: Mapping[str, GenerationOutput],
                         np.save(path, array)
                         written.append(path)
                 if "gif" in formats:
-                    labels = None if output.spans is None else [
+                    labels = None if output.spans is None or output.spans[i] is None else [
                         (seg, int(s), int(e)) for seg, (s, e) in zip(output.segments[i],
                                                                      output.spans[i])]
                     written.append(save_animation(joints, f"{stem}.gif", skeleton=output.skeleton,
