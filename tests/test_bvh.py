@@ -401,3 +401,24 @@ def test_the_rest_pose_is_a_t_pose(tmp_path):
         assert all(sign * (b[0] - a[0]) > 0.1 for a, b in zip(arm, arm[1:]))  # outwards
     head = rest["head"] - rest["neck"]
     assert head[1] > 0.09 and np.abs(head[[0, 2]]).max() < 1e-6
+
+
+def test_a_kit_file_is_in_metres_unless_a_scale_says_otherwise(tmp_path):
+    """KIT-ML's joints are in millimetres, and the file kept them: Blender, which reads a
+    BVH unit as a metre, imported a figure 1.7 km tall."""
+    from segmo.motion import KIT
+
+    g = torch.Generator().manual_seed(0)
+    quats = axis_angle_to_quat((0.05 * torch.randn(12, 21, 3, generator=g,
+                                                   dtype=torch.float64)).cumsum(0))
+    quats[:, [0, 3]] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    offsets = torch.tensor(KIT.raw_offsets, dtype=torch.float64) * 150.0  # millimetres
+    root = torch.tensor([0.0, 1000.0, 0.0], dtype=torch.float64).expand(12, 3)
+    joints = forward_kinematics(quats, root, offsets, KIT.parents).numpy()
+    for scale, unit in ((None, 0.001), (1.0, 1.0)):
+        path = joints_to_bvh(joints, tmp_path / f"{scale}.bvh", skeleton="kit", scale=scale,
+                             foot_lock=False)
+        mocap = bvh.Bvh(path.read_text())
+        assert np.linalg.norm(mocap.joint_offset("torso")) == pytest.approx(150.0 * unit, rel=1e-3)
+        root_y = float(mocap.frame_joint_channel(0, "root", "Yposition"))
+        assert root_y == pytest.approx(1000.0 * unit, rel=1e-3)

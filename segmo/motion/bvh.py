@@ -36,7 +36,7 @@ from segmo.motion.skeleton import SkeletonSpec, get_skeleton
 from segmo.motion.skeleton_fit import SkeletonFit, check_bone_scale, fit_motion
 
 __all__ = ["ANIMATION_FPS", "MAX_BVH_FPS", "MIN_BVH_FPS", "check_bvh_fps", "joints_to_bvh",
-           "euler_orders", "continuous_euler", "write_bvh"]
+           "euler_orders", "continuous_euler", "metres_scale", "write_bvh"]
 
 # Frame rate of the BVH files segmo writes for animation tools (`segmo generate`, `edit`,
 # `compose`, `serve`, `GenerationOutput.save`): at the data's 20 fps a punch or a kick turns a
@@ -164,16 +164,26 @@ def check_scale(scale: Any, where: str) -> None:
         raise ValueError(f"{where}: scale must be a finite number > 0, got {scale!r}")
 
 
+def metres_scale(skeleton: str | SkeletonSpec) -> float:
+    """The scale that writes a skeleton's lengths in metres, what animation tools take a
+    BVH's units for (Blender imports one unit as one metre): 1 for t2m, whose data are in
+    metres, 0.001 for KIT-ML's millimetres (a KIT file in millimetres imported as a figure
+    1.7 km tall)."""
+    return get_skeleton(skeleton).unit
+
+
 def write_bvh(fit: SkeletonFit, path: str | Path, skeleton: str | SkeletonSpec = "t2m",
               fps: float | None = None, target_fps: float | None = None,
-              scale: float = 1.0) -> Path:
+              scale: float | None = None) -> Path:
     """Write a fitted skeleton (`segmo.motion.skeleton_fit.fit_skeleton`) as a BVH file.
 
     fps: the fit's frame rate (default the skeleton's); target_fps: the file's (default
     the same; other rates are resampled, rotations by slerp); both within [MIN_BVH_FPS,
-    MAX_BVH_FPS] (`check_bvh_fps`). scale multiplies lengths.
+    MAX_BVH_FPS] (`check_bvh_fps`). scale multiplies the fit's lengths, which are in the
+    skeleton's data units; default: metres (`metres_scale`).
     """
     spec = get_skeleton(skeleton)
+    scale = metres_scale(spec) if scale is None else scale
     if tuple(fit.parents) != tuple(spec.parents):  # another skeleton's fit, or none
         raise ValueError(f"write_bvh: the fit is of a skeleton of {len(fit.parents)} joints "
                          f"other than {spec.name!r}; pass the skeleton it was fitted to")
@@ -231,7 +241,7 @@ def joints_to_bvh(
     path: str | Path,
     fps: float | None = None,
     skeleton: str | SkeletonSpec = "t2m",
-    scale: float = 1.0,
+    scale: float | None = None,
     target_fps: float | None = None,
     foot_lock: bool = True,
     contacts: np.ndarray | None = None,
@@ -241,11 +251,13 @@ def joints_to_bvh(
 
     fps: the joints' frame rate, default the skeleton's (t2m: 20); target_fps: the file's
     (default the same); both within [MIN_BVH_FPS, MAX_BVH_FPS]. scale multiplies all lengths
-    (1 keeps the data units, metres for t2m; 100 gives centimetres). foot_lock, contacts,
+    of the data units (default: metres, `metres_scale`; for t2m, whose data are metres, 100
+    gives centimetres; KIT-ML's are millimetres, and 1 keeps them). foot_lock, contacts,
     bone_lengths: see `segmo.motion.skeleton_fit.fit_motion`; `write_bvh` writes a fit made
     elsewhere.
     """
     spec = get_skeleton(skeleton)
+    scale = metres_scale(spec) if scale is None else scale
     check_scale(scale, "joints_to_bvh")  # before the fit
     for name, value in (("fps", fps), ("target_fps", target_fps)):
         if value is not None:  # before the fit
