@@ -180,8 +180,11 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert (out / "isc.png").stat().st_size > 0
     assert len(list((out / "similarity_maps").glob("*.png"))) == 1
 
-    # Same seed, same numbers: generation is seeded per batch.
+    # Same seed, same numbers: generation is seeded per batch. Into a folder that holds an
+    # earlier evaluation's plots, which this one, skipping grounding and ISC, does not draw:
+    # they were kept beside its metrics.json.
     again = tmp_path / "again"
+    shutil.copytree(out, again, ignore=shutil.ignore_patterns("metrics.json", "report.md"))
     main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--evaluator", str(setup["evaluator"]),
           "--mm-prompts", "0", "--skip", "reconstruction,retrieval,grounding,isc", "--action-classifier", "train",
           "--out", str(again), *COMMON])
@@ -189,6 +192,7 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert repeat["generation"]["generated"]["top1"] == generation["generated"]["top1"]
     assert "multimodality" not in repeat["generation"]["generated"]
     assert not {"retrieval", "grounding", "isc"} & set(repeat)
+    assert not (again / "isc.png").exists() and not (again / "similarity_maps").exists()
     assert "reconstruction" not in repeat["generation"] and "reconstruction" not in repeat["action_order"]
     assert repeat["generation"]["by_num_segments"]["2"]["generated"] == buckets["2"]["generated"]
     # `--action-classifier train` fits one on the train split and keeps it.

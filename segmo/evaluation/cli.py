@@ -233,6 +233,7 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     if cfg.model is None and model is None and not cfg.real_only:
         raise SegmoError("segmo evaluate: --model is required unless --real-only")
     start = time.perf_counter()
+    started = time.time()  # file times: which plots in OUT this run drew
     evaluator = load_pretrained(cfg.evaluator).to(cfg.device).eval()
     if getattr(evaluator, "kind", None) != "evaluator":
         raise SegmoError(f"--evaluator {cfg.evaluator}: holds a {getattr(evaluator, 'kind', '?')!r} "
@@ -337,9 +338,24 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
         cfg.timings["generated_motions"] = float(generate.motions)
     metrics["config"] = asdict(cfg) | {"motions": len({i for b in batches for i in b["id"]}),
                                        "captions": sum(len(b["id"]) for b in batches)}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    (out / "report.md").write_text(report.render_report(metrics))
+    _remove_earlier_plots(out, started)
+    write_atomic(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    write_atomic(out / "report.md", report.render_report(metrics))
     return metrics
+
+
+def _remove_earlier_plots(out: Path, started: float) -> None:
+    """Remove the plots an earlier evaluation left in `out` that this one did not draw
+    again (older than its start: a section skipped this time, fewer similarity maps):
+    beside this run's metrics.json they would show another run's, or another model's,
+    figures."""
+    for pattern in ("isc.png", "similarity_maps/*.png"):
+        for path in out.glob(pattern):
+            if path.stat().st_mtime < started:
+                path.unlink()
+    maps = out / "similarity_maps"
+    if maps.is_dir() and not any(maps.iterdir()):
+        maps.rmdir()
 
 
 def _encode_texts(cfg: EvaluateConfig, model: Any, batches: list[dict],
