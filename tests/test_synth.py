@@ -396,6 +396,27 @@ def test_a_rebuild_keeps_what_the_user_added(tmp_path, capsys):
     assert json.loads((out / "corpus.json").read_text())["num_motions"] == 3
 
 
+def test_a_corpus_whose_files_were_deleted_is_rebuilt_not_taken_as_whole(tmp_path, capsys):
+    """Its corpus.json alone said the corpus was there: `segmo synth` printed "3 motions"
+    and repaired nothing, and training later failed on the missing motion."""
+    out = tmp_path / "data"
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
+    def files() -> dict:  # the corpus' own (not the writer lock's note)
+        return {p.relative_to(out): p.read_bytes() for p in out.rglob("*")
+                if p.is_file() and not p.name.startswith(".")}
+
+    before = files()
+    (out / "new_joint_vecs" / "000001.npy").unlink()
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
+    assert files() == before
+    (out / "texts" / "000002.txt").unlink()
+    (out / "text_segments").mkdir()  # the user's: a rebuild would delete it
+    line = cli_failure(["synth", "--out", str(out), "--num-motions", "3", "--workers", "1"],
+                       capsys)
+    assert "texts/000002.txt missing" in line and "text_segments" in line
+    assert (out / "text_segments").is_dir() and not (out / "texts" / "000002.txt").exists()
+
+
 def test_a_second_writer_is_refused_and_a_killed_one_recovered(tmp_path, capsys):
     out = tmp_path / "data"
     holder = subprocess.Popen(

@@ -168,7 +168,8 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
     """Write a corpus of `num_motions` motions (sampled as corpus `version` does) to `out`;
     returns the path.
 
-    Leaves a folder that already holds this very corpus untouched. Refuses, unless
+    Leaves a folder that already holds this very corpus, whole, untouched (one with a file
+    of it missing is rebuilt: the same bytes). Refuses, unless
     `overwrite`, a non-empty `out` that is not a corpus, and a corpus folder holding
     anything a rebuild would delete (text_segments/, text_features/, ...).
     """
@@ -188,9 +189,16 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
         remove_leftovers(out)
         existing = _corpus_of(out)
         wanted = {"version": version, "seed": seed, "num_motions": num_motions}
-        if existing is not None and all(existing.get(k) == v for k, v in wanted.items()):
-            return out  # deterministic: rebuilding would write the same bytes
         extra = sorted(p.name for p in out.iterdir() if p.name not in CORPUS_ENTRIES)
+        if existing is not None and all(existing.get(k) == v for k, v in wanted.items()):
+            missing = _missing_file(out, num_motions)
+            if missing is None:
+                return out  # deterministic: rebuilding would write the same bytes
+            if extra and not overwrite:
+                raise SegmoError(f"build_corpus: {out} holds this corpus with {missing} missing, "
+                                 f"and {', '.join(extra)}, which a rebuild would delete; pass "
+                                 "overwrite=True (--overwrite) or restore the file")
+            return _build(out, num_motions, seed, workers, progress, version)  # the same bytes
         if existing is None and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
             raise SegmoError(f"build_corpus: {out} is not empty and holds no corpus.json; pass "
                              "overwrite=True (--overwrite) to replace it")
@@ -201,6 +209,16 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
                 f"{', '.join(extra)}, which a rebuild would delete; pass overwrite=True "
                 "(--overwrite) or choose another folder")
         return _build(out, num_motions, seed, workers, progress, version)
+
+
+def _missing_file(out: Path, num_motions: int) -> Path | None:
+    """The first file of a `num_motions` corpus that `out` lacks (relative to it), or None:
+    a corpus.json alone said the corpus was there after its files were deleted."""
+    ids = [motion_id(i) for i in range(num_motions)]
+    files = [split_file(out, s) for s in SPLITS] + list(stats_files(out)) + [
+        path(out, mid) for mid in ids
+        for path in (motion_file, joints_file, texts_file, ground_truth_file)]
+    return next((f.relative_to(out) for f in files if not f.is_file()), None)
 
 
 def _build(out: Path, num_motions: int, seed: int, workers: int, progress: bool,
