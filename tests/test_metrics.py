@@ -231,6 +231,19 @@ def test_evaluate_generation_reconstruction_and_segment_buckets() -> None:
 
 # ---------------------------------------------------------------------------- retrieval
 
+def test_ties_are_broken_at_random_not_in_favour_of_the_right_answer() -> None:
+    """A generator that draws one motion for every caption had R-precision 1.0 / 1.0 / 1.0,
+    and a constant score matrix R@1 = 1 and MedR 1: a tie counted as a hit."""
+    texts = np.random.default_rng(0).normal(size=(64, 8))
+    np.testing.assert_allclose(r_precision(texts, np.zeros((64, 8))), [1 / 32, 2 / 32, 3 / 32])
+    np.testing.assert_allclose(r_precision(texts, texts + 0.01), [1.0, 1.0, 1.0])  # no ties
+    flat = retrieval_metrics(np.ones((10, 10)))
+    assert flat["t2m/R@1"] == pytest.approx(0.1) and flat["m2t/R@5"] == pytest.approx(0.5)
+    assert flat["t2m/MedR"] == flat["m2t/MedR"] == 5.5
+    # one tie of two: half a hit at k = 1
+    assert retrieval_metrics(np.array([[1.0, 1.0], [0.0, 1.0]]))["t2m/R@1"] == pytest.approx(0.75)
+
+
 def test_retrieval_ranks_hand_made() -> None:
     sim = np.array([[0.9, 0.6, 0.0], [0.8, 0.5, 0.0], [0.0, 0.2, 0.1]])
     np.testing.assert_array_equal(text_to_motion_ranks(sim), [0, 1, 1])

@@ -8,8 +8,12 @@ each text (default: text i ↔ motion i, so N = M). A motion may have several te
   its own motion (0 = retrieved first).
 - motion→text: the rank of a motion is the number of *other* motions' texts scoring
   strictly better than the best of its own texts.
-R@k = fraction with rank < k; MedR = median of rank + 1 (1 = perfect). Ties count in favour
-of the correct item.
+A tie is broken at random, as an argsort of the scores breaks it by position: of t items
+scoring exactly as well as the correct one, each is taken to come before it with chance
+1/2, so the rank is the number strictly better plus t/2, and the hit at k is its expected
+value (`tie_hits`). (Ties counted in favour of the correct item gave a model that answers
+every text with one motion R@1 = 1.) R@k = mean hit at k; MedR = median of rank + 1
+(1 = perfect).
 
 `retrieval_metrics` evaluates the full set; `batched_retrieval_metrics` the "small batches"
 protocol: one random text per motion, shuffled into batches of 32 (last incomplete batch
@@ -23,6 +27,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from segmo.models.evaluator import tie_hits
 
 KS: tuple[int, ...] = (1, 2, 3, 5, 10)
 
@@ -45,39 +51,57 @@ def _check(scores: np.ndarray, index: np.ndarray) -> None:
         raise ValueError(f"retrieval: motions {missing[:10].tolist()} have no text")
 
 
-def text_to_motion_ranks(scores: Any, text_to_motion: Any = None, distance: bool = False) -> np.ndarray:
-    """(N,) 0-based rank of each text's motion among all motions."""
+def _text_to_motion(scores: Any, text_to_motion: Any, distance: bool
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per text: motions scoring strictly better than its own, and other motions tied."""
     s = _np(scores)
     s = -s if distance else s
     index = np.arange(s.shape[0]) if text_to_motion is None else np.asarray(text_to_motion, dtype=np.int64)
     _check(s, index)
-    correct = s[np.arange(len(index)), index]
-    return (s > correct[:, None]).sum(1)
+    correct = s[np.arange(len(index)), index][:, None]
+    return (s > correct).sum(1), (s == correct).sum(1) - 1
 
 
-def motion_to_text_ranks(scores: Any, text_to_motion: Any = None, distance: bool = False) -> np.ndarray:
-    """(M,) 0-based rank of each motion's best own text among the other motions' texts."""
+def _motion_to_text(scores: Any, text_to_motion: Any, distance: bool
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per motion: other motions' texts scoring strictly better than its best own text,
+    and those tied with it."""
     s = _np(scores)
     s = -s if distance else s
     index = np.arange(s.shape[0]) if text_to_motion is None else np.asarray(text_to_motion, dtype=np.int64)
     _check(s, index)
     st = s.T  # (M, N): motion j's score for every text
     own = index[None, :] == np.arange(s.shape[1])[:, None]  # (M, N)
-    best_own = np.where(own, st, -np.inf).max(1)
-    return ((st > best_own[:, None]) & ~own).sum(1)
+    best_own = np.where(own, st, -np.inf).max(1)[:, None]
+    return ((st > best_own) & ~own).sum(1), ((st == best_own) & ~own).sum(1)
 
 
-def _summary(ranks: np.ndarray, prefix: str, ks: Sequence[int]) -> dict[str, float]:
-    out = {f"{prefix}/R@{k}": float((ranks < k).mean()) for k in ks}
-    out[f"{prefix}/MedR"] = float(np.median(ranks + 1))
+def text_to_motion_ranks(scores: Any, text_to_motion: Any = None, distance: bool = False) -> np.ndarray:
+    """(N,) 0-based rank of each text's motion among all motions (ties: half each)."""
+    better, tied = _text_to_motion(scores, text_to_motion, distance)
+    return better + tied / 2
+
+
+def motion_to_text_ranks(scores: Any, text_to_motion: Any = None, distance: bool = False) -> np.ndarray:
+    """(M,) 0-based rank of each motion's best own text among the other motions' texts
+    (ties: half each)."""
+    better, tied = _motion_to_text(scores, text_to_motion, distance)
+    return better + tied / 2
+
+
+def _summary(better: np.ndarray, tied: np.ndarray, prefix: str, ks: Sequence[int]
+             ) -> dict[str, float]:
+    hits = tie_hits(better, tied, ks).mean(0)
+    out = {f"{prefix}/R@{k}": float(hit) for k, hit in zip(ks, hits)}
+    out[f"{prefix}/MedR"] = float(np.median(better + tied / 2 + 1))
     return out
 
 
 def retrieval_metrics(scores: Any, text_to_motion: Any = None, distance: bool = False,
                       ks: Sequence[int] = KS) -> dict[str, float]:
     """{"t2m/R@k", "t2m/MedR", "m2t/R@k", "m2t/MedR"} on the full (N, M) score matrix."""
-    return {**_summary(text_to_motion_ranks(scores, text_to_motion, distance), "t2m", ks),
-            **_summary(motion_to_text_ranks(scores, text_to_motion, distance), "m2t", ks)}
+    return {**_summary(*_text_to_motion(scores, text_to_motion, distance), "t2m", ks),
+            **_summary(*_motion_to_text(scores, text_to_motion, distance), "m2t", ks)}
 
 
 def batched_retrieval_metrics(scores: Any, text_to_motion: Any = None, distance: bool = False,

@@ -149,12 +149,21 @@ def euclidean_distance_matrix(a: Any, b: Any) -> np.ndarray:
     return np.sqrt(np.maximum(sq, 0.0))
 
 
+def tie_hits(better: np.ndarray, tied: np.ndarray, ks: Sequence[int]) -> np.ndarray:
+    """(n, len(ks)) expected hit at each k of items with `better` candidates strictly
+    ahead and `tied` others exactly as good, the ties broken at random (R-precision here,
+    retrieval in `segmo.evaluation.retrieval`)."""
+    k = np.asarray(ks, dtype=np.float64)[None, :]
+    return np.clip((k - better[:, None]) / (tied[:, None] + 1), 0.0, 1.0)
+
+
 def r_precision(text_emb: Any, motion_emb: Any, top_k: int = 3, batch_size: int = 32) -> np.ndarray:
     """Top-1..top_k R-precision, (top_k,), of paired text/motion embeddings (n, d).
 
     The rows are cut into consecutive batches of `batch_size` (an incomplete last batch is
     dropped); in each, text i ranks the batch's motions by distance, and counts a hit at k
-    when its own motion is among the k nearest. Chance level at top-1 is 1/batch_size.
+    when its own motion is among the k nearest (motions exactly as near: a tie broken at
+random, `tie_hits`). Chance level at top-1 is 1/batch_size.
     """
     t, m = _np(text_emb), _np(motion_emb)
     if t.shape != m.shape:
@@ -165,9 +174,11 @@ def r_precision(text_emb: Any, motion_emb: Any, top_k: int = 3, batch_size: int 
     hits = np.zeros(top_k)
     for s in range(0, n, batch_size):
         d = euclidean_distance_matrix(t[s:s + batch_size], m[s:s + batch_size])
-        # Rank of the matched motion = how many motions are strictly nearer (ties favour it).
-        rank = (d < np.diag(d)[:, None]).sum(1)
-        hits += (rank[:, None] < np.arange(1, top_k + 1)[None, :]).sum(0)
+        # The matched motion's rank: the motions strictly nearer, and a tie broken at random
+        # (as the T2M reference's argsort breaks it by position). Ties counted in its favour
+        # gave a generator that draws one motion for every caption top-1 = 1.
+        own = np.diag(d)[:, None]
+        hits += tie_hits((d < own).sum(1), (d == own).sum(1) - 1, range(1, top_k + 1)).sum(0)
     return hits / n
 
 
