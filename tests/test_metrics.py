@@ -329,6 +329,10 @@ def test_order_failures_named_and_short_actions_found_less() -> None:
     assert matched_actions(["sit", "wave", "walk"], true) == [False, True, False]
     assert matched_actions([], true) == [False, False, False]
     assert matched_actions(["punch", "walk", "punch"], ["walk", "punch"]) == [True, True]
+    # Of the optimal alignments, one with the most pairs: two substitutions cost as much as
+    # matching "walk" with an insertion and a deletion, and found none of the two actions.
+    assert sum(matched_actions(["walk", "jump"], ["jump", "walk"])) == 1
+    assert sum(matched_actions(["a", "b", "c"], ["c", "a", "b"])) == 2
     # Consecutive repeats merge with their frames; shares are of the motion's frames.
     segments = [{"action": "walk", "start": 0, "end": 60}, {"action": "walk", "start": 60, "end": 80},
                 {"action": "jump", "start": 80, "end": 90}, {"action": "sit", "start": 90, "end": 100}]

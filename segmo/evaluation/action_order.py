@@ -67,21 +67,30 @@ def _edit_table(a: Sequence[Any], b: Sequence[Any]) -> list[list[int]]:
 
 def matched_actions(pred: Sequence[Any], true: Sequence[Any]) -> list[bool]:
     """For each true action, whether an optimal edit alignment of `pred` to `true` pairs it
-    with an equal predicted action (the alignment that prefers matches, tracing back from
-    the end): ["walk", "sit"] against ["walk", "jump", "sit"] → [True, False, True]."""
-    table = _edit_table(pred, true)
+    with an equal predicted action, of the optimal alignments the one with the most such
+    pairs: ["walk", "sit"] against ["walk", "jump", "sit"] → [True, False, True]; ["walk",
+    "jump"] against ["jump", "walk"] → one of the two (two edits either way: substitute
+    both, or match one and insert and delete the other)."""
+    # best[i][j]: (edits, -matches) of aligning pred[:i] with true[:j], compared in order
+    best = [[(i + j, 0) for j in range(len(true) + 1)] for i in range(len(pred) + 1)]
+
+    def moves(i: int, j: int) -> list[tuple[tuple[int, int], int, int, bool]]:
+        """The steps into (i, j): (cost, from i, from j, a match)."""
+        same = pred[i - 1] == true[j - 1]
+        diagonal = best[i - 1][j - 1]
+        return [((diagonal[0] + (not same), diagonal[1] - same), i - 1, j - 1, same),
+                ((best[i - 1][j][0] + 1, best[i - 1][j][1]), i - 1, j, False),
+                ((best[i][j - 1][0] + 1, best[i][j - 1][1]), i, j - 1, False)]
+
+    for i in range(1, len(pred) + 1):
+        for j in range(1, len(true) + 1):
+            best[i][j] = min(cost for cost, *_ in moves(i, j))
     found = [False] * len(true)
     i, j = len(pred), len(true)
     while i > 0 and j > 0:
-        if pred[i - 1] == true[j - 1] and table[i][j] == table[i - 1][j - 1]:
-            found[j - 1] = True
-            i, j = i - 1, j - 1
-        elif table[i][j] == table[i - 1][j - 1] + 1:
-            i, j = i - 1, j - 1
-        elif table[i][j] == table[i - 1][j] + 1:
-            i -= 1
-        else:
-            j -= 1
+        _, i_from, j_from, match = next(m for m in moves(i, j) if m[0] == best[i][j])
+        found[j - 1] = found[j - 1] or match
+        i, j = i_from, j_from
     return found
 
 
