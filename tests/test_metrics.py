@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from segmo.evaluation import report
 from segmo.evaluation.action_order import (
     collapse,
     collapse_spans,
@@ -26,6 +27,7 @@ from segmo.evaluation.metrics import (
     euclidean_distance_matrix,
     evaluate_generation,
     fid,
+    format_table,
     frechet_distance,
     matching_score,
     mean_and_interval,
@@ -113,6 +115,12 @@ def test_mean_and_interval() -> None:
     mean, interval = mean_and_interval([1.0, 2.0, 3.0, 4.0])
     assert mean == 2.5
     assert interval == pytest.approx(1.96 * math.sqrt(1.25) / 2)
+    # One measurement has no spread to estimate: no interval, not "± 0.000".
+    mean, interval = mean_and_interval([3.1])
+    assert mean == 3.1 and np.isnan(interval)
+    assert report.cell({"mean": 3.1, "interval": interval}) == "3.100"
+    assert "| 3.100 |" in format_table({"generated": {"multimodality": {"mean": 3.1,
+                                                                          "interval": interval}}})
 
 
 def test_evaluate_generation_protocol() -> None:

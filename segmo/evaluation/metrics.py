@@ -20,6 +20,7 @@ segments, all through `row_metrics`.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
@@ -125,10 +126,14 @@ def multimodality(emb: Any, num_pairs: int = 10, generator: np.random.Generator 
 
 
 def mean_and_interval(values: Any) -> tuple[float, float]:
-    """(mean, 1.96·std/√n) of n repeated measurements (population std, as the T2M code)."""
+    """(mean, 1.96·std/√n) of n repeated measurements (population std, as the T2M code);
+    the interval is NaN for one measurement, which has no spread to estimate (it was 0, and
+    a single MultiModality run read "± 0.000"), as across seeds (`segmo.evaluation.seeds`)."""
     v = _np(values).reshape(-1)
     if v.size == 0:
         raise ValueError("mean_and_interval: no values")
+    if v.size == 1:
+        return float(v[0]), float("nan")
     return float(v.mean()), float(1.96 * v.std() / np.sqrt(v.size))
 
 
@@ -358,7 +363,9 @@ def format_table(results: dict[str, dict[str, dict[str, float]]], metrics: Seque
     metrics = metrics or list(dict.fromkeys(k for r in results.values() for k in r))
     lines = ["| metric | " + " | ".join(names) + " |", "| --- |" + " --- |" * len(names)]
     for m in metrics:
-        cells = [f"{results[n][m]['mean']:.3f} ± {results[n][m]['interval']:.3f}" if m in results[n] else ""
+        cells = [("" if m not in results[n] else f"{results[n][m]['mean']:.3f}"
+                  if math.isnan(results[n][m]["interval"])
+                  else f"{results[n][m]['mean']:.3f} ± {results[n][m]['interval']:.3f}")
                  for n in names]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

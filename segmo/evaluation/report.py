@@ -16,6 +16,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -79,10 +80,13 @@ NOTES: dict[str, str] = {
 
 
 def cell(entry: dict[str, float] | float | None, digits: int = 3) -> str:
-    """"mean±interval" of a repeated metric, the plain number of a single one, "-" if absent."""
+    """"mean±interval" of a repeated metric, the plain number of a single one (or of one
+    whose interval is NaN: one measurement), "-" if absent."""
     if entry is None:
         return "-"
     if isinstance(entry, dict):
+        if math.isnan(entry["interval"]):
+            return f"{entry['mean']:.{digits}f}"
         return f"{entry['mean']:.{digits}f}±{entry['interval']:.{digits}f}"
     return f"{float(entry):.{digits}f}"
 
