@@ -4,7 +4,9 @@ build is never trusted, and the mask stage trains on it."""
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -89,7 +91,7 @@ def test_a_damaged_shard_is_refused_naming_it(data, tokenizer_dir, tmp_path, dam
     code 0) from a tokens file cut in half, and codes out of range failed at the first
     batch with an IndexError."""
     root = tmp_path / "data"
-    shutil.copytree(data, root)
+    shutil.copytree(data, root, ignore=shutil.ignore_patterns("motion_tokens"))  # to build
     ds = train_set(root)
     folder = attach(ds, RVQVAE.from_pretrained(tokenizer_dir["t2m"]), tokenizer_dir["t2m"]).folder
     tokens_file, offsets_file = folder / "shard-00000.tokens.npy", folder / "shard-00000.offsets.npy"
@@ -124,7 +126,7 @@ def test_damaged_metadata_and_index_are_refused(data, tokenizer_dir, tmp_path, e
     folder of another key was trusted, a shard name outside the folder was read there, and
     items given as lists were a TypeError."""
     root = tmp_path / "data"
-    shutil.copytree(data, root)
+    shutil.copytree(data, root, ignore=shutil.ignore_patterns("motion_tokens"))  # to build
     folder = attach(train_set(root), RVQVAE.from_pretrained(tokenizer_dir["t2m"]),
                     tokenizer_dir["t2m"]).folder
     meta = json.loads((folder / "meta.json").read_text())
@@ -139,7 +141,7 @@ def test_damaged_metadata_and_index_are_refused(data, tokenizer_dir, tmp_path, e
 
 def test_a_killed_build_is_not_trusted_and_resumes(data, tokenizer_dir, tmp_path, monkeypatch):
     root = tmp_path / "data"
-    shutil.copytree(data, root)
+    shutil.copytree(data, root, ignore=shutil.ignore_patterns("motion_tokens"))  # to build
     shutil.rmtree(root / mt.FOLDER, ignore_errors=True)
     tokenizer = RVQVAE.from_pretrained(tokenizer_dir["t2m"])
     ds = train_set(root)
@@ -234,3 +236,20 @@ def test_fits_share_the_cache_and_wait_for_a_peer_build(data, tokenizer_dir, tmp
     finally:
         other.kill()
         other.wait()
+
+
+@pytest.mark.parametrize("code", [errno.EACCES, errno.EROFS])
+def test_a_read_only_data_folder_says_what_to_do(data, tokenizer_dir, monkeypatch, tmp_path, code):
+    """A shared, read-only copy of a dataset failed on the lock file with the OS's words
+    only ("Permission denied"), without saying that the cache is written there, or how to
+    train without it."""
+    root = tmp_path / "data"
+    shutil.copytree(data, root, ignore=shutil.ignore_patterns("motion_tokens"))  # to build
+
+    def refused(self):
+        raise OSError(code, os.strerror(code), str(self.path))
+    monkeypatch.setattr(mt.FolderLock, "acquire", refused)
+    tokenizer = RVQVAE.from_pretrained(tokenizer_dir["t2m"]).eval()
+    with pytest.raises(SegmoError, match=r"\.segmo-writer\.lock: .*: the motion-token cache is "
+                                         r"written into the data folder; .*motion_tokens=on_the_fly"):
+        mt.update_motion_tokens(root, tokenizer, "tok", [train_set(root)], progress=False)

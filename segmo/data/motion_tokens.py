@@ -36,6 +36,7 @@ reached the index are ignored, then cleared by the next build.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import re
@@ -236,25 +237,33 @@ def update_motion_tokens(root: str | Path, tokenizer: Any, tokenizer_path: str,
             return TokenCacheSummary(folder, len(wanted), 0, time.perf_counter() - start)
     # Two fits started together both find it missing; the second waits for the first's
     # build instead of failing, then encodes only what is still missing.
-    with FolderLock(root, "segmo fit (motion tokens)", wait=LOCK_WAIT):
-        folder.mkdir(parents=True, exist_ok=True)
-        remove_temporaries(folder)  # from a killed build; never referenced
-        if (folder / INDEX).is_file():
-            index = _read_index(folder)
-        else:
-            index = {"format": FORMAT, "shards": []}
-            write_atomic(folder / META, json.dumps({
-                "format": FORMAT, "key": key, "tokenizer": str(tokenizer_path),
-                "codebook_size": tokenizer.codebook_size, "num_quantizers": tokenizer.num_quantizers,
-                "stats_sha256": hashlib.sha256(np.asarray(mean, np.float32).tobytes()
-                                               + np.asarray(std, np.float32).tobytes()).hexdigest(),
-            }, indent=2) + "\n")
-            write_atomic(folder / INDEX, json.dumps(index))
-        have = {item for shard in index["shards"] for item in shard["items"]}
-        # item -> (dataset, entry index, offset)
-        todo: dict[str, tuple[Any, int, int]] = {k: v for k, v in wanted.items() if k not in have}
-        if todo:
-            _encode(folder, index, tokenizer, todo, key, progress)
+    try:
+        with FolderLock(root, "segmo fit (motion tokens)", wait=LOCK_WAIT):
+            folder.mkdir(parents=True, exist_ok=True)
+            remove_temporaries(folder)  # from a killed build; never referenced
+            if (folder / INDEX).is_file():
+                index = _read_index(folder)
+            else:
+                index = {"format": FORMAT, "shards": []}
+                write_atomic(folder / META, json.dumps({
+                    "format": FORMAT, "key": key, "tokenizer": str(tokenizer_path),
+                    "codebook_size": tokenizer.codebook_size, "num_quantizers": tokenizer.num_quantizers,
+                    "stats_sha256": hashlib.sha256(np.asarray(mean, np.float32).tobytes()
+                                                   + np.asarray(std, np.float32).tobytes()).hexdigest(),
+                }, indent=2) + "\n")
+                write_atomic(folder / INDEX, json.dumps(index))
+            have = {item for shard in index["shards"] for item in shard["items"]}
+            # item -> (dataset, entry index, offset)
+            todo: dict[str, tuple[Any, int, int]] = {k: v for k, v in wanted.items() if k not in have}
+            if todo:
+                _encode(folder, index, tokenizer, todo, key, progress)
+    except OSError as error:
+        if error.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+            raise
+        # a shared, read-only copy of a dataset (the lock file is its first write)
+        raise SegmoError(f"{error.filename or root}: {error.strerror}: the motion-token cache "
+                         "is written into the data folder; build it once where the folder is "
+                         "writable, or set model.init_args.motion_tokens=on_the_fly") from error
     return TokenCacheSummary(folder, len(wanted), len(todo), time.perf_counter() - start)
 
 
