@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -207,6 +208,15 @@ def test_batched_equals_unbatched_and_types():
     assert isinstance(as_numpy, np.ndarray) and as_numpy.dtype == np.float32
     assert np.allclose(as_numpy, features[0].numpy(), atol=1e-4)
     assert features_to_joints(features.float()).dtype == torch.float32
+    # float64 views with negative strides or read-only memory (a reversed clip, an mmap)
+    # were handed to torch.from_numpy as they were: ValueError, or a torch warning.
+    reversed_clip = batch[0].numpy()[::-1]
+    assert np.allclose(joints_to_features(reversed_clip), joints_to_features(batch[0].flip(0)).numpy())
+    frozen = features[0].numpy().copy()
+    frozen.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.allclose(features_to_joints(frozen[::-1]), features_to_joints(features[0].flip(0)).numpy())
 
 
 def test_features_to_joints_is_differentiable():

@@ -42,7 +42,7 @@ def _as_float64(x: Any, name: str) -> tuple[Tensor, Any]:
     """-> (float64 tensor, how to convert back)."""
     if isinstance(x, np.ndarray):
         dtype = x.dtype if np.issubdtype(x.dtype, np.floating) else np.float32
-        return torch.from_numpy(np.asarray(x, dtype=np.float64)), lambda y: y.numpy().astype(dtype)
+        return torch.from_numpy(np.array(x, dtype=np.float64)), lambda y: y.numpy().astype(dtype)
     if isinstance(x, Tensor):
         dtype = x.dtype if x.is_floating_point() else torch.float32
         return x.to(torch.float64), lambda y: y.to(dtype)
