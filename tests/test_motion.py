@@ -109,10 +109,30 @@ def test_qbetween_and_axis_angle():
     assert torch.allclose(axis_angle_to_quat(torch.zeros(3)), torch.tensor([1.0, 0.0, 0.0, 0.0]))
 
 
+def test_qbetween_opposite_vectors_in_float32():
+    # Rounding left |q| near 1e-7 for opposite float32 vectors, above the fixed 1e-9 test
+    # of the half-turn fallback: the "rotation" was normalised noise (80 % of such pairs).
+    v0 = torch.randn(1000, 3, generator=torch.Generator().manual_seed(3))
+    v0 = v0 / v0.norm(dim=-1, keepdim=True)
+    assert (qrot(qbetween(v0, -v0), v0) + v0).abs().max() < 1e-5
+
+
 @pytest.mark.parametrize("order", ["ZYX", "XYZ"])
 def test_euler_round_trip(order):
     m = quat_to_matrix(random_quats(50, seed=5))
     assert torch.allclose(euler_to_matrix(matrix_to_euler(m, order), order), m, atol=1e-9)
+
+
+@pytest.mark.parametrize("order", ["ZYX", "XYZ"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_euler_round_trip_at_gimbal_lock(order, dtype):
+    # Middle angle at +-90 degrees: both atan2 calls got (0, 0) and the turn was lost.
+    angles = torch.tensor([[0.7, math.pi / 2, 0.0], [0.7, -math.pi / 2, -0.4], [-2.0, math.pi / 2, 1.1]],
+                          dtype=dtype)
+    m = euler_to_matrix(angles, order)
+    m = quat_to_matrix(matrix_to_quat(m))  # as a matrix arrives from elsewhere
+    tol = 1e-9 if dtype == torch.float64 else 1e-3
+    assert torch.allclose(euler_to_matrix(matrix_to_euler(m, order), order), m, atol=tol)
 
 
 def test_gaussian_filter_matches_scipy():

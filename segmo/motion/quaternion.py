@@ -86,7 +86,9 @@ def qbetween(v0: Tensor, v1: Tensor) -> Tensor:
     q = torch.cat([w, v], dim=-1)
     norm = q.norm(dim=-1, keepdim=True)
     scale = torch.sqrt((v0**2).sum(-1, keepdim=True) * (v1**2).sum(-1, keepdim=True))
-    degenerate = norm <= 1e-9 * scale.clamp_min(1e-30)
+    # Rounding leaves |q| near sqrt(eps) of the scale for opposite vectors (about 1e-7 in
+    # float32), so the test scales with the dtype.
+    degenerate = norm <= torch.finfo(q.dtype).eps ** 0.5 * scale.clamp_min(1e-30)
     if bool(degenerate.any()):
         # Any axis perpendicular to v0: cross with x, or with y when v0 is along x.
         ex = torch.zeros_like(v0)
@@ -211,15 +213,24 @@ def euler_to_matrix(angles: Tensor, order: str = "ZYX") -> Tensor:
 
 def matrix_to_euler(m: Tensor, order: str = "ZYX") -> Tensor:
     """Rotation matrices (..., 3, 3) -> Euler angles (..., 3) in radians, inverse of
-    `euler_to_matrix` for the same order (only "ZYX" and "XYZ" are supported)."""
+    `euler_to_matrix` for the same order (only "ZYX" and "XYZ" are supported).
+
+    At gimbal lock (middle angle at +-90 degrees, within sqrt(eps) of the dtype) the first
+    and last angles are not separable; the last is set to 0 and the first carries the turn.
+    """
+    locked_below = torch.finfo(m.dtype).eps ** 0.5 if m.is_floating_point() else 1e-6
     if order == "ZYX":  # R = Rz Ry Rx
         y = torch.asin((-m[..., 2, 0]).clamp(-1.0, 1.0))
-        x = torch.atan2(m[..., 2, 1], m[..., 2, 2])
-        z = torch.atan2(m[..., 1, 0], m[..., 0, 0])
+        locked = torch.hypot(m[..., 0, 0], m[..., 1, 0]) < locked_below
+        x = torch.where(locked, torch.zeros_like(y), torch.atan2(m[..., 2, 1], m[..., 2, 2]))
+        z = torch.where(locked, torch.atan2(-m[..., 0, 1], m[..., 1, 1]),
+                        torch.atan2(m[..., 1, 0], m[..., 0, 0]))
         return torch.stack((z, y, x), dim=-1)
     if order == "XYZ":  # R = Rx Ry Rz
         y = torch.asin(m[..., 0, 2].clamp(-1.0, 1.0))
-        x = torch.atan2(-m[..., 1, 2], m[..., 2, 2])
-        z = torch.atan2(-m[..., 0, 1], m[..., 0, 0])
+        locked = torch.hypot(m[..., 0, 0], m[..., 0, 1]) < locked_below
+        x = torch.where(locked, torch.atan2(m[..., 2, 1], m[..., 1, 1]),
+                        torch.atan2(-m[..., 1, 2], m[..., 2, 2]))
+        z = torch.where(locked, torch.zeros_like(y), torch.atan2(-m[..., 0, 1], m[..., 0, 0]))
         return torch.stack((x, y, z), dim=-1)
     raise ValueError(f"matrix_to_euler: unsupported order {order!r}; use 'ZYX' or 'XYZ'")
