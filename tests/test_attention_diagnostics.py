@@ -90,6 +90,21 @@ def test_attention_grounding_counts_tokens_on_their_segment():
     assert attention_grounding([m], [[(0, 3), (3, 6)]])["tokens"] == 6
 
 
+def test_attention_grounding_leaves_out_one_segment_captions():
+    # With one segment key the largest segment weight is always on it: no evidence either way.
+    n = 6
+    weights = torch.zeros(2, 2, n, 3 + n)
+    weights[:, :, :3, 1] = 0.5   # both rows: segment 1 attended on tokens 0-2
+    weights[:, :, 3:, 2] = 0.5   # segment 2 on tokens 3-5
+    labels = [*prefix_labels(2), *(f"motion {i}" for i in range(n))]
+    m = AttentionMap("mask", 0, 0, torch.tensor([0, 1]), torch.arange(n).expand(2, n), weights,
+                     torch.ones(2, 3 + n, dtype=torch.bool), labels)
+    found = attention_grounding([m], [[(3, 6), (0, 3)], [(0, 6)]])
+    assert found["mean"] == 0.0 and found["tokens"] == 6
+    alone = attention_grounding([m], [[(0, 6)], [(0, 6)]])
+    assert alone["tokens"] == 0 and math.isnan(alone["mean"]) and alone["by_block"] == {}
+
+
 def test_diagnostics_of_a_recorded_generation(tmp_path):
     mask, residual = tiny_models()
     with record_attention({"mask": mask}) as recording:

@@ -11,7 +11,8 @@ ground truth, `DIR/segments/<id>.json`), with its ground-truth text segments:
   `SegMo.record_attention`): `sink_ratio`, `prefix_share` and `sentence_share` of the mask
   transformer, by block and by decoding step (`segmo.evaluation.attention`);
 - the real motion (`segmo.evaluation.attention.motion_attention`: one pass with all its
-  tokens visible): `attention_grounding` against the true spans, by block;
+  tokens visible): `attention_grounding` against the true spans, by block, over the
+  captions of at least 2 segments (one segment is always its own tokens' largest weight);
 - the prefix mass by kind of key (sentence, segments, start word, other words:
   `kind_share`), by block, to find the sink of a model with word keys; for one that reads
   its words by gated cross-attention, each block's gate tanh(g) (0: closed);

@@ -22,7 +22,8 @@ pass.
   for each kind of key (sentence, segments, start word, other words), to find the sink in
   a model with word keys.
 - ``attention_grounding``: over motion tokens inside the ground-truth span of segment k,
-  the share whose largest segment weight (head mean) is on segment k.
+  the share whose largest segment weight (head mean) is on segment k; captions of one
+  segment are left out (their one segment always holds the largest weight).
 """
 
 from __future__ import annotations
@@ -153,12 +154,14 @@ def attention_grounding(maps: Sequence[AttentionMap],
                         counts: dict[int, list[int]] | None = None) -> dict:
     """The share of motion tokens inside the ground-truth span of segment k whose largest
     segment weight (head mean) is on segment k, by block and overall. spans[i]: the token
-    spans [start, end) of the segments of the maps' row i, in segment order. `counts`
-    (block → [hits, tokens]) adds to the counts of earlier batches and is updated."""
+    spans [start, end) of the segments of the maps' row i, in segment order. Rows of fewer
+    than 2 segments are left out, as in `segmo.evaluation.grounding.grounding_accuracy`: with
+    one segment key every token's largest weight is on it, a hit whatever the attention.
+    `counts` (block → [hits, tokens]) adds to the counts of earlier batches and is updated."""
     counts = {} if counts is None else counts
     for m in maps:
         for row, row_spans in enumerate(spans):
-            if row >= len(m.rows) or not row_spans:
+            if row >= len(m.rows) or len(row_spans) < 2:
                 continue
             profile = segment_profile(m, row)[:len(row_spans)]
             valid = m.key_valid[row, 1:1 + len(row_spans)].numpy()
