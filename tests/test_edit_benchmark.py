@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
+import torch
 from conftest import load_tool
 from test_pipeline import build_stages
 
-from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig
+from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig, collapse
 from segmo.pipeline import SegMo
 from segmo.synth.actions import ACTIONS
 
@@ -37,3 +40,36 @@ def test_edit_benchmark_writes_its_tables(tmp_path, tokenizer_dir):
     assert 0.0 <= result["reweight_monotone_share"] <= 1.0
     assert result["compose"]["parts"] >= 3 and result["compose"]["jerk_real"] > 0
     assert "## Swap one segment" in (tmp_path / "out" / "edits.md").read_text()
+
+
+class OneActionClassifier:
+    """Classifies every frame as `action`; merges repeats in a sequence, as ActionClassifier does."""
+
+    def __init__(self, action: str, classes=("jump", "walk")):
+        self.classes, self.action = list(classes), action
+
+    def frame_probabilities(self, features: np.ndarray) -> np.ndarray:
+        p = np.zeros((len(features), len(self.classes)), np.float32)
+        p[:, self.classes.index(self.action)] = 1.0
+        return p
+
+    def predict_sequence(self, features: np.ndarray) -> list[str]:
+        return collapse([self.classes[c] for c in self.frame_probabilities(features).argmax(1)])
+
+
+def test_a_swap_onto_its_neighbours_action_can_score():
+    # "jump, then walk" with the jump swapped for a walk: the target [walk, walk] is one walk
+    # to the classifier, and a motion that walks throughout has the right sequence.
+    tool = load_tool("edit_benchmark")
+    frames = 8
+    out = SimpleNamespace(motion=lambda i: np.zeros((frames, 263), np.float32),
+                          joints=torch.zeros(1, frames, 22, 3))
+    item = {"frames": frames, "spans": [(0, 4), (4, 8)]}
+    scores = tool.swap_scores(OneActionClassifier("walk"), out, np.zeros((frames, 22, 3)), item, 0,
+                              ["walk", "walk"])
+    assert scores["sequence"] == 1.0 and scores["part"] == 1.0
+    assert tool.swap_scores(OneActionClassifier("jump"), out, np.zeros((frames, 22, 3)), item, 0,
+                            ["walk", "walk"])["sequence"] == 0.0
+    # The compositions' per-part accuracy compares the same way.
+    assert tool.sequence_right(OneActionClassifier("walk"), out.motion(0), ["walk", "walk"])
+    assert not tool.sequence_right(OneActionClassifier("walk"), out.motion(0), ["walk", "jump"])

@@ -9,7 +9,9 @@ segments joined by ", then ". Three ways to make the target: `SegMo.edit_text` (
 swap, `--inject-until`), regeneration from the target text with the source's random
 numbers (the same as inject_until 0), and span editing (`SegMo.edit`) over the real
 motion's span of that segment. Scored with the corpus' frame-wise action classifier:
-- sequence: the predicted action sequence of the whole motion equals the target's;
+- sequence: the predicted action sequence of the whole motion equals the target's, with
+  consecutive repeats merged as the classifier merges them (a swap onto a neighbour's
+  action, [walk, walk], asks for one walk);
 - part: the action of largest mean probability over the segment's span (the real
   motion's spans, a proxy for the generated one's) is the target action, and over each
   other segment's span its own action;
@@ -22,8 +24,9 @@ reweight: for `--reweights` captions, segment k's attention times c ∈ {−1, 0
 the frames classified as its action, per c (mean), and the share of captions where that
 count does not decrease with c.
 compose: `--compositions` motions of 3–6 parts (test captions with their lengths, up to
-40 s): per-part action-sequence accuracy, and the jerk (m/s³) and foot skating (cm/s)
-in the transitions against inside the parts and inside real test motions.
+40 s): per-part action-sequence accuracy (repeats merged, as for swap), and the jerk
+(m/s³) and foot skating (cm/s) in the transitions against inside the parts and inside
+real test motions.
 The last line is JSON; OUT/edits.json holds it and OUT/edits.md the tables.
 """
 
@@ -42,6 +45,7 @@ import torch
 
 from segmo import SegMo
 from segmo.data.layout import read_ground_truth
+from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import features_to_joints
 from segmo.motion.skeleton_fit import foot_contacts, foot_skating
@@ -80,9 +84,15 @@ def part_actions(classifier, features: np.ndarray, spans) -> list[str]:
     return [classifier.classes[int(p[a:b].mean(0).argmax())] for a, b in spans]
 
 
+def sequence_right(classifier, features: np.ndarray, actions: list[str]) -> bool:
+    """Whether the classifier's action sequence of `features` (t, d) is `actions`; the
+    classifier merges consecutive repeats, so they are merged in `actions` too."""
+    return classifier.predict_sequence(features) == collapse(actions)
+
+
 def swap_scores(classifier, out, source_joints, item, k, target_actions) -> dict[str, float]:
     features = out.motion(0)
-    sequence = classifier.predict_sequence(features) == target_actions
+    sequence = sequence_right(classifier, features, target_actions)
     parts = part_actions(classifier, features, item["spans"])
     part = parts == target_actions
     joints = out.joints[0, : item["frames"]].numpy()
@@ -232,7 +242,7 @@ def main(argv: list[str] | None = None) -> None:
             spans = out.spans[0]
             seconds.append(len(features) / out.fps)
             for (a, b), item in zip(spans, chosen):
-                accuracy.append(float(classifier.predict_sequence(features[a:b]) == item["actions"]))
+                accuracy.append(float(sequence_right(classifier, features[a:b], item["actions"])))
             j = jerk(joints, out.fps)
             contacts = foot_contacts(joints, out.skeleton)
             inside = np.zeros(len(j), bool)
