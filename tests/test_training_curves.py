@@ -36,7 +36,7 @@ def test_table_and_png_from_metrics_csv(tmp_path: Path, capsys):
     assert (tmp_path / "png" / "val_loss.png").is_file()
     (row,) = result["runs"]
     assert row["points"] == 6 and row["best"] == 1.49 and row["last_step"] == 59 and row["plateau"] == "plateau"
-    assert "| a | val/loss | 6 | 3 | 1.49 | 1.49 (59) | plateau |" in capsys.readouterr().out
+    assert "| mask/a/version_0 | val/loss | 6 | 3 | 1.49 | 1.49 (59) | plateau |" in capsys.readouterr().out
 
 
 def test_bad_input_is_one_line_and_keeps_the_pictures_already_there(tmp_path: Path, capsys):
@@ -65,3 +65,20 @@ def test_bad_input_is_one_line_and_keeps_the_pictures_already_there(tmp_path: Pa
     assert (tmp_path / "png" / "val_loss.png").read_bytes() == picture
     with pytest.raises(SegmoError, match="argument --window: expected a whole number >= 1"):
         curves.main(argv + ["--metric", "val/loss", "--window", "0"])
+
+
+def test_iou_and_perplexity_are_higher_is_better_and_runs_are_told_apart_by_stage(tmp_path: Path):
+    curves = load_tool("training_curves")
+    rising = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
+    for stage in ("mask", "rvq"):  # the same run name under two stages, as `segmo fit --name demo` makes
+        folder = tmp_path / "runs" / stage / "demo" / "version_0"
+        folder.mkdir(parents=True)
+        rows = ["epoch,step,val/timing_iou,val/perplexity_q0,val/within2"]
+        rows += [f"0,{10 * i + 9},{v},{100 * v},{v}" for i, v in enumerate(rising)]
+        (folder / "metrics.csv").write_text("\n".join(rows) + "\n")
+    result = curves.main(["--runs", str(tmp_path / "runs"), "--metric", "val/timing_iou", "--metric",
+                          "val/perplexity_q0", "--metric", "val/within2", "--out", str(tmp_path / "png")])
+    assert {(r["metric"], r["plateau"], r["best"] == r["last"]) for r in result["runs"]} == {
+        ("val/timing_iou", "improving", True), ("val/perplexity_q0", "improving", True),
+        ("val/within2", "improving", True)}
+    assert sorted({r["run"] for r in result["runs"]}) == ["mask/demo/version_0", "rvq/demo/version_0"]

@@ -1,11 +1,15 @@
 """Training curves of `segmo fit` runs, to see whether a recipe reached its plateau.
 
-Reads the CSV logger's ``metrics.csv`` of each run (``RUNS/<stage>/<name>/version_<k>/``)
-and draws, per metric, one line per run over the training step; a run's validation
-metric has reached its plateau when its last ``--window`` validation points improve on
-the best before them by less than ``--tolerance`` (relative) either way ("improving" or
-"worse" otherwise). Writes one PNG per metric and
-prints a Markdown table (run, metric, first, best, last, plateau) and a final JSON line.
+Reads the CSV logger's ``metrics.csv`` of each run (``RUNS/<stage>/<name>/version_<k>/``,
+the newest version of each run folder) and draws, per metric, one line per run over the
+training step; a run is labelled by its folder relative to ``--runs``
+(``mask/demo/version_0``). A run's validation metric has reached its plateau when its last
+``--window`` validation points improve on the best before them by less than
+``--tolerance`` (relative) either way ("improving" or "worse" otherwise). Higher is better
+for a metric whose name holds one of HIGHER_IS_BETTER (accuracy, top-k, R@k, IoU, code
+usage and perplexity, within-k), lower for every other (losses, errors, distances). Writes
+one PNG per metric and prints a Markdown table (run, metric, first, best, last, plateau)
+and a final JSON line.
 NaN and inf values (a diverged run) are left out of the curves. A bad file or argument is
 one line on stderr (exit status 2), before any PNG is written; PNGs are written atomically.
 
@@ -27,6 +31,11 @@ from pathlib import Path
 from segmo.cli import run
 from segmo.errors import ArgumentParser, SegmoError, non_negative_float, positive_int
 from segmo.files import write_atomic
+
+# Words of the metric names the tasks log (`self.log` in segmo/tasks) for which higher is
+# better: accuracy, frame_accuracy, top1, segment_top1*, R@k, timing_iou, code_usage_q*,
+# perplexity_q* (the codebook's, not a language model's) and the length's within2.
+HIGHER_IS_BETTER = ("acc", "top", "r@", "iou", "usage", "perplexity", "within")
 
 
 def read_metric(path: Path, metric: str) -> list[tuple[int, float]]:
@@ -123,12 +132,12 @@ def main(argv: list[str] | None = None) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for metric, by_run in points.items():
-        lower = not any(word in metric for word in ("top", "acc", "usage", "r@"))
+        lower = not any(word in metric.lower() for word in HIGHER_IS_BETTER)
         fig, ax = plt.subplots(figsize=(6, 3.5))
         for path, logged in by_run.items():
             if not logged:
                 continue
-            name = path.parent.parent.name
+            name = path.parent.relative_to(args.runs).as_posix()
             steps, raw = zip(*logged, strict=True)
             values = smooth(list(raw), args.smooth)
             ax.plot(steps, values, marker="o", markersize=2, label=name)
