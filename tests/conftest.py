@@ -57,6 +57,22 @@ def cli_failure(argv: list[str], capsys) -> str:
     return lines[-1]
 
 
+def tool_failure(name: str, argv: list[str], capsys) -> str:
+    """Run tools/<name>.py as its command does (`segmo.cli.run`), expecting the one-line
+    failure on bad input (exit status 2, no traceback); returns that line."""
+    from segmo.cli import run
+
+    tool = load_tool(name)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        run(f"{name}.py", tool.main, argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2, f"exit {exit_info.value.code}: {err}"
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
 def hash_vector(text: str, dim: int) -> torch.Tensor:
     generator = torch.Generator().manual_seed(zlib.crc32(text.encode()))
     return torch.nn.functional.normalize(

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from conftest import load_tool
+from conftest import load_tool, tool_failure
 from test_pipeline import build_stages
 
 from segmo.models.action_classifier import ActionClassifier, ActionClassifierConfig, collapse
@@ -73,3 +73,25 @@ def test_a_swap_onto_its_neighbours_action_can_score():
     # The compositions' per-part accuracy compares the same way.
     assert tool.sequence_right(OneActionClassifier("walk"), out.motion(0), ["walk", "walk"])
     assert not tool.sequence_right(OneActionClassifier("walk"), out.motion(0), ["walk", "jump"])
+
+
+def test_edit_benchmark_refuses_bad_arguments_in_one_line(tmp_path, capsys):
+    base = ["--model", str(tmp_path / "model"), "--action-classifier", str(tmp_path / "c"),
+            "--out", str(tmp_path / "out")]
+    assert tool_failure("edit_benchmark", [*base, "--data", str(tmp_path / "nowhere")], capsys) == (
+        f"edit_benchmark.py: --data {tmp_path / 'nowhere'}: no such folder (see `edit_benchmark.py --help`)")
+    for flag in ("--edits", "--reweights", "--compositions"):
+        assert f"argument {flag}: expected a whole number >= 1, got '0'" in tool_failure(
+            "edit_benchmark", [*base, "--data", str(tmp_path), flag, "0", "--skip", "reweight,compose"], capsys)
+    assert "--skip swop: expected swap, reweight or compose" in tool_failure(
+        "edit_benchmark", [*base, "--data", str(tmp_path), "--skip", "swop"], capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_one_edit_has_a_mean_and_no_interval():
+    tool = load_tool("edit_benchmark")
+    one = tool.mean_interval([0.5])
+    assert one["mean"] == 0.5 and one["interval"] != one["interval"]  # NaN: no spread to estimate
+    assert tool.mean_interval([0.0, 1.0])["interval"] == pytest.approx(1.96 * 0.5 ** 0.5 / 2 ** 0.5)
+    assert tool.cell(tool.mean_interval([0.5])) == "0.500"
+    assert tool.cell(tool.mean_interval([0.0, 1.0]), 1) == "0.5±1.0"

@@ -318,6 +318,21 @@ def test_segment_probe_tool_scores_any_mask_transformer(tmp_path, capsys):
             assert ("own_head" in result) == (alignment is not None)
 
 
+def test_segment_probe_refuses_bad_arguments_in_one_line(tmp_path, capsys):
+    from conftest import tool_failure
+
+    def line(*argv: str) -> str:
+        return tool_failure("segment_probe", ["--tokenizer", str(tmp_path / "rvq"), *argv], capsys)
+
+    assert line("--mask", str(tmp_path / "nothing"), "--data", str(tmp_path)) == (
+        f"segment_probe.py: {tmp_path / 'nothing'}: no such model folder (nor a hub id like 'owner/name')")
+    assert line("--mask", "m", "--data", str(tmp_path / "nowhere")).startswith(
+        f"segment_probe.py: --data {tmp_path / 'nowhere'}: no such folder")
+    for flag in ("--steps", "--batch-size"):  # 0 steps would report an untrained probe
+        assert f"argument {flag}: expected a whole number >= 1, got '0'" in line(
+            "--mask", "m", "--data", str(tmp_path), flag, "0")
+
+
 @pytest.mark.parametrize("source", ["truth", "segmenter"])
 def test_segment_timing_trains_its_head_and_reaches_the_model(source, text_dataset,
                                                               tokenizer_dir, tmp_path):

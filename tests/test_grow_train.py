@@ -6,9 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import load_tool
+from conftest import load_tool, tool_failure
 
 from segmo.data.layout import read_split
+from segmo.errors import SegmoError
 from segmo.synth import build_corpus
 from segmo.synth.captions import HELD_OUT_TEMPLATES
 
@@ -48,12 +49,12 @@ def test_grow_train_refuses_corpora_that_do_not_match(tmp_path: Path, capsys):
             (tmp_path / "nothing", tmp_path / "c", "no corpus.json"),
             (fewer, small, "no more than"),
     ):
-        with pytest.raises(SystemExit) as stop:
+        with pytest.raises(SegmoError) as stop:
             tool.main(["--data", str(small), "--add", str(add), "--out", str(out)])
         assert message in str(stop.value)
         assert not out.exists() or out == small
     big = build_corpus(tmp_path / "big", 30, seed=0, progress=False)
-    with pytest.raises(SystemExit) as stop:
+    with pytest.raises(SegmoError) as stop:
         tool.main(["--data", str(small), "--add", str(big), "--out", str(small)])
     assert f"--out {small}: exists" in str(stop.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big", "fewer", "other", "small"]
@@ -108,7 +109,7 @@ def test_segment_crops_leave_nothing_behind_on_a_broken_motion(tmp_path: Path, c
     broken = read_split(data, "train")[-1]
     (data / "segments" / f"{broken}.json").write_text("{not json")
     out = tmp_path / "crops"
-    with pytest.raises(SystemExit) as stop:
+    with pytest.raises(SegmoError) as stop:
         tool.main(["--data", str(data), "--segment-crops", "--out", str(out)])
     assert f"motion {broken}" in str(stop.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
@@ -119,10 +120,24 @@ def test_segment_crops_leave_nothing_behind_on_a_broken_motion(tmp_path: Path, c
     truth["actions"][-1]["end"] += 50
     path.write_text(json.dumps(truth))
     (data / "segments" / f"{broken}.json").write_text(json.dumps(truth))
-    with pytest.raises(SystemExit) as stop:
+    with pytest.raises(SegmoError) as stop:
         tool.main(["--data", str(data), "--segment-crops", "--out", str(out)])
     assert str(path) in str(stop.value) and "do not lie in" in str(stop.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
-    with pytest.raises(SystemExit):  # one source only
+    with pytest.raises(SegmoError, match="not allowed with"):  # one source only
         tool.main(["--data", str(data), "--segment-crops", "--add", str(data), "--out", str(out)])
-    assert "not allowed with" in capsys.readouterr().err
+
+
+def test_grow_train_fails_in_one_line_with_exit_status_2(tmp_path: Path, capsys):
+    data = build_corpus(tmp_path / "data", 10, seed=0, progress=False)
+    big = build_corpus(tmp_path / "big", 12, seed=0, progress=False)
+    assert tool_failure("grow_train", ["--data", str(data), "--segment-crops", "--out", str(data)],
+                        capsys) == f"grow_train.py: --out {data}: exists; choose a new folder"
+    for split in ("test", "val"):
+        (data / f"{split}.txt").unlink()
+        for source in (["--segment-crops"], ["--add", str(big)]):
+            line = tool_failure("grow_train", ["--data", str(data), *source, "--out", str(tmp_path / "o")],
+                                capsys)
+            assert line == (f"grow_train.py: --data {data}: no {split}.txt; a corpus of `segmo synth` "
+                            "has train.txt, val.txt and test.txt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big", "data"]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import cli_failure
+from conftest import cli_failure, tool_failure
 
 from segmo.data.attributes import attribute_labels
 from segmo.errors import SegmoError
@@ -504,3 +504,11 @@ def test_a_corpus_written_through_a_symbolic_link_lands_in_its_target(tmp_path):
     assert (target / "corpus.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["corpus", "disk"]
     assert sorted(p.name for p in target.parent.iterdir()) == ["corpus"]
+
+
+def test_render_actions_refuses_an_unknown_action(tmp_path, capsys):
+    line = tool_failure("render_actions", ["--out", str(tmp_path / "r"), "--only", "walk_forward", "nope"],
+                        capsys)
+    assert line.startswith("render_actions.py: --only nope: no such action; known: ")
+    assert "walk_forward, " in line and line.endswith("walk_forward+wave (see `render_actions.py --help`)")
+    assert not (tmp_path / "r").exists()

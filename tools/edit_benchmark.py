@@ -27,13 +27,15 @@ compose: `--compositions` motions of 3–6 parts (test captions with their lengt
 40 s): per-part action-sequence accuracy (repeats merged, as for swap), and the jerk
 (m/s³) and foot skating (cm/s) in the transitions against inside the parts and inside
 real test motions.
-The last line is JSON; OUT/edits.json holds it and OUT/edits.md the tables.
+Intervals are mean ± 95 % half-width; a figure of one value is its mean alone.
+The last line is JSON; OUT/edits.json holds it and OUT/edits.md the tables. A bad argument,
+model or data folder is one line on stderr (exit status 2).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
+import math
 import random
 import statistics
 import sys
@@ -44,7 +46,10 @@ import numpy as np
 import torch
 
 from segmo import SegMo
-from segmo.data.layout import read_ground_truth
+from segmo.cli import run
+from segmo.data.layout import read_ground_truth, read_split
+from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
+from segmo.evaluation.report import cell
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import features_to_joints
@@ -52,6 +57,7 @@ from segmo.motion.skeleton_fit import foot_contacts, foot_skating
 
 FACTORS = (-1.0, 0.0, 0.5, 1.0, 2.0, 4.0)
 STILL_CM = 2.0
+PARTS = ("swap", "reweight", "compose")
 
 
 def test_captions(data: Path, max_frames: int, max_segments: int = 5) -> list[dict]:
@@ -59,7 +65,7 @@ def test_captions(data: Path, max_frames: int, max_segments: int = 5) -> list[di
     the model takes; one caption per motion), their
     segments' texts, actions and spans, and the motion's length."""
     out = []
-    for mid in (data / "test.txt").read_text().split():
+    for mid in read_split(data, "test"):
         record = read_ground_truth(data, mid)
         frames = int(record["num_frames"]) // 4 * 4
         if frames > max_frames:
@@ -111,11 +117,13 @@ def swap_scores(classifier, out, source_joints, item, k, target_actions) -> dict
             "still_pose": float((local[outside] < STILL_CM).mean())}
 
 
-def mean_interval(values: list[float]) -> tuple[float, float]:
-    """Mean and a 95 % normal-approximation half-width over the edits."""
+def mean_interval(values: list[float]) -> dict[str, float]:
+    """{"mean", "interval"}: the mean and a 95 % normal-approximation half-width over the
+    edits; the interval is NaN for one value, which has no spread to estimate
+    (`segmo.evaluation.report.cell` then shows the mean alone, as `segmo evaluate` does)."""
     m = statistics.fmean(values)
-    half = 1.96 * statistics.stdev(values) / len(values) ** 0.5 if len(values) > 1 else 0.0
-    return m, half
+    half = 1.96 * statistics.stdev(values) / len(values) ** 0.5 if len(values) > 1 else math.nan
+    return {"mean": m, "interval": half}
 
 
 def jerk(joints: np.ndarray, fps: float) -> np.ndarray:
@@ -124,27 +132,37 @@ def jerk(joints: np.ndarray, fps: float) -> np.ndarray:
     return np.linalg.norm(third, axis=-1).mean(axis=1)
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def main(argv: list[str] | None = None) -> dict:
+    """Run the benchmark, write OUT, print the tables and the JSON line; the result is
+    returned. SegmoError (or OSError) for a bad argument, model or data folder."""
+    p = ArgumentParser(prog="edit_benchmark.py", description=__doc__.split("\n")[0])
     p.add_argument("--model", required=True)
     p.add_argument("--data", required=True, type=Path)
     p.add_argument("--action-classifier", required=True)
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--edits", type=int, default=200)
-    p.add_argument("--reweights", type=int, default=60)
-    p.add_argument("--compositions", type=int, default=20)
+    p.add_argument("--edits", type=positive_int, default=200)
+    p.add_argument("--reweights", type=positive_int, default=60)
+    p.add_argument("--compositions", type=positive_int, default=20)
     p.add_argument("--inject-until", type=float, default=None,
                    help="default: segmo.generation.attention_edit.INJECT_UNTIL")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--threads", type=positive_int, default=None)
     p.add_argument("--skip", default="", help="comma-separated: swap,reweight,compose")
     args = p.parse_args(argv)
+    skip = set(filter(None, args.skip.split(",")))
+    unknown = sorted(skip - set(PARTS))
+    if unknown:
+        p.error(f"--skip {unknown[0]}: expected swap, reweight or compose")
+    if not args.data.is_dir():
+        p.error(f"--data {args.data}: no such folder")
     if args.threads:
         torch.set_num_threads(args.threads)
-    skip = set(filter(None, args.skip.split(",")))
     model = SegMo.from_pretrained(args.model)
     classifier = load_pretrained(args.action_classifier).eval()
     items = test_captions(args.data, model.max_frames, model.max_segments)
+    if not items:
+        raise SegmoError(f"--data {args.data}: no test caption of 2–{min(5, model.max_segments)} "
+                         f"segments in a motion of at most {model.max_frames} frames")
     rng = random.Random(args.seed)
     pool = [(a, t) for item in items for a, t in zip(item["actions"], item["texts"])]
     inject = {} if args.inject_until is None else {"inject_until": args.inject_until}
@@ -190,13 +208,13 @@ def main(argv: list[str] | None = None) -> None:
                   "| --- | --- | --- | --- | --- | --- | --- |"]
         for name, rows in scores.items():
             table[name] = {key: mean_interval([r[key] for r in rows]) for key in rows[0]}
-            cells = " | ".join(f"{table[name][key][0]:.3f} ± {table[name][key][1]:.3f}"
+            cells = " | ".join(cell(table[name][key])
                                for key in ("sequence", "target_part", "others_kept", "part", "still",
                                            "still_pose"))
             lines.append(f"| {name} | {cells} |")
-        result["swap"] = {name: {key: round(v[0], 4) for key, v in t.items()}
+        result["swap"] = {name: {key: round(v["mean"], 4) for key, v in t.items()}
                           for name, t in table.items()}
-        result["swap_interval"] = {name: {key: round(v[1], 4) for key, v in t.items()}
+        result["swap_interval"] = {name: {key: round(v["interval"], 4) for key, v in t.items()}
                                    for name, t in table.items()}
         lines.append("")
 
@@ -220,7 +238,7 @@ def main(argv: list[str] | None = None) -> None:
                   "| c | " + " | ".join(f"{c:g}" for c in FACTORS) + " |",
                   "| --- |" + " --- |" * len(FACTORS),
                   "| frames (mean ± 95 %) | " + " | ".join(
-                      "{:.1f} ± {:.1f}".format(*mean_interval(durations[c])) for c in FACTORS) + " |",
+                      cell(mean_interval(durations[c]), 1) for c in FACTORS) + " |",
                   "", f"Non-decreasing in c for {statistics.fmean(monotone):.2f} of the captions.", ""]
         result["reweight"] = {f"{c:g}": round(statistics.fmean(v), 2) for c, v in durations.items()}
         result["reweight_monotone_share"] = round(statistics.fmean(monotone), 3)
@@ -283,7 +301,8 @@ def main(argv: list[str] | None = None) -> None:
     (args.out / "edits.json").write_text(json.dumps(result, indent=1) + "\n")
     print("\n".join(lines))
     print(json.dumps(result))
+    return result
 
 
 if __name__ == "__main__":
-    main()
+    run("edit_benchmark.py", main, sys.argv[1:])

@@ -31,12 +31,12 @@ is 000123_1_3.
 
     python tools/grow_train.py --data data/v3 --segment-crops --out data/v3c
 
-The last line printed is JSON: the train motions of DATA, the ones added, and OUT.
+The last line printed is JSON: the train motions of DATA, the ones added, and OUT. A bad
+argument or corpus is one line on stderr (exit status 2), and leaves no OUT.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from segmo.cli import run
 from segmo.data.layout import (
     SPLITS,
     STATISTICS,
@@ -55,7 +56,7 @@ from segmo.data.layout import (
     read_split,
     split_file,
 )
-from segmo.errors import SegmoError
+from segmo.errors import ArgumentParser, SegmoError
 from segmo.synth.captions import make_captions
 from segmo.synth.corpus import write_motion
 from segmo.synth.sequence import MIN_FRAMES, Segment
@@ -66,13 +67,19 @@ MOTION_FILES = (motion_file, joints_file, texts_file, ground_truth_file)
 
 
 def corpus_info(root: Path, flag: str) -> dict:
-    """corpus.json of `root`, or SegmoError naming the argument."""
+    """corpus.json of `root`, or SegmoError naming the argument; checked here too: its
+    three split files (otherwise a missing val.txt is found after the motions are linked)."""
     try:
-        return json.loads((root / "corpus.json").read_text(encoding="utf-8"))
+        info = json.loads((root / "corpus.json").read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise SegmoError(f"{flag} {root}: no corpus.json (not a corpus of `segmo synth`)") from None
     except (OSError, ValueError) as error:
         raise SegmoError(f"{flag} {root}/corpus.json: unreadable ({error})") from None
+    for split in SPLITS:
+        if not split_file(root, split).is_file():
+            raise SegmoError(f"{flag} {root}: no {split}.txt; a corpus of `segmo synth` has "
+                             "train.txt, val.txt and test.txt")
+    return info
 
 
 def link_motion(source: Path, root: Path, mid: str) -> None:
@@ -188,8 +195,10 @@ def write_grown(data: Path, out: Path, write_added: Callable[[Path], list[str]],
     return {"train": len(train), "added": len(added), "out": str(out)}
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> dict:
+    """Write OUT, print a line and the JSON line; the counts are returned. SegmoError (or
+    OSError) for a bad argument or corpus: no OUT is left then."""
+    parser = ArgumentParser(prog="grow_train.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="the corpus to grow")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--add", type=Path, help="a bigger corpus of the same seed and version")
@@ -197,16 +206,14 @@ def main(argv: list[str] | None = None) -> None:
                         help="add the runs of consecutive actions of DATA's own train motions")
     parser.add_argument("--out", type=Path, required=True, help="a new folder")
     args = parser.parse_args(argv)
-    try:
-        result = (segment_crops(args.data, args.out) if args.segment_crops
-                  else grow_train(args.data, args.add, args.out))
-    except SegmoError as error:
-        sys.exit(f"grow_train: {error}")
+    result = (segment_crops(args.data, args.out) if args.segment_crops
+              else grow_train(args.data, args.add, args.out))
     added = "segment crops" if args.segment_crops else f"of {args.add}"
     print(f"{result['train']} train motions of {args.data} + {result['added']} {added} "
           f"-> {args.out}")
     print(json.dumps(result))
+    return result
 
 
 if __name__ == "__main__":
-    main()
+    run("grow_train.py", main, sys.argv[1:])

@@ -6,16 +6,20 @@ For each action (and one "walk while waving" pair) writes `<action>.png`: film s
 of eight key frames from the side and from the front and a top view of the root and
 feet paths, from the stored joints (`features_to_joints(joints_to_features(...))`,
 exactly what the corpus stores); with --gif also `<action>.gif` via `segmo.render`.
+`--only` names the actions to render; a name that is none of them is refused in one line
+(exit status 2) that lists the known ones.
 """
 
 from __future__ import annotations
 
-import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from segmo.cli import run
+from segmo.errors import ArgumentParser, non_negative_int
 from segmo.motion.features import features_to_joints, joints_to_features
 from segmo.motion.skeleton import T2M
 from segmo.synth.actions import ACTIONS, sample_params
@@ -23,6 +27,7 @@ from segmo.synth.sequence import VERSION, VERSIONS, motion_from_actions
 
 # Preview parameters that make each action easy to recognise (sampled otherwise).
 PREVIEW = {"turn": {"direction": "left", "angle": 90}, "wave": {"hand": "right", "count": 3}}
+OVERLAY = "walk_forward+wave"  # the one action with another on top
 
 
 def contact_sheet(joints: np.ndarray, title: str, path: Path, frames: int = 8) -> None:
@@ -62,14 +67,18 @@ def contact_sheet(joints: np.ndarray, title: str, path: Path, frames: int = 8) -
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(prog="render_actions.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("renders/actions"))
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--gif", action="store_true", help="also write GIFs (slower)")
     parser.add_argument("--only", nargs="*", help="action names to render")
     parser.add_argument("--version", type=int, choices=VERSIONS, default=VERSION,
                         help="sample the parameters (durations) as this corpus version does (4: its rig too)")
     args = parser.parse_args(argv)
+    known = [*ACTIONS, OVERLAY]
+    unknown = [name for name in args.only or () if name not in known]
+    if unknown:
+        parser.error(f"--only {unknown[0]}: no such action; known: {', '.join(known)}")
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
     jobs = []
@@ -77,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
         params = sample_params(name, rng, args.version) | PREVIEW.get(name, {})
         plan = [("sit_down", {"duration": 2.0}), (name, params)] if spec.needs == "sitting" else [(name, params)]
         jobs.append((name, plan, None))
-    jobs.append(("walk_forward+wave", [("walk_forward", {"speed": 1.3, "steps": 8})],
+    jobs.append((OVERLAY, [("walk_forward", {"speed": 1.3, "steps": 8})],
                  ("wave", {"hand": "right"})))
     for name, plan, overlay in jobs:
         if args.only and name not in args.only:
@@ -94,4 +103,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run("render_actions.py", main, sys.argv[1:])

@@ -11,18 +11,21 @@ training, then scores it on `--split` against the built-in corpus's ground-truth
 two columns compare like with like. Features come from unmasked inputs, as in validation
 and grounding; `--unordered` feeds the segments as a set, as grounding does, so that a
 model cannot score by copying the i-th segment into the i-th span. The last printed line
-is JSON.
+is JSON. A bad argument, model or data folder is one line on stderr (exit status 2).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import torch
 
+from segmo.cli import run
 from segmo.data import MotionDataModule
+from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.models.alignment import AlignmentConfig, AlignmentHead
 from segmo.models.mask_transformer import MaskTransformer
 from segmo.segmentation import segment_batch
@@ -73,8 +76,8 @@ def score(mask: MaskTransformer, tokenizer, loader, heads: dict[str, AlignmentHe
     total = 0
     for batch in loader:
         if batch.get("spans") is None:
-            raise SystemExit("segment_probe: the split has no ground-truth spans "
-                             "(the built-in corpus's segments/<id>.json)")
+            raise SegmoError("the split has no ground-truth spans (the built-in corpus's "
+                             "segments/<id>.json)")
         h, text, segment_mask, _ = features(mask, tokenizer, batch, unordered)
         gt, usable = gt_token_spans(batch["spans"], segment_mask.sum(1), batch["lengths"],
                                     segment_mask.shape[1])
@@ -87,20 +90,24 @@ def score(mask: MaskTransformer, tokenizer, loader, heads: dict[str, AlignmentHe
     return {name: correct[name] / max(total, 1) for name in heads} | {"segments": total}
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def main(argv: list[str] | None = None) -> dict:
+    """Fit the probe, score it, print the result and its JSON line; the result is returned.
+    SegmoError (or OSError) for a bad argument, model or data folder."""
+    parser = ArgumentParser(prog="segment_probe.py", description=__doc__.split("\n")[0])
     parser.add_argument("--mask", required=True, help="exported mask transformer directory")
     parser.add_argument("--tokenizer", required=True, help="exported RVQ-VAE directory")
-    parser.add_argument("--data", required=True, help="built-in corpus root (with text features)")
+    parser.add_argument("--data", required=True, type=Path, help="built-in corpus root (with text features)")
     parser.add_argument("--split", default="val", choices=("val", "test"))
     parser.add_argument("--text-segments", default="rule")
-    parser.add_argument("--steps", type=int, default=600, help="probe training steps")
-    parser.add_argument("--batch-size", type=int, default=32)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--steps", type=positive_int, default=600, help="probe training steps")
+    parser.add_argument("--batch-size", type=positive_int, default=32)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--unordered", action="store_true",
                         help="feed the segments as a set, as grounding does: the score then "
                              "comes from what a segment says, not from its slot")
     args = parser.parse_args(argv)
+    if not args.data.is_dir():
+        parser.error(f"--data {args.data}: no such folder")
 
     mask = MaskTransformer.from_pretrained(args.mask).eval().requires_grad_(False)
     tokenizer = load_tokenizer(args.tokenizer)
@@ -121,7 +128,8 @@ def main(argv: list[str] | None = None) -> None:
     print(", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}"
                     for k, v in result.items()))
     print(json.dumps(result))
+    return result
 
 
 if __name__ == "__main__":
-    main()
+    run("segment_probe.py", main, sys.argv[1:])
