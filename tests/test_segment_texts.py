@@ -212,9 +212,11 @@ def test_a_corrupt_record_names_the_manifest_line(tmp_path):
 def test_files_without_a_record_are_redone(tmp_path):
     root = _dataset(tmp_path / "data")
     folder = root / "text_segments" / "rule"
-    folder.mkdir(parents=True)
-    (folder / "000002.txt").write_text("someone's old segments\n")  # copied in by hand
     segment_folder(root, RuleSegmenter(), progress=False)
+    manifest = folder / "manifest.jsonl"
+    manifest.write_text("".join(r + "\n" for r in manifest.read_text().splitlines() if '"000002"' not in r))
+    (folder / "000002.txt").write_text("someone's old segments\n")  # written, record lost (a kill)
+    assert segment_folder(root, RuleSegmenter(), progress=False)["processed_files"] == 1
     assert _outputs(root)["000002.txt"] == "a man waves#a man sits down\n"
 
 

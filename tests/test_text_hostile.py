@@ -190,6 +190,21 @@ def test_segment_texts_folder_of_older_rules(tmp_path, capsys):
     assert {p.name: p.read_bytes() for p in meta.parent.glob("*.txt")} == before
 
 
+def test_segment_texts_hand_made_folder_is_refused(tmp_path, capsys):
+    """A segment folder segment-texts did not write (no meta.json, no manifest.jsonl: made by
+    hand, or by the reference code) was silently rewritten, and the user's segments lost."""
+    root = _data(tmp_path)
+    folder = root / "text_segments" / "rule"
+    folder.mkdir(parents=True)
+    (folder / "000001.txt").write_text("my own hand-made segment A#B\n")
+    _fails(["segment-texts", "--data", str(root), "--quiet"], capsys, f"{folder}: holds segment files",
+           "not written by segment-texts", "--overwrite")
+    assert (folder / "000001.txt").read_text() == "my own hand-made segment A#B\n"
+    assert sorted(p.name for p in folder.iterdir()) == ["000001.txt"]
+    segmo_main(["segment-texts", "--data", str(root), "--quiet", "--overwrite"])
+    assert (folder / "000001.txt").read_text() == "a man walks#a man waves\n"
+
+
 def test_segment_texts_corrupt_manifest(tmp_path, capsys):
     root = _data(tmp_path)
     segment_folder(root, RuleSegmenter(), progress=False)

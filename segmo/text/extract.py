@@ -20,7 +20,10 @@ killed run resumes to the same output as an uninterrupted one. ``--overwrite`` r
 everything. ``meta.json`` records the backend, model and prompt hash, or the rules'
 version (a rerun with another model, prompt or rules into the same folder is refused
 without ``--overwrite``);
-``summary.json`` the counts of the whole folder after the run.
+``summary.json`` the counts of the whole folder after the run. A folder holding segment
+files but neither ``meta.json`` nor ``manifest.jsonl`` (written by hand, or by the
+reference code) is refused without ``--overwrite`` too: its segments are not ours to
+replace.
 
 LLM outages are loud: when more than ``--max-fallback-share`` (default 0) of the
 folder's captions hold rule fallbacks after the run, the command writes everything and
@@ -62,7 +65,7 @@ from segmo.text.captions import (
     texts_file,
 )
 from segmo.text.llm import MAX_CONCURRENCY, MAX_RETRIES, check_base_url, get_text_segmenter
-from segmo.text.manifest import SegmentManifest
+from segmo.text.manifest import MANIFEST, SegmentManifest
 from segmo.text.rules import RULES_VERSION, TextSegmenter
 
 log = logging.getLogger(__name__)
@@ -210,6 +213,12 @@ def segment_folder(data: str | Path, segmenter: TextSegmenter, backend: str = "r
         remove_temporaries(out_dir)  # left by a killed run; ours are not live: we hold the lock
         meta = describe(segmenter, backend)
         meta_path = out_dir / "meta.json"
+        if (not overwrite and not meta_path.exists() and not (out_dir / MANIFEST).exists()
+                and any(out_dir.glob("*.txt"))):
+            # made by hand or by the reference code: legitimate segments, not ours to replace
+            raise SegmoError(f"{out_dir}: holds segment files not written by segment-texts (no meta.json, "
+                             "no manifest.jsonl); use --overwrite to replace them, or move the folder "
+                             "away (its name comes from --backend and --model)")
         if meta_path.is_file() and not overwrite:
             try:
                 old = json.loads(read_text(meta_path))
@@ -352,7 +361,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-think", action="store_true",
                         help="openai: ask the server to disable Qwen3 thinking (chat_template_kwargs)")
     parser.add_argument("--batch-captions", type=positive_int, default=256, help="captions per segmenter call")
-    parser.add_argument("--overwrite", action="store_true", help="redo every file")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="redo every file, also in a folder segment-texts did not write")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     check_data_folder(args.data)  # before an LLM backend loads a model

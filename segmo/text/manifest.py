@@ -20,7 +20,9 @@ and is redone) and can tear only the last line, which is ignored on read and cut
 before the next append. A later record of an id replaces an earlier one; the file is
 rewritten atomically, one record per id in id order, at the end of every run. A folder
 without ``manifest.jsonl`` (written by hand, or by the reference code) has no record:
-the dataset reader then checks only that the line counts match.
+the dataset reader then checks only that the line counts match, and `segment-texts`
+refuses to write into it without ``--overwrite`` (unless its ``meta.json`` shows that
+segment-texts made it).
 """
 
 from __future__ import annotations
