@@ -27,6 +27,7 @@ from segmo.text.llm import (
     get_text_segmenter as get_segmenter,
 )
 from segmo.text.rules import RuleSegmenter, TextSegmenter
+from segmo.text.validate import MAX_ANSWER_CHARS
 
 KIT = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "kitml" / "annotations.json"
 
@@ -167,6 +168,18 @@ def test_retry_then_success_and_fallback_counts(caplog):
     assert "falling back" in caplog.text
 
 
+def test_an_answer_over_the_limit_falls_back_as_too_long():
+    """An answer past MAX_ANSWER_CHARS is not read; its reason said 'no JSON object found',
+    though a reasoning model's long <think> block may hold a good answer at its end."""
+    caption = "a man waves then jumps"
+    long_answer = "<think>" + "hmm " * 15_000 + '</think>{"segments": ["a man waves", "a man jumps"]}'
+    assert len(long_answer) > MAX_ANSWER_CHARS
+    seg = _Scripted({caption: [long_answer]}, max_retries=0)
+    out, fell_back = seg.segment_with_fallbacks([caption])
+    assert out == [RuleSegmenter().segment_one(caption)]
+    assert fell_back[0] == f"answer of {len(long_answer):,} characters, longer than the {MAX_ANSWER_CHARS:,} read"
+
+
 def test_get_segmenter():
     assert isinstance(get_segmenter("rule"), RuleSegmenter)
     seg = get_segmenter("openai", base_url="http://127.0.0.1:9/v1", model="Qwen/Qwen3-8B", concurrency=None)
@@ -288,8 +301,8 @@ def test_openai_faults_are_retried_then_fall_back_with_their_reason(caplog):
 HOSTILE_ANSWERS = {  # each was a traceback (exit 1), or text written that is not the caption's
     "deepbody": "unreadable response (RecursionError",
     "number": "the message's content is a int, not text",
-    "deep": "no JSON object",
-    "braces": "no JSON object",
+    "deep": "answer of 500,000 characters, longer than the 50,000 read",
+    "braces": "answer of 300,000 characters, longer than the 50,000 read",
     "foreign": "uses words not in the caption: ['火箭发射到月球']",
     "nul": "holds control characters",
     "surrogate": "holds control characters",

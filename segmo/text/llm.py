@@ -44,7 +44,7 @@ from typing import Any
 
 from segmo.errors import SegmoError
 from segmo.text.rules import MAX_SEGMENTS, RuleSegmenter, TextSegmenter
-from segmo.text.validate import answer_schema, parse_answer, validate_segments
+from segmo.text.validate import MAX_ANSWER_CHARS, answer_schema, parse_answer, validate_segments
 
 __all__ = ["LLMSegmenter", "LLMUnavailableError", "OpenAISegmenter", "Prompt", "TransformersSegmenter",
            "get_text_segmenter", "load_prompt", "parse_answer", "validate_segments"]
@@ -192,6 +192,8 @@ class LLMSegmenter:
                 reason = validate_segments(texts[i], segments, self.max_segments, self.length_margin)
                 if segments is None and answer.startswith(UNREADABLE):
                     reason = answer[1:-1]
+                elif segments is None and len(answer) > MAX_ANSWER_CHARS:  # not read, not "no JSON"
+                    reason = f"answer of {len(answer):,} characters, longer than the {MAX_ANSWER_CHARS:,} read"
                 if reason is None:
                     results[i] = segments
                     continue

@@ -73,6 +73,7 @@ def parse_answer(text: str) -> list[str] | None:
     """Segments from a model answer, or None if there is no ``{"segments": [str, ...]}`` in it.
 
     Tolerates ``<think>...</think>`` blocks (Qwen3), code fences and text around the JSON.
+    An answer longer than MAX_ANSWER_CHARS is not read (None); the caller names that reason.
     """
     if len(text) > MAX_ANSWER_CHARS:  # each '{' is a parse: quadratic in a hostile answer
         return None
