@@ -62,7 +62,7 @@ seem seems seemed seemed seeming | sneak sneaks snuck snuck sneaking | let lets 
 # Words an inflection would make that are really nouns/directions in captions.
 NOT_VERB_FORMS = {"left", "leaves", "lay"}
 DOUBLED = set("""jog step trip hop skip flip slip stop pat rub tap nod flap bob drop
-shrug grab jab swat slap chop mop knit dig plan drag stab side-step clap hug stir sidestep""".split())
+shrug grab jab swat slap chop mop knit dig plan drag stab side-step clap hug stir sidestep squat""".split())
 STATIC = {"stand", "sit", "kneel", "lie", "stay", "remain", "hover", "wait", "rest", "balance"}
 # after a static posture these start a new action, not a simultaneous one ("stands and walks away")
 MOVING = set("""walk run jog sprint march jump hop skip leap crawl climb fall step stride limp stumble go

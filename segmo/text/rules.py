@@ -49,7 +49,8 @@ MAX_SEGMENTS = 5
 # folder made by older rules is not silently mixed with newer ones (`segment-texts`).
 # 2: a movement and its return after a plain "and" are one segment; an opening "first,"
 #    is left out (version 1: segmo up to commit de0c29e).
-RULES_VERSION = 2
+# 3: "squatting"/"squatted" are verbs (version 2: segmo up to commit 43d2d98).
+RULES_VERSION = 3
 
 
 @runtime_checkable
