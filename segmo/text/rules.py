@@ -49,7 +49,8 @@ MAX_SEGMENTS = 5
 # folder made by older rules is not silently mixed with newer ones (`segment-texts`).
 # 2: a movement and its return after a plain "and" are one segment; an opening "first,"
 #    is left out (version 1: segmo up to commit de0c29e).
-# 3: "squatting"/"squatted" are verbs (version 2: segmo up to commit 43d2d98).
+# 3: "squatting"/"squatted" are verbs; a subject after a determiner is looked for up to a
+#    comma only ("after taking a seat, someone ...") (version 2: segmo up to commit 43d2d98).
 RULES_VERSION = 3
 
 
@@ -64,6 +65,8 @@ class TextSegmenter(Protocol):
         ...
 
 
+_NOT_MODIFIERS = (lexicon.PRONOUNS | lexicon.DETERMINERS | lexicon.RELATIVE | lexicon.AUX
+                  | {w for words, _ in lexicon.CONNECTIVES for w in words})
 _TOKEN_RE = re.compile(r"[A-Za-z0-9]+(?:['’/\-][A-Za-z0-9]+)*|[^\sA-Za-z0-9]")
 
 
@@ -116,6 +119,11 @@ def _guess_verb(low: str) -> bool:
     return low.endswith(("ing", "ed")) or (low.endswith("s") and not low.endswith(("ss", "us")))
 
 
+def _modifier(low: str) -> bool:
+    """A word that may stand between a determiner and its noun ("old", "tall", "young")."""
+    return low.isalpha() and low not in lexicon.FORMS and low not in _NOT_MODIFIERS
+
+
 def _match_subject(toks: list[_Tok], k: int) -> int | None:
     """End index of a subject noun phrase starting at k ("he", "the old man", "a figure that")."""
     n = len(toks)
@@ -125,7 +133,15 @@ def _match_subject(toks: list[_Tok], k: int) -> int | None:
     if low in lexicon.PRONOUNS or (low in lexicon.SUBJECT_NOUNS and low not in lexicon.FORMS):
         end = k + 1
     elif low in lexicon.DETERMINERS:
-        end = next((m + 1 for m in range(k + 1, min(k + 4, n)) if toks[m].low in lexicon.SUBJECT_NOUNS), 0)
+        # only modifiers may stand between the determiner and its noun ("the old man"): a
+        # comma or a verb ends the look-ahead ("after taking a seat, someone gets up")
+        end = 0
+        for m in range(k + 1, min(k + 4, n)):
+            if toks[m].low in lexicon.SUBJECT_NOUNS:
+                end = m + 1
+                break
+            if not _modifier(toks[m].low):
+                return None
         if not end:
             return None
     else:
