@@ -79,9 +79,14 @@ RETURN_PARTICLES = {"down", "back"}
 BACK_REFERENCES = {"it", "them"}
 DIPS = {"squat", "crouch", "bend", "duck", "stoop"}
 RISES = {"stand", "get", "come", "rise", "straighten"}
-TRANSITIVE = set("""raise lift lower swing bend move extend stretch rotate twist shake open
-close cross fold flex pick put drop throw toss catch push pull wave kick punch grab hold
-clap rub wipe tap touch spread straighten flap wiggle release""".split())
+# Verbs coordinated right before another ("raises and lowers his arms") take its object
+# only when both are of one kind: both move a limb, or both handle a thing ("catches and
+# throws the ball"). "waves and kicks his right leg" waves no leg, and "stretches and
+# performs a squat" stretches no squat.
+LIMB_MOTIONS = set("""raise lift lower swing bend move extend stretch rotate twist shake open
+close cross fold flex spread straighten flap wiggle""".split())
+HANDLING = set("""pick put drop throw toss catch push pull grab hold rub wipe tap touch
+release""".split())
 
 
 def inflect(base: str) -> dict[str, set[str]]:

@@ -27,7 +27,9 @@ Rules, in the order they are applied:
    bare direction after "then" reuses the previous verb ("walks forward then back").
    A verb right after a direction/adverb/verb starts a new action even without a comma
    ("walks forward turns around"), unless it is usually a noun ("forward steps").
-   "raises and lowers his arms" shares the object: two segments with "his arms".
+   "raises and lowers his arms" shares the object: two segments with "his arms" (only
+   for two verbs joined by a bare "and" that both move a limb or both handle a thing:
+   not "waves and kicks his right leg", "kicks twice and raises his arms").
 5. At most `MAX_SEGMENTS`; the tail is merged into the last one with ", then ".
 An opening "first," orders nothing and is left out of the segments.
 
@@ -50,7 +52,8 @@ MAX_SEGMENTS = 5
 # 2: a movement and its return after a plain "and" are one segment; an opening "first,"
 #    is left out (version 1: segmo up to commit de0c29e).
 # 3: "squatting"/"squatted" are verbs; a subject after a determiner is looked for up to a
-#    comma only ("after taking a seat, someone ...") (version 2: segmo up to commit 43d2d98).
+#    comma only ("after taking a seat, someone ..."); an object is shared only between two
+#    verbs of one kind joined by a bare "and" (version 2: segmo up to commit 43d2d98).
 RULES_VERSION = 3
 
 
@@ -291,6 +294,11 @@ def _undoes(toks: list[_Tok], prev_base: str, verb_base: str, c: _Clause) -> boo
         verb_base in lexicon.RETURNS_WITH and bool(set(rest[1:]) & lexicon.RETURN_PARTICLES))
 
 
+def _same_kind(first: str, second: str) -> bool:
+    """Whether verb `first` takes the object of `second` when coordinated right before it."""
+    return any(first in kind and second in kind for kind in (lexicon.LIMB_MOTIONS, lexicon.HANDLING))
+
+
 def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozenset[str]) -> list[_Clause]:
     """Join simultaneous clauses (rule 2) and share objects between bare verbs (rule 4)."""
     units: list[_Clause] = []
@@ -326,10 +334,12 @@ def _merge(caption: str, toks: list[_Tok], clauses: list[_Clause], main: frozens
             if undo:
                 prev.joined.append(c.verb)
             continue
-        bare = prev.verb is not None and all(_is_adverb(t.low) for t in toks[prev.verb + 1 : prev.end])
+        # "raises and lowers his arms": nothing but "and" between the verbs (not "kicks
+        # twice and raises his arms", "claps, raises his arm"), and verbs of one kind
+        direct = (prev.verb is not None and c.verb is not None
+                  and [t.low for t in toks[prev.verb + 1 : c.verb]] == ["and"])
         if (
-            bare and c.join == "weak" and not c.own_subject and prev_base in lexicon.TRANSITIVE
-            and c.verb is not None
+            direct and not c.own_subject and _same_kind(prev_base, verb_base)
             and c.verb + 1 < c.end and toks[c.verb + 1].low in lexicon.OBJECT_STARTERS
         ):
             prev.suffix = " " + caption[toks[c.verb + 1].start : toks[c.end - 1].end]
