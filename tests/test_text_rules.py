@@ -49,8 +49,12 @@ def test_tail_is_merged_beyond_max_segments():
     caption = "a person walks, stops, turns, jumps, bows, claps and then lies down"
     out = RuleSegmenter().segment_one(caption)
     assert len(out) == MAX_SEGMENTS
-    assert out[-1] == "a person bows, then a person claps, then a person lies down"
-    assert RuleSegmenter(max_segments=2).segment_one(caption)[0] == "a person walks"
+    # the clauses are joined before the subject is restored, so it is said once
+    assert out[-1] == "a person bows, then claps, then lies down"
+    assert RuleSegmenter(max_segments=2).segment_one(caption) == [
+        "a person walks", "a person stops, then turns, then jumps, then bows, then claps, then lies down"]
+    assert RuleSegmenter(max_segments=1).segment_one("a man walks. then he sits down, then waves") == [
+        "a man walks, then he sits down, then waves"]  # a clause's own subject stays
 
 
 def test_rejects_bad_arguments():

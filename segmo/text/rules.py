@@ -30,7 +30,8 @@ Rules, in the order they are applied:
    "raises and lowers his arms" shares the object: two segments with "his arms" (only
    for two verbs joined by a bare "and" that both move a limb or both handle a thing:
    not "waves and kicks his right leg", "kicks twice and raises his arms").
-5. At most `MAX_SEGMENTS`; the tail is merged into the last one with ", then ".
+5. At most `MAX_SEGMENTS`; the tail's clauses are merged into the last one with ", then ",
+   the subject restored once ("a person sits, then lies down").
 An opening "first," orders nothing and is left out of the segments.
 
 Conventions chosen here: every segment has its final punctuation removed; a caption that
@@ -53,7 +54,8 @@ MAX_SEGMENTS = 5
 #    is left out (version 1: segmo up to commit de0c29e).
 # 3: "squatting"/"squatted" are verbs; a subject after a determiner is looked for up to a
 #    comma only ("after taking a seat, someone ..."); an object is shared only between two
-#    verbs of one kind joined by a bare "and" (version 2: segmo up to commit 43d2d98).
+#    verbs of one kind joined by a bare "and"; the clauses merged past MAX_SEGMENTS say
+#    the subject once (version 2: segmo up to commit 43d2d98).
 RULES_VERSION = 3
 
 
@@ -420,11 +422,15 @@ class RuleSegmenter:
         if len(units) <= 1 or first is None:
             return [_strip(caption)]
         subject, aux = self._subject(toks, main_clause)
-        segments = [self._text(caption, toks, u, subject, aux, main, u is main_clause) for u in units]
-        segments = [s for s in segments if s]
+        texts = [(u, self._text(caption, toks, u, subject, aux, main, u is main_clause)) for u in units]
+        texts = [(u, text) for u, text in texts if text]
+        segments = [text for _, text in texts]
         if len(segments) > self.max_segments:
+            # the tail's clauses are joined as they are, the subject said once: "a person
+            # sits, then lies down", not "a person sits, then a person lies down"
             k = self.max_segments - 1
-            segments = segments[:k] + [", then ".join(segments[k:])]
+            tail = [self._text(caption, toks, u, "", aux, main, u is main_clause) for u, _ in texts[k + 1 :]]
+            segments = segments[:k] + [", then ".join([segments[k], *filter(None, tail)])]
         return segments or [_strip(caption)]
 
     @staticmethod
