@@ -7,7 +7,9 @@ import typing
 
 import pytest
 import torch
+import torch.nn.functional as F
 
+from segmo.data.collate import related_samples
 from segmo.models.alignment import (
     AlignmentConfig,
     AlignmentHead,
@@ -184,6 +186,75 @@ def test_each_method_scales_as_log_of_its_negatives():
     t2m = (3 * math.log(9 / 3) + 5 * math.log(10 / 2) + 2 * math.log(4 / 2)) / 10
     assert math.isclose(out["align_m2t"].item(), m2t, rel_tol=1e-5)
     assert math.isclose(out["align_t2m"].item(), t2m, rel_tol=1e-5)
+
+
+def test_batch_and_global_never_contrast_a_motion_or_caption_with_itself():
+    """A motion's captions come one sample each, so they share batches: two samples of one
+    motion, or with the same caption, are never each other's negatives (`related_samples`,
+    the evaluator's rule); segments of one sample still are."""
+    m = F.normalize(torch.randn(3, DIM, generator=gen(7)), dim=-1)
+    motion = m[[0, 0, 1, 2]]
+    related = related_samples({"id": ["a", "a", "b", "c"], "caption": ["w", "x", "y", "z"]})
+    assert global_loss(motion, motion)["align"] > 0.3  # related=None: every other sample a negative
+    assert global_loss(motion, motion, related=related)["align"] < 1e-3
+    segments = motion[:, None].expand(4, 2, DIM) * torch.tensor([1.0, -1.0])[:, None]
+    mask = torch.ones(4, 2, dtype=torch.bool)
+    assert batch_loss(segments, segments, mask)["align"] > 0.3
+    assert batch_loss(segments, segments, mask, related=related)["align"] < 0.02
+    # Equal embeddings: every logit ties, so the loss is the mean log of each row's candidates.
+    # Samples 0 and 2 are one motion, 1 and 3 one caption (case and spaces aside).
+    related = related_samples({"id": ["a", "b", "a", "c"], "caption": ["x", "jump", "y", " Jump"]})
+    assert related.tolist() == [[True, False, True, False], [False, True, False, True],
+                                [True, False, True, False], [False, True, False, True]]
+    same = torch.ones(4, 5, 8)
+    assert math.isclose(global_loss(same[:, 0], same[:, 0], related=related)["align"].item(),
+                        math.log(3), rel_tol=1e-5)
+    mask = torch.arange(5) < torch.tensor([3, 1, 5, 2])[:, None]
+    expected = (3 * math.log(6) + 1 * math.log(9) + 5 * math.log(8) + 2 * math.log(10)) / 11
+    assert math.isclose(batch_loss(same, same, mask, related=related)["align"].item(), expected,
+                        rel_tol=1e-5)
+    # A batch of one motion leaves no negative: an exact zero that still backpropagates.
+    text = same[:, 0].clone().requires_grad_()
+    zero = global_loss(text, same[:, 0], related=torch.ones(4, 4, dtype=torch.bool))["align"]
+    zero.backward()
+    assert zero.item() == 0.0 and (text.grad == 0).all()
+
+
+def _former_in_sample(text, motion, mask, temperature=0.1):
+    """`in_sample_loss` as it was before `related` came in, written out."""
+    sim = torch.einsum("bid,bjd->bij", F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
+    logits = sim / temperature
+    valid = mask[:, :, None] & mask[:, None, :]
+    rows = mask & (mask.sum(-1, keepdim=True) >= 2)
+    low = torch.finfo(logits.dtype).min
+    t2m = -logits.masked_fill(~valid, low).log_softmax(-1).diagonal(dim1=-2, dim2=-1)[rows].mean()
+    m2t = -logits.transpose(1, 2).masked_fill(~valid, low).log_softmax(-1).diagonal(
+        dim1=-2, dim2=-1)[rows].mean()
+    return 0.5 * (t2m + m2t)
+
+
+@pytest.mark.parametrize("method", ["in_sample", "token"])
+def test_within_sample_methods_ignore_related_samples(method):
+    """in_sample (SegMo) and token contrast within one caption: the batch's other samples,
+    related or not, change nothing, bit for bit, in the loss and its gradients."""
+    h, lengths, segments, mask, spans, sentence = batch(2)
+    torch.manual_seed(0)
+    head, loss_fn = AlignmentHead(DIM, AlignmentConfig(out_dim=8)), AlignmentLoss(method)
+    related = related_samples({"id": ["a", "a", "b", "a"], "caption": ["x", "y", "x", "z"]})
+    results = []
+    for rel in (None, related):
+        seg = segments.clone().requires_grad_()
+        out = loss_fn(head, h, lengths, seg, mask, spans, sentence, rel)
+        grad = torch.autograd.grad(out.losses["align"], seg)[0]
+        results.append((out.losses["align"], grad))
+    assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+    if method == "in_sample":
+        text = head.embed_text(segments)
+        motion = head.embed_motion(h, spans)
+        kept = mask & (spans[..., 1] > spans[..., 0])
+        assert torch.equal(in_sample_loss(text, motion, kept)["align"],
+                           _former_in_sample(text, motion, kept))
+        assert torch.equal(results[0][0], _former_in_sample(text, motion, kept))
 
 
 @pytest.mark.parametrize("method", typing.get_args(AlignMethod))

@@ -74,6 +74,34 @@ def test_alignment_ablations_train(method, segmenter, text_dataset, tokenizer_di
     assert ("train/align" in cli.trainer.callback_metrics) == (method != "none")
 
 
+def test_alignment_loss_is_handed_the_batch_s_related_samples(text_dataset, tokenizer_dir, tmp_path):
+    """The task tells the loss which samples are one motion or one caption, so that the
+    batch and global ablations do not take them as each other's negatives."""
+    from segmo.data.collate import collate, related_samples
+
+    config = REPO / "configs/mask/synthetic.yaml"
+    cli = cli_main(["fit", "--config", str(config),
+                    *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                    "--model.init_args.alignment=global", "--trainer.fast_dev_run=true"])
+    task, ds = cli.model, cli.datamodule.dataset("train")
+    assert ds[0]["id"] == ds[1]["id"] != ds[2]["id"]  # two captions of one motion, another
+    batch = collate([ds[0], ds[1], ds[2]])
+    handed, loss = [], task.alignment_loss
+
+    class Recorder:  # the loss as it is, remembering the related samples it was handed
+        weight = loss.weight
+
+        def __call__(self, *args):
+            handed.append(args[7])
+            return loss(*args)
+
+    task.alignment_loss = Recorder()
+    task.eval()
+    with torch.no_grad():
+        task.step(batch)
+    assert torch.equal(handed[0].cpu(), related_samples(batch)) and handed[0][0, 1]
+
+
 @pytest.mark.parametrize("stage,option", [
     ("mask", "--model.init_args.sink_mask_t=0.2"), ("mask", "--model.init_args.memory_slots=4"),
     ("mask", "--model.init_args.local_uncond_prob=0.5"),

@@ -22,6 +22,24 @@ def _pad(seqs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     return out, mask
 
 
+def _codes(values: list[Any]) -> torch.Tensor:
+    """(b,) long: equal values get equal codes."""
+    index: dict[Any, int] = {}
+    return torch.tensor([index.setdefault(v, len(index)) for v in values], dtype=torch.long)
+
+
+def related_samples(batch: dict[str, Any]) -> torch.Tensor:
+    """(b, b) bool: True where two samples of a batch are the same motion (``id``) or have
+    the same caption (case and surrounding spaces aside), the diagonal included. A
+    contrastive loss never takes such a pair as a negative: a caption of one also describes
+    the other's motion. A motion's captions are separate samples, so they share batches.
+    Without ``id`` every sample counts as its own motion."""
+    captions = [str(c).strip().lower() for c in batch["caption"]]
+    ids = _codes([str(i) for i in batch["id"]] if batch.get("id") else list(range(len(captions))))
+    caps = _codes(captions)
+    return (ids[:, None] == ids[None]) | (caps[:, None] == caps[None])
+
+
 def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
     """Pad a list of samples into a batch.
 

@@ -8,6 +8,10 @@ motion segmenter that gives the spans. Methods (`AlignMethod`), each unweighted:
   each other's negatives;
 - `batch`: every valid segment of the batch against every other;
 - `global`: sentence vs whole motion (aggregated over its valid tokens), CLIP-style;
+  in both, samples of the same motion or caption (a motion's captions are separate
+  samples that share batches) are not each other's negatives (`related`, the
+  evaluator's rule: `segmo.data.collate.related_samples`); a row left without negatives
+  contributes nothing;
 - `token`: each motion token vs the text segments of its sample, positive = the segment
   whose span contains it (and each segment vs the tokens, positives = its span).
 A task trained without alignment (`alignment: none`) builds no head and no loss.
@@ -63,6 +67,20 @@ def _info_nce(logits: torch.Tensor, valid: torch.Tensor, rows: torch.Tensor) -> 
     return -log_prob[rows].mean()
 
 
+def _symmetric_info_nce(
+    text: torch.Tensor, motion: torch.Tensor, valid: torch.Tensor, rows: torch.Tensor,
+    temperature: float,
+) -> dict[str, torch.Tensor]:
+    """text, motion `(g, a, d)` paired slot by slot; valid `(g, a, a)` bool symmetric
+    candidate pairs; rows `(g, a)` bool rows that contribute. Returns {"align",
+    "align_t2m", "align_m2t"}."""
+    sim = torch.einsum("bid,bjd->bij", F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
+    logits = sim / temperature
+    t2m = _info_nce(logits, valid, rows)
+    m2t = _info_nce(logits.transpose(1, 2), valid, rows)
+    return {"align": 0.5 * (t2m + m2t), "align_t2m": t2m, "align_m2t": m2t}
+
+
 def in_sample_loss(
     text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1
 ) -> dict[str, torch.Tensor]:
@@ -71,23 +89,27 @@ def in_sample_loss(
     text, motion `(b, a, d)` paired slot by slot; mask `(b, a)` bool. Samples with fewer
     than two valid segments contribute nothing. Returns {"align", "align_t2m", "align_m2t"}.
     """
-    sim = torch.einsum("bid,bjd->bij", F.normalize(text, dim=-1), F.normalize(motion, dim=-1))
-    logits = sim / temperature
     valid = mask[:, :, None] & mask[:, None, :]
     rows = mask & (mask.sum(-1, keepdim=True) >= 2)
-    t2m = _info_nce(logits, valid, rows)
-    m2t = _info_nce(logits.transpose(1, 2), valid, rows)
-    return {"align": 0.5 * (t2m + m2t), "align_t2m": t2m, "align_m2t": m2t}
+    return _symmetric_info_nce(text, motion, valid, rows, temperature)
 
 
 def batch_loss(
-    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1
+    text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor, temperature: float = 0.1,
+    related: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Symmetric InfoNCE over all valid segments of the batch together (Table 3 ablation).
 
-    text, motion `(b, a, d)`, mask `(b, a)`; needs ≥ 2 valid segments in the batch.
+    text, motion `(b, a, d)`, mask `(b, a)`; related `(b, b)` bool samples whose segments
+    are not each other's negatives (same motion or caption; None: none but the diagonal).
+    A sample's own segments always are. Segments left without a negative contribute nothing.
     """
-    return in_sample_loss(text[mask][None], motion[mask][None], mask[mask][None], temperature)
+    sample = torch.arange(mask.shape[0], device=mask.device)[:, None].expand_as(mask)[mask]  # (m,)
+    same_sample = sample[:, None] == sample[None, :]
+    valid = torch.ones_like(same_sample) if related is None else same_sample | ~related[sample][:, sample]
+    rows = valid.sum(-1) >= 2
+    return _symmetric_info_nce(text[mask][None], motion[mask][None], valid[None], rows[None],
+                               temperature)
 
 
 def global_loss(
@@ -95,17 +117,21 @@ def global_loss(
     motion: torch.Tensor,
     keep: torch.Tensor | None = None,
     temperature: float = 0.1,
+    related: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """CLIP-style symmetric InfoNCE between whole captions and whole motions.
 
-    sentence, motion `(b, d)`; keep `(b,)` bool samples that take part (default all).
+    sentence, motion `(b, d)`; keep `(b,)` bool samples that take part (default all);
+    related `(b, b)` bool pairs that are not negatives (same motion or caption; None: only
+    the diagonal). A sample left without a negative contributes nothing.
     """
-    keep = (
-        torch.ones(sentence.shape[0], dtype=torch.bool, device=sentence.device)
-        if keep is None
-        else keep
-    )
-    return in_sample_loss(sentence[None], motion[None], keep[None], temperature)
+    b = sentence.shape[0]
+    keep = torch.ones(b, dtype=torch.bool, device=sentence.device) if keep is None else keep
+    valid = keep[:, None] & keep[None, :]
+    if related is not None:
+        valid = valid & (~related | torch.eye(b, dtype=torch.bool, device=valid.device))
+    rows = keep & (valid.sum(-1) >= 2)
+    return _symmetric_info_nce(sentence[None], motion[None], valid[None], rows[None], temperature)
 
 
 def token_loss(
@@ -183,6 +209,7 @@ class AlignmentLoss:
         segment_mask: torch.Tensor,
         spans: torch.Tensor,
         sentence: torch.Tensor | None = None,
+        related: torch.Tensor | None = None,
     ) -> AlignmentOutput:
         """Alignment loss of `method` through `head`.
 
@@ -196,6 +223,10 @@ class AlignmentLoss:
             spans: `(b, a, 2)` motion token spans (`segmo.segmentation.segment_batch`),
                 slot i paired with text segment i; `(0, 0)` = absent.
             sentence: `(b, dim)` whole-caption features, needed by `global`.
+            related: `(b, b)` bool samples that are the same motion or caption
+                (`segmo.data.collate.related_samples`), never each other's negatives in
+                `batch` and `global`; None = every sample its own motion. `in_sample` and
+                `token` contrast within a sample and do not read it.
         """
         if spans.shape[:2] != segments.shape[:2] or segment_mask.shape != segments.shape[:2]:
             raise ValueError(
@@ -209,7 +240,7 @@ class AlignmentLoss:
             text = head.embed_text(sentence[:, None])
             motion = head.embed_motion(h, whole_motion_spans(lengths))
             keep = segment_mask.any(-1) & (lengths > 0)
-            losses = global_loss(text[:, 0], motion[:, 0], keep, self.temperature)
+            losses = global_loss(text[:, 0], motion[:, 0], keep, self.temperature, related)
             return AlignmentOutput(losses, text, motion, keep[:, None])
         text = head.embed_text(segments)
         if self.method == "token":
@@ -217,5 +248,8 @@ class AlignmentLoss:
             losses = token_loss(text, tokens, spans, mask, self.temperature)
             return AlignmentOutput(losses, text, tokens, mask)
         motion = head.embed_motion(h, spans)
-        loss_fn = in_sample_loss if self.method == "in_sample" else batch_loss
-        return AlignmentOutput(loss_fn(text, motion, mask, self.temperature), text, motion, mask)
+        if self.method == "in_sample":
+            losses = in_sample_loss(text, motion, mask, self.temperature)
+        else:
+            losses = batch_loss(text, motion, mask, self.temperature, related)
+        return AlignmentOutput(losses, text, motion, mask)

@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.data.collate import related_samples
 from segmo.data.layout import read_split, split_file
 from segmo.errors import SegmoError
 from segmo.models.evaluator import (
@@ -164,12 +165,9 @@ class EvaluatorTask(Task):
 
     @staticmethod
     def negatives(batch: dict[str, Any]) -> Tensor:
-        """(b, b) bool: pairs that are neither the same motion nor the same caption."""
-        ids = [str(s) for s in batch.get("id") or range(len(batch["caption"]))]
-        caps = [c.strip().lower() for c in batch["caption"]]
-        b = len(caps)
-        same = torch.tensor([[ids[i] == ids[j] or caps[i] == caps[j] for j in range(b)] for i in range(b)])
-        return ~same
+        """(b, b) bool: pairs that are neither the same motion nor the same caption
+        (`related_samples`)."""
+        return ~related_samples(batch)
 
     def _losses(self, batch: dict[str, Any]) -> tuple[dict[str, Tensor], Tensor, Tensor]:
         text, motion = self._embed(batch)

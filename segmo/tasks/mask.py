@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from segmo.data.collate import related_samples
 from segmo.errors import SegmoError
 from segmo.models.alignment import AlignmentConfig
 from segmo.models.hub import portable_path
@@ -363,7 +364,7 @@ class MaskTask(TransformerTask):
             aligned = self.alignment_loss(
                 self.model.alignment, out.motion_features, lengths, out.segment_features,
                 keep & ~drop[:, None], known_spans[0] if truth_aligned else motion_spans,
-                out.sentence_features,
+                out.sentence_features, related_samples(batch).to(base.device),
             )
             terms["align"] = aligned.losses["align"]
             loss = loss + self.alignment_loss.weight * terms["align"]
