@@ -546,3 +546,38 @@ def test_segment_dropout_hides_present_segments_in_training_only(text_dataset, t
     assert not bool(validation.any())  # validation sees every segment
     with pytest.raises(SegmoError, match=r"model.init_args.segment_drop_prob=-0.1: a share in \[0, 1\]"):
         MaskTask(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, segment_drop_prob=-0.1)
+
+
+@pytest.mark.parametrize("stage,option,value,message", [
+    ("mask", "cond_drop_prob", 1.5, "a share in [0, 1]"),
+    ("mask", "order_drop_prob", 2.0, "a share in [0, 1]"),
+    ("mask", "local_uncond_prob", -1.0, "a share in [0, 1]"),
+    ("mask", "alignment_weight", -1.0, "a weight >= 0"),
+    ("mask", "timing_weight", -0.5, "a weight >= 0"),
+    ("mask", "alignment_temperature", 0.0, "a temperature > 0"),
+    ("mask", "alignment_temperature", float("nan"), "a temperature > 0"),
+    ("mask", "alignment_dim", 0, "a width >= 1"),
+    ("residual", "cond_drop_prob", 1.5, "a share in [0, 1]"),
+    ("residual", "local_uncond_prob", -1.0, "a share in [0, 1]"),
+])
+def test_out_of_range_training_options_are_refused(stage, option, value, message, tokenizer_dir):
+    """They trained without a word (shares, weights) or stopped with an 80-line ValueError
+    traceback (temperature 0, dim 0)."""
+    import re
+
+    from segmo.errors import SegmoError
+    from segmo.tasks.residual import ResidualTask
+
+    task = MaskTask if stage == "mask" else ResidualTask
+    with pytest.raises(SegmoError, match=re.escape(f"model.init_args.{option}={value}: {message}")):
+        task(tokenizer=str(tokenizer_dir["t2m"]), text_dim=384, **{option: value})
+
+
+@pytest.mark.parametrize("option", ["alignment_temperature=0", "alignment_dim=0"])
+def test_fit_with_a_zero_alignment_temperature_or_width_is_one_line(option, text_dataset, tokenizer_dir,
+                                                                    tmp_path, capsys):
+    config = REPO / "configs/mask/synthetic.yaml"
+    line = cli_failure(["fit", "--config", str(config),
+                        *overrides(config, text_dataset, tokenizer_dir, tmp_path / "runs"),
+                        f"--model.init_args.{option}", "--trainer.fast_dev_run=true"], capsys)
+    assert f"model.init_args.{option}" in line

@@ -80,6 +80,9 @@ class TransformerTask(Task):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
+        for name, share in (("cond_drop_prob", cond_drop_prob), ("local_uncond_prob", local_uncond_prob)):
+            if not 0.0 <= share <= 1.0:
+                raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
         self.tokenizer = load_tokenizer(tokenizer)
         # Checkpoints record it absolute: `segmo export` rebuilds the task from any folder.
         self.hparams.tokenizer = str(Path(tokenizer).resolve())

@@ -210,6 +210,21 @@ class MaskTask(TransformerTask):
         if temperature is not None:  # checkpoints of this run hold the new name only
             alignment_temperature = former_temperature(temperature, alignment_temperature)
             self.hparams.update(alignment_temperature=alignment_temperature, temperature=None)
+        # cond_drop_prob and local_uncond_prob: TransformerTask.
+        for name, share in (("order_drop_prob", order_drop_prob),
+                            ("timing_drop_prob", timing_drop_prob),
+                            ("segment_mask_prob", segment_mask_prob),
+                            ("segment_drop_prob", segment_drop_prob)):
+            if not 0.0 <= share <= 1.0:
+                raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
+        for name, weight in (("alignment_weight", alignment_weight), ("timing_weight", timing_weight)):
+            if not weight >= 0.0:
+                raise SegmoError(f"model.init_args.{name}={weight}: a weight >= 0")
+        if not alignment_temperature > 0.0:
+            raise SegmoError(f"model.init_args.alignment_temperature={alignment_temperature}: "
+                             "a temperature > 0")
+        if alignment_dim < 1:
+            raise SegmoError(f"model.init_args.alignment_dim={alignment_dim}: a width >= 1")
         align, self.alignment_loss = None, None
         if alignment != "none":
             self.alignment_loss = AlignmentLoss(alignment, alignment_temperature,
@@ -227,11 +242,6 @@ class MaskTask(TransformerTask):
         if position_text and segment_timing == "none":
             raise SegmoError("model.init_args.position_text=true needs segment_timing truth "
                              "or segmenter (it reads each position's segment)")
-        for name, share in (("timing_drop_prob", timing_drop_prob),
-                            ("segment_mask_prob", segment_mask_prob),
-                            ("segment_drop_prob", segment_drop_prob)):
-            if not 0.0 <= share <= 1.0:
-                raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
         self.model = MaskTransformer(MaskTransformerConfig(**self.transformer_config(),
                                                            alignment=align,
                                                            sink_mask_t=sink_mask_t,
