@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 
 import numpy as np
 import pytest
@@ -88,6 +89,29 @@ def test_too_many_segments_raise():
 def test_repair_boundaries():
     assert repair_boundaries([0, 3, 3, 12, 40], 3, 12) == [3, 7]  # dedupe, clip, split longest
     assert repair_boundaries([1, 2, 6, 9], 3, 12) == [6, 9]  # drop those leaving short pieces
+
+
+def _hung(signum, frame):
+    raise TimeoutError("did not return within 5 s")
+
+
+@pytest.mark.parametrize("call", [lambda a, n: repair_boundaries([], a, n),
+                                  lambda a, n: uniform_spans(n, a)],
+                         ids=["repair_boundaries", "uniform_spans"])
+def test_public_span_helpers_refuse_impossible_counts(call):
+    """repair_boundaries looped forever on more segments than tokens, and uniform_spans
+    returned empty spans; both raise as the segmenters do."""
+    previous = signal.signal(signal.SIGALRM, _hung)
+    signal.alarm(5)
+    try:
+        with pytest.raises(ValueError, match="num_segments=5 > n_valid=3"):
+            call(5, 3)
+        with pytest.raises(ValueError, match="num_segments=0 must be"):
+            call(0, 3)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert call(3, 3) in ([1, 2], [(0, 1), (1, 2), (2, 3)])  # as many segments as tokens is fine
 
 
 def test_segment_batch_uniform_matches_single_and_pads():

@@ -11,7 +11,8 @@ time order, covering `[0, n_valid)`; rows `n_valid:` (padding) are never looked 
 - `kmeans`: k-means on per-token features (+ a time coordinate), cluster runs merged or
   split to exactly `a` time-ordered spans.
 
-`a > n_valid` cannot be honoured with non-empty spans and raises `ValueError`; it is
+`a > n_valid` cannot be honoured with non-empty spans and raises `ValueError` (as do
+`a < 1` and the public helpers `uniform_spans` and `repair_boundaries`); it is
 never clamped, because a clamped motion side would silently disagree with the number
 of text segments it is paired with. With the data filter of spec §2 (≥ 40 frames, so
 ≥ 10 tokens) and A = 5 it cannot happen in training; callers that meet tiny motions
@@ -39,6 +40,17 @@ Span = tuple[int, int]
 Segmenter = Callable[..., list[Span]]
 
 
+def _check_count(num_segments: int, n_valid: int) -> None:
+    """`ValueError` unless 1 ≤ `num_segments` ≤ `n_valid` (non-empty spans need a token each)."""
+    if num_segments < 1:
+        raise ValueError(f"segmenters: num_segments={num_segments} must be ≥ 1")
+    if num_segments > n_valid:
+        raise ValueError(
+            f"segmenters: num_segments={num_segments} > n_valid={n_valid} tokens; "
+            "cannot make that many non-empty spans"
+        )
+
+
 def _check(features, num_segments: int, n_valid: int | None) -> tuple[np.ndarray, int]:
     """Validates the common arguments; returns the valid rows `(n_valid, d)` as float64."""
     if isinstance(features, torch.Tensor):
@@ -51,13 +63,7 @@ def _check(features, num_segments: int, n_valid: int | None) -> tuple[np.ndarray
     if not 0 <= n_valid <= n:
         raise ValueError(f"segmenters: n_valid={n_valid} outside [0, n={n}]")
     num_segments = int(num_segments)
-    if num_segments < 1:
-        raise ValueError(f"segmenters: num_segments={num_segments} must be ≥ 1")
-    if num_segments > n_valid:
-        raise ValueError(
-            f"segmenters: num_segments={num_segments} > n_valid={n_valid} tokens; "
-            "cannot make that many non-empty spans"
-        )
+    _check_count(num_segments, n_valid)
     return features[:n_valid], num_segments
 
 
@@ -72,7 +78,9 @@ def repair_boundaries(boundaries: Sequence[int], num_segments: int, n_valid: int
     Out-of-range and duplicate boundaries are dropped; while there are too many, the one
     that leaves the shortest segment is removed; while there are too few, the longest
     segment is halved. Returns strictly increasing boundaries in `[1, n_valid − 1]`.
+    Raises `ValueError` unless 1 ≤ `num_segments` ≤ `n_valid`.
     """
+    _check_count(num_segments, n_valid)
     inner = sorted({int(b) for b in boundaries if 0 < int(b) < n_valid})
     while len(inner) > num_segments - 1:
         edges = [0, *inner, n_valid]
@@ -95,7 +103,9 @@ def pool_tokens(features: np.ndarray) -> np.ndarray:
 
 
 def uniform_spans(n_valid: int, num_segments: int) -> list[Span]:
-    """Even split of `n_valid` tokens; the first `n_valid % num_segments` spans get one more."""
+    """Even split of `n_valid` tokens; the first `n_valid % num_segments` spans get one more.
+    Raises `ValueError` unless 1 ≤ `num_segments` ≤ `n_valid`."""
+    _check_count(num_segments, n_valid)
     size, rest = divmod(n_valid, num_segments)
     starts = [i * size + min(i, rest) for i in range(num_segments + 1)]
     return list(zip(starts[:-1], starts[1:]))
