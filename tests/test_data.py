@@ -727,6 +727,60 @@ def test_group_by_length_keeps_every_index_and_groups_lengths():
     assert len(out) - len(full.reshape(-1)) == 1003 % 32  # the short block is last
 
 
+def _former_group_by_length(order, lengths, block, rng):
+    """`group_by_length` as the published runs drew it (the short block: the shortest clips)."""
+    pool = block * 50
+    ranked = np.concatenate([chunk[np.argsort(-lengths[chunk], kind="stable")]
+                             for chunk in np.split(order, range(pool, len(order), pool))])
+    blocks = np.split(ranked, range(block, len(ranked), block))
+    full = [b for b in blocks if len(b) == block]
+    short = [b for b in blocks if len(b) < block]
+    return np.concatenate([full[i] for i in rng.permutation(len(full))] + short)
+
+
+@pytest.mark.parametrize("n,block", [(2400, 32), (4800, 64), (320, 16), (6400, 64)])
+def test_group_by_length_order_of_whole_batches_is_unchanged(n, block):
+    """With n a multiple of the batch the order is the one the published runs trained on."""
+    from segmo.data.sampling import group_by_length
+
+    lengths = np.random.default_rng(n).integers(40, 197, size=n)  # ties included
+    for epoch in range(3):
+        draws = [np.random.default_rng((7, epoch)) for _ in range(2)]
+        orders = [rng.permutation(n) for rng in draws]
+        assert np.array_equal(group_by_length(orders[0], lengths, block, draws[0]),
+                              _former_group_by_length(orders[1], lengths, block, draws[1]))
+
+
+def test_group_by_length_drops_random_clips_not_the_shortest():
+    """drop_last drops the n % batch clips that go last; they were the shortest of the last
+    pool every epoch, so the shortest clips were missed in about a third of the epochs."""
+    from segmo.data.sampling import EpochSampler
+
+    class Toy(torch.utils.data.Dataset):
+        def __len__(self):
+            return 203
+
+    lengths = np.arange(40, 243)  # all distinct: the shortest are indices 0..
+    for world in (1, 2):
+        ranks = [EpochSampler(Toy(), seed=1, lengths=lengths, batch_size=8, num_replicas=world, rank=r)
+                 for r in range(world)]
+        left_out = []
+        for epoch in range(60):
+            kept = set()
+            for sampler in ranks:
+                sampler.set_epoch(epoch)
+                order = sampler.order()
+                kept |= set(order[: len(order) // 8 * 8].tolist())  # drop_last
+                # every rank's batch k is one block's share: lengths stay grouped
+                batches = order[: len(order) // 8 * 8].reshape(-1, 8)
+                assert (lengths[batches].max(1) - lengths[batches].min(1)).max() < 60
+            dropped = sorted(set(range(203)) - kept)
+            assert len(dropped) == 203 % (8 * world)
+            left_out += dropped
+        assert len(set(left_out)) > 60  # not the same few clips every epoch
+        assert abs(lengths[left_out].mean() - lengths.mean()) < 20  # nor the shortest ones
+
+
 def test_group_by_length_sampler_is_a_function_of_seed_and_epoch(tmp_path):
     from segmo.data.sampling import EpochSampler
 

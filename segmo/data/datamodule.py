@@ -48,7 +48,8 @@ class MotionDataModule(LightningDataModule):
     one batch. ``group_by_length`` (caption samples only) forms each train batch from clips
     of similar length (`segmo.data.sampling.group_by_length`): a batch pads to its own
     longest clip, which on the built-in corpus cuts the padded positions of the token
-    stages by about a third. ``text_tokens="words"`` adds each caption's per-word features
+    stages by about a third; the clips of the dropped incomplete batch are still a random
+    choice, as without it. ``text_tokens="words"`` adds each caption's per-word features
     from the text-feature cache (word-level conditioning; linked to the transformers'
     ``text_tokens`` under ``segmo fit``). ``max_abs_z`` bounds the feature values
     (`segmo.data.checks`; None checks for NaN/inf only). ``unit_length`` is obsolete: a

@@ -49,17 +49,21 @@ def group_by_length(order: np.ndarray, lengths: np.ndarray, block: int, rng: np.
                     ) -> np.ndarray:
     """`order` regrouped so that each run of `block` consecutive indices holds clips of
     similar length: within pools of POOL_BATCHES blocks of the shuffled order, indices are
-    sorted by length (longest first), cut into blocks, and the full blocks are shuffled
-    (the one short block, if any, goes last, where `drop_last` drops it). A batch then
-    pads to its own longest clip, not to the epoch's, while every clip still comes once
-    per epoch and the order of the batches stays random."""
+    sorted by length (longest first), cut into blocks, and the blocks are shuffled. A
+    batch then pads to its own longest clip, not to the epoch's, while every clip still
+    comes once per epoch and the order of the batches stays random.
+
+    The `len(order) % block` indices that cannot fill a block (the last ones of the
+    shuffled `order`, so a random choice) are set aside before ranking and go last, where
+    `drop_last` drops them: the clips an epoch leaves out are random, as with plain
+    shuffling, not the shortest of the last pool. With `len(order)` a multiple of
+    `block` nothing is set aside."""
+    keep = len(order) - len(order) % block
     pool = block * POOL_BATCHES
     ranked = np.concatenate([chunk[np.argsort(-lengths[chunk], kind="stable")]
-                             for chunk in np.split(order, range(pool, len(order), pool))])
-    blocks = np.split(ranked, range(block, len(ranked), block))
-    full = [b for b in blocks if len(b) == block]
-    short = [b for b in blocks if len(b) < block]
-    return np.concatenate([full[i] for i in rng.permutation(len(full))] + short)
+                             for chunk in np.split(order[:keep], range(pool, keep, pool))])
+    blocks = np.split(ranked, range(block, keep, block))
+    return np.concatenate([blocks[i] for i in rng.permutation(len(blocks))] + [order[keep:]])
 
 
 def _world() -> tuple[int, int]:
