@@ -133,8 +133,8 @@ def paired_cosine(text: torch.Tensor, motion: torch.Tensor, mask: torch.Tensor) 
 
 def isc_from_cosines(cosines: torch.Tensor) -> tuple[float, float]:
     """ISC (paper Fig. 4) of `(k,)` paired cosines (`paired_cosine`, concatenated over
-    batches) → (mean, coefficient of variation std/mean, population std); raises on an
-    empty set."""
+    batches) → (mean, coefficient of variation: population std / mean, inf for a zero
+    mean); raises on an empty set."""
     if cosines.numel() == 0:
         raise ValueError("isc_from_cosines: no valid segment pair (mask all False)")
     mean = float(cosines.mean())

@@ -15,8 +15,9 @@ motion segmenter that gives the spans. Methods (`AlignMethod`), each unweighted:
 - `token`: each motion token vs the text segments of its sample, positive = the segment
   whose span contains it (and each segment vs the tokens, positives = its span).
 A task trained without alignment (`alignment: none`) builds no head and no loss.
-Padded segments (mask False) are excluded from logits and targets, so whatever they
-hold changes neither the loss nor any gradient. Losses average over the contributing
+Padded segments (mask False), padded motion tokens (beyond `lengths`) and, for `global`,
+the sentences of samples left out are zeroed and excluded from logits and targets, so
+whatever they hold (NaN included) changes neither the loss nor any gradient. Losses average over the contributing
 rows (segments, sentences or tokens), not over B·A padded slots as eq. 8 is written.
 With no contributing row a loss is a zero that stays attached to the graph.
 """
@@ -234,12 +235,16 @@ class AlignmentLoss:
                 f"and segment_mask {tuple(segment_mask.shape)} must agree on (b, a)"
             )
         mask = segment_mask & (spans[..., 1] > spans[..., 0])
+        # Padding is zeroed before the head: masking the logits alone leaves a NaN there in
+        # the matrix products of the backward pass (0 · NaN), and so in every gradient.
+        h = h.masked_fill((torch.arange(h.shape[1], device=h.device) >= lengths[:, None])[..., None], 0.0)
+        segments = segments.masked_fill(~mask[..., None], 0.0)
         if self.method == "global":
             if sentence is None:
                 raise ValueError("AlignmentLoss: method 'global' needs sentence (b, dim)")
-            text = head.embed_text(sentence[:, None])
-            motion = head.embed_motion(h, whole_motion_spans(lengths))
             keep = segment_mask.any(-1) & (lengths > 0)
+            text = head.embed_text(sentence.masked_fill(~keep[:, None], 0.0)[:, None])
+            motion = head.embed_motion(h, whole_motion_spans(lengths))
             losses = global_loss(text[:, 0], motion[:, 0], keep, self.temperature, related)
             return AlignmentOutput(losses, text, motion, keep[:, None])
         text = head.embed_text(segments)
