@@ -195,6 +195,11 @@ CLI_CASES = [
         "empty text segments (`--segments ##`)"),
     Cli("ground-segments-many", GROUND + " --motion {motion} --segments a#b#c#d#e#f",
         "6 segments", "more segments than the model takes"),
+    Cli("ground-out-link", GROUND + " --motion {motion} --out {map_link}",
+        "a symbolic link to notes.txt; pass --overwrite", "`--out` a link to a file of the "
+        "user's (was written through: the file became a PNG)"),
+    Cli("ground-out-file", GROUND + " --motion {motion} --out {old_map}",
+        "exists; pass --overwrite", "`--out` an existing image (was replaced without a word)"),
     # -- segmo bundle
     Cli("bundle-wrong-kind", "bundle --tokenizer {bundle}/mask --mask {bundle}/mask --out {tmp}/b",
         "'rvq'", "a mask stage as tokenizer"),
@@ -543,6 +548,10 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
     np.save(files["motion"], features[:48])
     files["file"].write_text("not a motion\n")
     files["text_file"] = files["file"]
+    files["map_link"] = tmp / "map.png"  # `segmo ground --out` at a link to the user's notes
+    files["map_link"].symlink_to("notes.txt")
+    files["old_map"] = tmp / "old.png"
+    files["old_map"].write_bytes(b"a map of the user's")
     arrays = {"nan_motion": features[:48].copy(), "huge_motion": features[:48] * 1e30,
               "joints": np.zeros((48, 22, 3), np.float32), "wrong_dim": features[:, :100],
               "short_motion": features[:2], "long_motion": np.concatenate([features] * 2),

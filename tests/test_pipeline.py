@@ -1010,6 +1010,39 @@ def test_cli_ground_checks_out_before_grounding(bundle, generated, tmp_path, has
     assert (tmp_path / "maps" / "map.SVG").read_text().lstrip().startswith("<?xml")
 
 
+def test_cli_ground_never_writes_through_a_link_or_over_a_file(bundle, generated, tmp_path,
+                                                               hash_text_encoder, capsys,
+                                                               monkeypatch):
+    """--out map.png, a link to the user's thesis.txt, turned the thesis into a PNG; an
+    existing file was overwritten without a word, in place (a killed run left half an image).
+    Both are refused before any work; with --overwrite the link itself is replaced."""
+    motion = tmp_path / "motion.npy"
+    np.save(motion, generated.motion(0))
+    thesis = tmp_path / "thesis.txt"
+    thesis.write_text("my thesis\n")
+    (tmp_path / "map.png").symlink_to("thesis.txt")
+    (tmp_path / "gone.png").symlink_to("nowhere.png")
+    (tmp_path / "old.png").write_bytes(b"my old map")
+    ground = ["ground", "--model", str(bundle), "--text", PROMPTS[0], "--motion", str(motion)]
+    with monkeypatch.context() as patch:
+        patch.setattr(SegMo, "from_pretrained", lambda *a, **k: pytest.fail("model loaded"))
+        for name, problem in (("map.png", "a symbolic link to thesis.txt"),
+                              ("gone.png", "a symbolic link to nowhere.png"),
+                              ("old.png", "exists")):
+            line = cli_failure([*ground, "--out", str(tmp_path / name)], capsys)
+            assert line.startswith(f"segmo ground: --out {tmp_path / name}: {problem}; pass "
+                                   "--overwrite to replace it"), line
+    assert thesis.read_text() == "my thesis\n"
+    assert (tmp_path / "old.png").read_bytes() == b"my old map"
+    for name in ("map.png", "gone.png", "old.png"):
+        ground_main([*ground[1:], "--out", str(tmp_path / name), "--overwrite"])
+        assert not (tmp_path / name).is_symlink()
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+    assert thesis.read_text() == "my thesis\n" and not (tmp_path / "nowhere.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [  # no temporary file left
+        "gone.png", "map.png", "motion.npy", "old.png", "thesis.txt"]
+
+
 def test_generation_output_save_rejects_unknown_format(generated, tmp_path):
     assert isinstance(generated, GenerationOutput)
     with pytest.raises(ValueError, match="unknown format"):

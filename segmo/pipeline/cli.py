@@ -33,7 +33,14 @@ from segmo.errors import (
     parse_durations,
     positive_int,
 )
-from segmo.files import file_above, npy_argument, output_folder, replaced_folder
+from segmo.files import (
+    atomic_open,
+    file_above,
+    npy_argument,
+    output_folder,
+    remove_stale_temporaries,
+    replaced_folder,
+)
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.attention_edit import EDIT_MODES, INJECT_UNTIL
 from segmo.generation.sampling import Remasking, SamplingOptions, WordText
@@ -354,9 +361,11 @@ def _true_spans(motion: Path, text: str, segments: list[str]) -> list[tuple[int,
 MAP_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg")
 
 
-def _map_format(parser: argparse.ArgumentParser, value: str) -> str:
+def _map_format(parser: argparse.ArgumentParser, value: str, overwrite: bool) -> str:
     """The image format of `segmo ground --out`, from its suffix, refused before any work
-    (matplotlib would fail after the grounding, or write DIR.png for a folder)."""
+    (matplotlib would fail after the grounding, or write DIR.png for a folder), as is a file
+    or symbolic link already there unless `overwrite` (the map replaces a link, never
+    writing through it)."""
     path = Path(value)
     if path.is_dir():
         parser.error(f"--out {value}: is a directory; name an image file, e.g. "
@@ -365,6 +374,10 @@ def _map_format(parser: argparse.ArgumentParser, value: str) -> str:
     if suffix not in MAP_FORMATS:
         parser.error(f"--out {value}: name an image file ending in "
                      f"{', '.join('.' + f for f in MAP_FORMATS)}")
+    if not overwrite and (path.is_symlink() or path.exists()):
+        found = f"a symbolic link to {os.readlink(path)}" if path.is_symlink() else "exists"
+        parser.error(f"--out {value}: {found}; pass --overwrite to replace it, or name "
+                     "another file")
     _check_output_dir(parser, "--out", str(path.parent))
     return suffix
 
@@ -395,6 +408,9 @@ def ground_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default=None,
                         help=f"save the similarity map, an image file ending in "
                              f"{', '.join('.' + f for f in MAP_FORMATS)} (e.g. map.png)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a file already at --out (a symbolic link there is "
+                             "replaced, not written through)")
     args = parser.parse_args(argv)
     motion = npy_argument(parser, "--motion", args.motion)
     if motion.ndim == 3:
@@ -402,7 +418,7 @@ def ground_main(argv: list[str] | None = None) -> None:
                      "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
     if args.window is not None and args.search not in (None, "window"):
         parser.error(f"--window is for --search window, not --search {args.search}")
-    image_format = _map_format(parser, args.out) if args.out else None
+    image_format = _map_format(parser, args.out, args.overwrite) if args.out else None
     model = _load(parser, args.model)
     segments = None if args.segments is None else [s.strip() for s in args.segments.split("#")]
     try:
@@ -423,7 +439,9 @@ def ground_main(argv: list[str] | None = None) -> None:
             print(f"true spans (frames) from the dataset's segments/: {truth}")
         ax = plot_similarity_map(out, truth=truth)
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        ax.figure.savefig(args.out, format=image_format, dpi=120, bbox_inches="tight")
+        remove_stale_temporaries(args.out)  # of a run writing this map that was killed
+        with atomic_open(args.out, "wb") as f:  # a killed run leaves no half image
+            ax.figure.savefig(f, format=image_format, dpi=120, bbox_inches="tight")
         print(f"similarity map: {args.out}")
 
 
