@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import re
 
+import numpy as np
 import pytest
 import torch
 from conftest import hash_encoder
@@ -367,3 +368,24 @@ def test_compose_refuses_what_it_cannot_join(segmo_model):
         model.compose([("walk", 40), ("jump", 40)], transition=10)
     with pytest.raises(SegmoError, match="at least"):
         model.compose([("walk", 12), ("jump", 40)])
+
+
+def test_compose_checks_whole_float_frames_as_it_checks_ints(segmo_model, monkeypatch):
+    """generate takes 60.0 frames as 60; compose's checks skipped any frames that were not an
+    int: 4.0 frames met a tensor size mismatch instead of the shortest-part error, and 200
+    parts of 196.0 frames passed the 20-minute limit."""
+    model = segmo_model
+    parts = [("walk", 40), ("jump", 40)]
+    whole = model.compose(parts, 20, generator=torch.Generator().manual_seed(3))
+    floats = model.compose([("walk", 40.0), ("jump", np.int64(40))], 20,
+                           generator=torch.Generator().manual_seed(3))
+    assert torch.equal(whole.tokens, floats.tokens) and floats.spans == whole.spans
+    with monkeypatch.context() as patch:  # each is refused before any generation
+        patch.setattr(model, "generate", lambda *a, **k: pytest.fail("generated"))
+        with pytest.raises(SegmoError, match=r"at least 20 frames, got \[4, 40\]"):
+            model.compose([("a person walks", 4.0), ("a person jumps", 40)], 20)
+        with pytest.raises(SegmoError, match="200 parts make 43180 frames, more than 20 minutes"):
+            model.compose([("a person walks", 196.0)] * 200)
+        with pytest.raises(SegmoError, match="SegMo.compose: lengths must be whole numbers of "
+                                             "frames, got 40.5"):
+            model.compose([("walk", 40.5), ("jump", 40)])

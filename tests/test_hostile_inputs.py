@@ -477,6 +477,12 @@ API_CASES = [
         "model's frames (was a ValueError about the 'Trunk')"),
     Api("api-compose-too-long", lambda m, w: m.compose([("walk", 196)] * 200), SegmoError,
         "more than 20 minutes", "200 parts of 196 frames (time and memory grow without bound)"),
+    Api("api-compose-too-long-floats", lambda m, w: m.compose([("walk", 196.0)] * 200),
+        SegmoError, "more than 20 minutes", "200 parts of 196.0 frames (passed the limit: "
+        "only int frames were counted)"),
+    Api("api-compose-short-float", lambda m, w: m.compose([("walk", 4.0), ("run", 40)]),
+        SegmoError, "needs at least 20 frames", "a part of 4.0 frames (was a RuntimeError, "
+        "tensor sizes)"),
     Api("api-ground-nan", lambda m, w: m.ground("walk", np.load(w["nan_motion"])), SegmoError,
         "frame 5", "`ground` on a motion with a NaN frame"),
     Api("api-ground-complex", lambda m, w: m.ground("walk", _motion(w).astype(np.complex64)),

@@ -20,7 +20,7 @@ from segmo.generation.generate import Precision
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.motion.features import features_to_joints
 from segmo.pipeline.editing import EditingModel
-from segmo.pipeline.inputs import check_texts
+from segmo.pipeline.inputs import check_texts, whole_frames
 from segmo.pipeline.outputs import GenerationOutput
 
 # The frames drawn between two parts by default, and the cross-fade at the edges of each
@@ -55,14 +55,19 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
         raise SegmoError(f"SegMo.compose: parts must be a list of (text, frames) or (text, "
                          f"frames, durations), got {parts!r:.80}")
     texts = check_texts([p[0] for p in parts], "part")
-    frames = [p[1] for p in parts]
+    listed = [p[1] for p in parts if not isinstance(p[1], numbers.Real)]
+    if listed:  # a list would be spread over the parts by `whole_frames`
+        raise SegmoError(f"SegMo.compose: a part's frames must be a whole number, got "
+                         f"{listed[0]!r:.80}")
+    # Whole numbers as ints (60.0 is 60 frames, as `generate` reads it) before the checks
+    # below; 40.5 is refused here, as `generate` would.
+    frames = whole_frames([p[1] for p in parts], len(parts), "SegMo.compose").tolist()
     durations = [p[2] if len(p) == 3 else None for p in parts]
     if not valid_transition(transition):
         raise SegmoError(f"SegMo.compose: transition must be a multiple of "
                          f"{FRAMES_PER_TOKEN} frames >= {FRAMES_PER_TOKEN}, got {transition!r}")
     blend, shortest = COMPOSE_BLEND, COMPOSE_MIN_PART
-    if len(parts) > 1 and any(isinstance(f, numbers.Integral) and f < shortest
-                              for f in frames):
+    if len(parts) > 1 and any(f < shortest for f in frames):
         raise SegmoError(f"SegMo.compose: each part of a composition needs at least "
                          f"{shortest} frames, got {frames}")
     t = int(transition) // FRAMES_PER_TOKEN
@@ -71,7 +76,7 @@ def compose(model: EditingModel, parts: list[Part], transition: int = COMPOSE_TR
         raise SegmoError(f"SegMo.compose: transition {transition} frames leaves too little "
                          f"room for context in the model's {model.max_frames} frames (at most "
                          f"{(max_tokens - 2 * COMPOSE_MIN_CONTEXT) * FRAMES_PER_TOKEN})")
-    total = sum(f for f in frames if isinstance(f, numbers.Integral)) + transition * (len(parts) - 1)
+    total = sum(frames) + transition * (len(parts) - 1)
     if total > COMPOSE_MAX_SECONDS * model.fps:
         raise SegmoError(f"SegMo.compose: {len(parts)} parts make {total} frames, more than "
                          f"{COMPOSE_MAX_SECONDS // 60} minutes at {model.fps:g} fps; compose "
