@@ -122,26 +122,34 @@ def _port(text: str) -> int:
 
 
 def prune_requests(root: Path, keep: int) -> None:
-    """Delete all but the newest `keep` request folders (``000123/``) under `root`: a server
-    that runs for days must not fill its disk. Gradio has served its own copies of their
-    files by then; other entries of `root` are left alone."""
+    """Delete all but the newest `keep` request folders (``000123/``, numbered in the order
+    they were made) under `root`, the app's own requests folder: a server that runs for
+    days must not fill its disk. Gradio has served its own copies of their files by then;
+    other entries of `root` are left alone."""
     if not root.is_dir():
         return
-    folders = sorted(p for p in root.iterdir()
-                     if p.is_dir() and p.name.isascii() and p.name.isdigit())
+    folders = sorted((p for p in root.iterdir()
+                      if p.is_dir() and p.name.isascii() and p.name.isdigit()),
+                     key=lambda p: int(p.name))
     for old in folders[:max(len(folders) - keep, 0)]:
         shutil.rmtree(old, ignore_errors=True)
 
 
 def build_app(model: Any, workdir: str | os.PathLike | None = None):
-    """The Gradio Blocks app of `model` (a `SegMo`); outputs go to `workdir` (a temporary
-    folder by default), one subfolder per request."""
+    """The Gradio Blocks app of `model` (a `SegMo`); outputs go to a ``segmo-requests-*``
+    folder the app makes for itself in `workdir` (in the system's temporary folder by
+    default), one subfolder per request. Nothing else in `workdir` is touched, the
+    folders of an earlier app there included."""
     os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no telemetry calls
     try:
         import gradio as gr
     except ImportError:
         raise SegmoError("segmo serve needs Gradio: pip install 'segmo[serve]' (or gradio)") from None
-    root = Path(workdir or tempfile.mkdtemp(prefix="segmo-serve-"))
+    if workdir:
+        Path(workdir).mkdir(parents=True, exist_ok=True)
+    # A folder of its own: pruning must never reach the user's folders, nor reuse the
+    # numbers of an earlier app's requests.
+    root = Path(tempfile.mkdtemp(prefix="segmo-requests-", dir=workdir or None))
     counter = iter(range(10**9))
 
     def run(caption: str, seconds: float, seed: float, guidance: float, method: str,

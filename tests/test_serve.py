@@ -143,6 +143,42 @@ def test_old_request_folders_are_pruned_and_other_entries_stay(tmp_path):
     prune_requests(tmp_path / "missing", 2)  # nothing served yet: nothing to do
 
 
+def test_a_work_folder_of_the_users_loses_nothing_to_pruning(tmp_path, monkeypatch):
+    """`build_app(model, workdir)` pruned every all-digit folder of the work folder, sorted as
+    text: a user's own folders 001..006 were deleted; and a reused work folder restarted
+    at 000000, writing into an earlier server's request folders. Requests now go to a
+    folder of the app's own, and only its folders are pruned, oldest first."""
+    from types import SimpleNamespace
+
+    from segmo import serve
+
+    work = tmp_path / "work"
+    mine = [work / f"{i:03d}" for i in range(1, 7)] + [work / "000000"]  # 000000: an earlier
+    for folder in mine:                                                    # server's request
+        folder.mkdir(parents=True)
+        (folder / "notes.txt").write_text("mine")
+    made = []
+
+    def generate_files(model, caption, seconds, seed, guidance, method, out, durations=""):
+        out.mkdir(parents=True, exist_ok=True)
+        made.append(out)
+        return {"segments": ["walk"], "spans": [(0, 40)], "frames": 40,
+                **{key: out / key for key in ("gif", "bvh", "joints", "map")}}
+
+    monkeypatch.setattr(serve, "generate_files", generate_files)
+    monkeypatch.setattr(serve, "KEEP_REQUESTS", 2)
+    model = SimpleNamespace(fps=20.0, max_frames=196, config=SimpleNamespace(guidance_scale=4.0))
+    for _ in range(2):  # a second app in the same work folder: a server restarted
+        app = serve.build_app(model, work)
+        [run] = [f.fn for f in app.fns.values() if f.api_name == "generate"]
+        for _ in range(4):
+            run("a person walks", 2.0, 0, 4.0, "attention", "")
+    assert all((folder / "notes.txt").read_text() == "mine" for folder in mine)
+    assert len(set(made)) == 8 and not set(made) & set(mine) and all(p.parent != work for p in made)
+    # each app keeps its newest requests: pruned before each new one, down to 2
+    assert [p.exists() for p in made] == [False, True, True, True] * 2
+
+
 def test_sigterm_stops_the_server_and_removes_its_work_folder(tmp_path, monkeypatch):
     """`docker stop` sends SIGTERM, which ended Python on the spot: the server's /tmp work
     folder, with every request's GIF and BVH, stayed behind (Ctrl-C removed it)."""
