@@ -77,16 +77,21 @@ def test_ordered_cut_refuses_an_impossible_cut() -> None:
 
 
 def test_search_arguments() -> None:
-    assert check_search(None, None, 1, 2) == "ordered"
-    assert check_search(None, 5, 1, 2) == "window"
-    assert check_search("window", None, 1, 2) == "window"  # the paper's 5 tokens
-    assert check_search("spans", None, 1, 2) == "spans"
-    for args, message in (((None, 0, 1, 2), "window=0 must be a size >= 1"),
-                          ((None, [3, 0], 1, 2), "window=\\[3, 0\\]"),
-                          (("best", None, 1, 2), "search='best'; choose from ordered, spans, window"),
-                          (("spans", 5, 1, 2), "window=5 is for search='window'"),
-                          (("window", 5, 0, 2), "stride=0"),
-                          (("ordered", None, 1, 0), "min_tokens=0")):
+    # (search, window, stride, min_tokens); None: not given
+    assert check_search(None, None, None, None) == "ordered"
+    assert check_search(None, 5, 1, None) == "window"
+    assert check_search("window", None, None, None) == "window"  # the paper's 5 tokens
+    assert check_search("spans", None, None, 2) == "spans"
+    for args, message in (((None, 0, None, None), "window=0 must be a size >= 1"),
+                          ((None, [3, 0], None, None), "window=\\[3, 0\\]"),
+                          (("best", None, None, None), "search='best'; choose from ordered, spans, window"),
+                          (("spans", 5, None, None), "window=5 is for search='window'"),
+                          (("window", 5, 0, None), "stride=0"),
+                          (("ordered", None, None, 0), "min_tokens=0"),
+                          # options the search would ignore without a word
+                          ((None, None, 1, None), "stride=1 is for search='window', not 'ordered'"),
+                          (("window", None, None, 2), "min_tokens=2 is for search 'ordered' or "
+                                                      "'spans', not 'window'")):
         with pytest.raises(SegmoError, match=message) as error:
             check_search(*args)
         assert "\n" not in str(error.value)
@@ -95,4 +100,4 @@ def test_search_arguments() -> None:
 def test_a_numpy_window_is_a_window():
     # check_search takes numpy integers; sliding_windows tried to iterate one (TypeError)
     assert sliding_windows(10, np.int64(3), np.int64(2)).tolist() == sliding_windows(10, 3, 2).tolist()
-    assert check_search(None, np.int64(3), np.int64(2), 2) == "window"
+    assert check_search(None, np.int64(3), np.int64(2), None) == "window"

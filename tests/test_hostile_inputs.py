@@ -195,6 +195,11 @@ CLI_CASES = [
         "empty text segments (`--segments ##`)"),
     Cli("ground-segments-many", GROUND + " --motion {motion} --segments a#b#c#d#e#f",
         "6 segments", "more segments than the model takes"),
+    Cli("ground-stride-ordered", GROUND + " --motion {motion} --stride 7",
+        "--stride is for --search window", "`--stride` with the ordered search (was ignored)"),
+    Cli("ground-min-tokens-window", GROUND + " --motion {motion} --window 5 --min-tokens 3",
+        "--min-tokens is for --search ordered or spans", "`--min-tokens` with the window "
+        "search (was ignored)"),
     Cli("ground-out-link", GROUND + " --motion {motion} --out {map_link}",
         "a symbolic link to notes.txt; pass --overwrite", "`--out` a link to a file of the "
         "user's (was written through: the file became a PNG)"),
@@ -449,6 +454,13 @@ API_CASES = [
         "(was accepted)"),
     Api("api-segment-texts-none", lambda m, w: m.segment_texts(None), SegmoError,
         "expected a list of strings", "`segment_texts(None)` (was a TypeError)"),
+    Api("api-ground-min-tokens-beyond-motion",
+        lambda m, w: m.ground("walk", _motion(w), search="spans", min_tokens=1000), SegmoError,
+        "min_tokens=1000 tokens; the motion has 12", "`ground(search=\"spans\", "
+        "min_tokens=1000)` (was cut to the whole motion)"),
+    Api("api-ground-stride-ordered", lambda m, w: m.ground("walk", _motion(w), stride=7),
+        SegmoError, "stride=7 is for search='window'", "`ground(stride=7)` with the ordered "
+        "search (was ignored)"),
     Api("api-ground-window-bool", lambda m, w: m.ground("walk", _motion(w), window=True),
         SegmoError, "not a bool", "`ground(window=True)` (was a window of 1)"),
     Api("api-retrieve-texts-string", lambda m, w: m.retrieve_texts(_motion(w), "walk"),

@@ -7,9 +7,11 @@ and the text encoder is the deterministic hash encoder of conftest.py.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -422,6 +424,46 @@ def test_ordered_search_cuts_the_motion_in_caption_order(model, generated):
                             (dict(min_tokens=7), "3 segments in order need 21 tokens")):
         with pytest.raises(SegmoError, match=message):
             model.ground(PROMPTS[0], motion, segments=["walk", "wave", "jump"], **kwargs)
+
+
+@pytest.mark.parametrize("method", ["similarity", "attention"])
+def test_ground_refuses_options_its_search_does_not_use(model, generated, method):
+    """A stride with the ordered search changed nothing, and min_tokens beyond the motion was
+    cut to the whole motion by the spans search, both without a word."""
+    motion = generated.motion(0)  # 48 frames, 12 tokens
+    ground = functools.partial(model.ground, PROMPTS[0], motion, method=method)
+    for kwargs, message in ((dict(stride=7), "stride=7 is for search='window', not 'ordered'"),
+                            (dict(search="spans", stride=1), "stride=1 is for search='window', "
+                                                              "not 'spans'"),
+                            (dict(window=5, min_tokens=3), "min_tokens=3 is for search "
+                                                           "'ordered' or 'spans', not 'window'"),
+                            (dict(search="spans", min_tokens=13), "spans of at least "
+                             "min_tokens=13 tokens; the motion has 12")):
+        with pytest.raises(SegmoError, match=re.escape(message)):
+            ground(**kwargs)
+    assert ground(search="spans", min_tokens=12).best_spans_frames == [(0, 48), (0, 48)]
+    assert ground(window=5, stride=2).windows.tolist() == [[0, 5], [2, 7], [4, 9], [6, 11],
+                                                           [7, 12]]
+    spans = ground(min_tokens=3).windows
+    assert int((spans[:, 1] - spans[:, 0]).min()) == 3
+
+
+def test_cli_ground_refuses_stride_and_min_tokens_its_search_does_not_use(
+        bundle, generated, tmp_path, hash_text_encoder, capsys, monkeypatch):
+    motion = tmp_path / "motion.npy"
+    np.save(motion, generated.motion(0))
+    ground = ["ground", "--model", str(bundle), "--text", PROMPTS[0], "--motion", str(motion)]
+    monkeypatch.setattr(SegMo, "from_pretrained", lambda *a, **k: pytest.fail("model loaded"))
+    for argv, message in (
+            (["--stride", "7"], "--stride is for --search window, not --search ordered"),
+            (["--search", "spans", "--stride", "1"], "--stride is for --search window, not "
+                                                     "--search spans"),
+            (["--window", "5", "--min-tokens", "3"], "--min-tokens is for --search ordered or "
+                                                     "spans, not --search window"),
+            (["--search", "window", "--min-tokens", "2"], "--min-tokens is for --search ordered "
+                                                          "or spans, not --search window")):
+        line = cli_failure([*ground, *argv], capsys)
+        assert line.startswith(f"segmo ground: {message}"), line
 
 
 def test_embed_pairs_spans(model, generated):

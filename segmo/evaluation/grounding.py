@@ -69,7 +69,7 @@ def auto_windows(num_tokens: int, num_segments: int) -> list[int]:
 
 def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
                        max_motions: int | None = 50, search: str | None = None,
-                       window: int | Sequence[int] | str | None = None, stride: int = 1,
+                       window: int | Sequence[int] | str | None = None, stride: int | None = None,
                        threshold: float = 0.5) -> dict[str, float]:
     """Ground every multi-segment caption of the built-in corpus and score against the truth.
 
@@ -77,7 +77,7 @@ def grounding_accuracy(model: SegMo, data_root: str | Path, split: str = "test",
     `segments/<id>.json`, the caption is grounded with its ground-truth segment texts
     (`SegMo.ground`: search "ordered" by default, or "spans", or "window" with `window`
     sizes, where "auto" = multi-scale windows of 0.5–2× the mean segment length,
-    `auto_windows`); the chosen span of each segment is compared with its true span.
+    `auto_windows`, and `stride`, default 1); the chosen span of each segment is compared with its true span.
     Returns the metrics of `grounding_metrics`, `rate` (fraction with IoU ≥ threshold), the
     number of segments, and the same metrics for the uniform split (a text-free baseline).
     """

@@ -399,9 +399,11 @@ def ground_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--window", type=positive_int, default=None,
                         help=f"sliding-window size in tokens (4 frames) of --search window "
                              f"(default {PAPER_WINDOW}, the paper's)")
-    parser.add_argument("--stride", type=positive_int, default=1, help="window stride in tokens")
-    parser.add_argument("--min-tokens", type=positive_int, default=MIN_TOKENS,
-                        help="shortest span of --search ordered/spans, in tokens")
+    parser.add_argument("--stride", type=positive_int, default=None,
+                        help="window stride in tokens of --search window (default 1)")
+    parser.add_argument("--min-tokens", type=positive_int, default=None,
+                        help=f"shortest span of --search ordered/spans, in tokens (default "
+                             f"{MIN_TOKENS})")
     parser.add_argument("--method", choices=METHODS, default="similarity",
                         help="similarity (default): the learned segment space; attention: where "
                              "the mask transformer's motion tokens look")
@@ -418,6 +420,11 @@ def ground_main(argv: list[str] | None = None) -> None:
                      "features (t, d) (new_joint_vecs/<id>.npy or *_features.npy)")
     if args.window is not None and args.search not in (None, "window"):
         parser.error(f"--window is for --search window, not --search {args.search}")
+    search = args.search or ("ordered" if args.window is None else "window")
+    if args.stride is not None and search != "window":  # it would be ignored without a word
+        parser.error(f"--stride is for --search window, not --search {search}")
+    if args.min_tokens is not None and search == "window":
+        parser.error("--min-tokens is for --search ordered or spans, not --search window")
     image_format = _map_format(parser, args.out, args.overwrite) if args.out else None
     model = _load(parser, args.model)
     segments = None if args.segments is None else [s.strip() for s in args.segments.split("#")]

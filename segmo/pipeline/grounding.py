@@ -52,16 +52,20 @@ MIN_TOKENS = 2  # shortest span of "spans"/"ordered": one token has no motion to
 
 
 def ground(model: SegmentModel, text: str, motion: Any, search: str | None = None,
-           window: int | Sequence[int] | None = None, stride: int = 1,
-           min_tokens: int = MIN_TOKENS, segments: list[str] | None = None,
+           window: int | Sequence[int] | None = None, stride: int | None = None,
+           min_tokens: int | None = None, segments: list[str] | None = None,
            method: str = "similarity") -> GroundingOutput:
     """Where each text segment of `text` happens in `motion` (raw features (t, d)).
 
     search: "ordered", "spans" or "window" (module docstring); None = "window" when a
-    `window` is given (size(s) in tokens; `stride` in tokens), else "ordered". min_tokens:
-    the shortest span of "ordered" and "spans". method: "similarity" or "attention".
+    `window` is given (size(s) in tokens), else "ordered". stride: the step of "window"'s
+    windows in tokens (default 1). min_tokens: the shortest span of "ordered" and "spans"
+    (default `MIN_TOKENS`). An option the search does not use is refused, not ignored.
+    method: "similarity" or "attention".
     """
     search = check_search(search, window, stride, min_tokens)
+    stride = 1 if stride is None else stride
+    min_tokens = MIN_TOKENS if min_tokens is None else min_tokens
     if method not in METHODS:
         raise SegmoError(f"ground: method={method!r}; choose from {', '.join(METHODS)}")
     if method == "attention":
@@ -71,15 +75,20 @@ def ground(model: SegmentModel, text: str, motion: Any, search: str | None = Non
     return locate(space, text, len(motion), search, window, stride, min_tokens)
 
 
-def check_search(search: str | None, window: int | Sequence[int] | None, stride: int,
-                 min_tokens: int) -> str:
-    """The search `ground` runs, or SegmoError naming the bad argument."""
+def check_search(search: str | None, window: int | Sequence[int] | None, stride: int | None,
+                 min_tokens: int | None) -> str:
+    """The search `ground` runs, or SegmoError naming the bad argument (None: not given)."""
     if search is None:
         search = "ordered" if window is None else "window"
     if search not in SEARCHES:
         raise SegmoError(f"ground: search={search!r}; choose from {', '.join(SEARCHES)}")
     if window is not None and search != "window":
         raise SegmoError(f"ground: window={window!r} is for search='window', not {search!r}")
+    if stride is not None and search != "window":  # it would be ignored without a word
+        raise SegmoError(f"ground: stride={stride!r} is for search='window', not {search!r}")
+    if min_tokens is not None and search == "window":
+        raise SegmoError(f"ground: min_tokens={min_tokens!r} is for search 'ordered' or "
+                         f"'spans', not 'window'")
     if isinstance(window, bool) or (isinstance(window, (list, tuple))
                                     and any(isinstance(w, bool) for w in window)):
         raise SegmoError(f"ground: window={window!r} must be a size >= 1 (tokens), not a bool")
@@ -89,9 +98,10 @@ def check_search(search: str | None, window: int | Sequence[int] | None, stride:
     if search == "window" and window is not None and (
             not sizes or not all(isinstance(w, (int, np.integer)) and w >= 1 for w in sizes)):
         raise SegmoError(f"ground: window={window!r} must be a size >= 1 (tokens) or a list of them")
-    if not isinstance(stride, (int, np.integer)) or stride < 1:
+    if stride is not None and (not isinstance(stride, (int, np.integer)) or stride < 1):
         raise SegmoError(f"ground: stride={stride!r} must be a whole number >= 1 (tokens)")
-    if not isinstance(min_tokens, (int, np.integer)) or min_tokens < 1:
+    if min_tokens is not None and (not isinstance(min_tokens, (int, np.integer))
+                                   or min_tokens < 1):
         raise SegmoError(f"ground: min_tokens={min_tokens!r} must be a whole number >= 1")
     return search
 
@@ -131,9 +141,13 @@ def _output(text: str, segments: list[str], spans: np.ndarray, scores: torch.Ten
 
 def candidate_spans(n: int, search: str, window: int | Sequence[int] | None, stride: int,
                     min_tokens: int) -> np.ndarray:
-    """The candidate token spans (k, 2) of `search` over n tokens."""
+    """The candidate token spans (k, 2) of `search` over n tokens; SegmoError when "spans"
+    asks for spans longer than the motion ("ordered" checks its segments' total)."""
     if search == "window":
         return sliding_windows(n, PAPER_WINDOW if window is None else window, stride)
+    if search == "spans" and min_tokens > n:  # it was cut to the whole motion without a word
+        raise SegmoError(f"ground: spans of at least min_tokens={min_tokens} tokens; the motion "
+                         f"has {n}")
     return all_spans(n, min(min_tokens, n))
 
 

@@ -559,15 +559,17 @@ class SegMo:
         return x[:usable].to(self.device)
 
     def ground(self, text: str, motion: Any, window: int | list[int] | None = None,
-               stride: int = 1, segments: list[str] | None = None, search: str | None = None,
-               min_tokens: int = grounding.MIN_TOKENS, method: str = "similarity"
-               ) -> GroundingOutput:
+               stride: int | None = None, segments: list[str] | None = None,
+               search: str | None = None, min_tokens: int | None = None,
+               method: str = "similarity") -> GroundingOutput:
         """Where each text segment of `text` happens in `motion` (raw features (t, d)):
         search "ordered" (default; one span per segment, in order, cutting the motion),
         "spans" (each segment's best span of any length) or "window" (the paper's sliding
         windows, the default when `window` is given); method "similarity" (default, the
         learned segment space) or "attention" (where the mask transformer's motion tokens
-        look); see `segmo.pipeline.grounding`."""
+        look); see `segmo.pipeline.grounding`. `stride` (tokens, default 1) is for "window",
+        `min_tokens` (the shortest span, default 2 tokens) for "ordered" and "spans": given
+        to another search, either is refused."""
         out = grounding.ground(self, text, motion, search=search, window=window,
                                stride=stride, min_tokens=min_tokens, segments=segments,
                                method=method)
