@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 
 import numpy as np
@@ -15,6 +16,7 @@ from test_pipeline import TEXT_DIM, build_stages
 from segmo.errors import SegmoError
 from segmo.generation import SamplingOptions, generate_tokens
 from segmo.generation.attention_edit import (
+    INJECT_UNTIL,
     TextSide,
     attention_edit_tokens,
     inject,
@@ -99,6 +101,9 @@ def test_reweight_by_one_changes_nothing_and_by_four_changes_tokens(models):
     assert torch.equal(one, base)
     four = edited(models, source, source, mode="reweight", reweight=[{"segment 1": 4.0}] * 2)
     assert not torch.equal(four, base)
+    with pytest.raises(ValueError, match="inject_until is for modes"):  # it would be ignored
+        edited(models, source, source, mode="reweight", reweight=[{"segment 1": 4.0}] * 2,
+               inject_until=0.5)
 
 
 def test_editing_weights_reach_the_attention(models):
@@ -265,6 +270,37 @@ def test_edit_text_refuses_what_it_cannot_do(segmo_model):
     edit = model.edit(source, (0, 8), "a person runs")
     with pytest.raises(SegmoError, match="generator state"):
         model.edit_text(edit, "a person runs, then jumps.")
+
+
+def test_reweight_refuses_what_it_would_ignore(segmo_model):
+    """A reweight edits the source's own text in every pass: `inject_until` was ignored, and
+    `edit_text(source, "other text", mode="reweight")` generated the other text's motion,
+    both without a word."""
+    model = segmo_model
+    source = model.generate(["a person walks, then jumps."], [40],
+                            generator=torch.Generator().manual_seed(0))
+    reweight = functools.partial(model.edit_text, source, mode="reweight", weights={1: 4.0})
+    with pytest.raises(SegmoError, match=re.escape(
+            "inject_until is for modes 'swap', 'add' and 'refine'; 'reweight' edits every pass")):
+        reweight(inject_until=0.2)
+    with pytest.raises(SegmoError, match=re.escape(
+            "mode 'reweight' edits the source's own text: target_text 'a person runs, then "
+            "jumps.' is not 'a person walks, then jumps.'; leave it out")):
+        reweight("a person runs, then jumps.")
+    with pytest.raises(SegmoError, match=re.escape(
+            "mode 'reweight' edits the source's own segments: target_segments "
+            "[['a person runs', 'a person jumps']] are not [['a person walks', "
+            "'a person jumps']]; leave them out")):
+        reweight(target_segments=[["a person runs", "a person jumps"]])
+    # The source's own text (and segments), given, is the same reweight.
+    four = reweight()
+    assert not torch.equal(four.tokens, source.tokens)
+    assert torch.equal(reweight(source.texts[0], target_segments=source.segments).tokens,
+                       four.tokens)
+    # The other modes keep their documented default.
+    kick = "a person walks, then kicks."
+    assert torch.equal(model.edit_text(source, kick).tokens,
+                       model.edit_text(source, kick, inject_until=INJECT_UNTIL).tokens)
 
 
 def test_a_target_text_that_is_the_sources_keeps_its_segments(segmo_model):

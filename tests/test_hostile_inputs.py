@@ -116,6 +116,13 @@ CLI_CASES = [
     Cli("edit-weight-with-swap", "edit --model {bundle} --source-text walk --target-text run "
         "--weight 2=2 --out {tmp}/e", "--weight is for --mode reweight",
         "`--weight` with `--mode swap` (was ignored)"),
+    Cli("edit-reweight-inject-until", "edit --model {bundle} --source-text walk --mode reweight "
+        "--weight 1=2 --inject-until 0.2 --out {tmp}/e", "--inject-until is for --mode swap",
+        "`--inject-until` with `--mode reweight` (was ignored)"),
+    Cli("edit-reweight-target-text", "edit --model {bundle} --source-text walk --target-text run "
+        "--mode reweight --weight 1=2 --out {tmp}/e", "--target-text is for --mode swap",
+        "`--target-text` other than the source's with `--mode reweight` (generated the other "
+        "text's motion)"),
     Cli("edit-weight-superscript", "edit --model {bundle} --source-text walk --mode reweight "
         "--weight ²=2 --out {tmp}/e", "weights key '²'",
         "`--weight ²=2`, a digit int() refuses (was a traceback)"),
@@ -417,6 +424,16 @@ API_CASES = [
         lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), "walk, then jump",
                                  weights={2: 2.0}),
         SegmoError, "weights are for mode 'reweight'", "weights with mode swap (were ignored)"),
+    Api("api-edit-text-reweight-target",
+        lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), "jump, then sit",
+                                 mode="reweight", weights={1: 2.0}),
+        SegmoError, "mode 'reweight' edits the source's own text", "a reweight with another "
+        "target text (generated that text's motion, not the source's reweighted)"),
+    Api("api-edit-text-reweight-inject",
+        lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), mode="reweight",
+                                 weights={1: 2.0}, inject_until=0.2),
+        SegmoError, "inject_until is for modes 'swap', 'add' and 'refine'",
+        "`inject_until` with mode reweight (was ignored)"),
     Api("api-edit-text-ambiguous-key",
         lambda m, w: m.edit_text(m.generate(["a man walks, then a man runs"], [40]),
                                  mode="reweight", weights={"a": 2.0}),

@@ -755,7 +755,14 @@ def test_cli_edit_writes_source_and_edit(bundle, tmp_path, hash_text_encoder, ca
     for argv, message in (
             (["--mode", "reweight"], "--weight"), (["--mode", "swap"], "--target-text"),
             (["--mode", "reweight", "--weight", "jumps"], "SEGMENT=FACTOR"),
-            (["--target-text", "x", "--inject-until", "2"], "--inject-until")):
+            (["--target-text", "x", "--inject-until", "2"], "--inject-until"),
+            # each was ignored without a word: a reweight edits the source's text, every pass
+            (["--mode", "reweight", "--weight", "1=2", "--inject-until", "0.2"],
+             "--inject-until is for --mode swap, add and refine; --mode reweight edits every "
+             "pass"),
+            (["--mode", "reweight", "--weight", "1=2", "--target-text", "run"],
+             "--target-text is for --mode swap, add and refine; --mode reweight edits the "
+             "--source-text")):
         line = cli_failure(["edit", "--model", str(bundle), "--source-text", "walk",
                             "--out", str(tmp_path / "bad"), *argv], capsys)
         assert message in line

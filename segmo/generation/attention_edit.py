@@ -142,7 +142,7 @@ def attention_edit_tokens(
     *,
     mode: EditMode = "swap",
     segment_map: list[dict[int, int]] | None = None,
-    inject_until: float = INJECT_UNTIL,
+    inject_until: float | None = None,
     reweight: list[dict[str, float]] | None = None,
     editable: torch.Tensor | None = None,
     source_tokens: torch.Tensor | None = None,
@@ -155,7 +155,9 @@ def attention_edit_tokens(
 
     source, target: the two texts' conditions (b rows each); lengths (b,) frames;
     segment_map: per row, {target segment: source segment} of the keys that take the
-    source's weights (default: each segment to the one in its place); reweight: per row,
+    source's weights (default: each segment to the one in its place); inject_until: the
+    share of the mask transformer's steps that take them (default `INJECT_UNTIL`; "swap",
+    "add" and "refine" only: "reweight" edits every pass); reweight: per row,
     {key label ("segment k", "word w"): factor} ("reweight" mode, which needs no source
     pass); editable (b, n) bool with source_tokens (b, n, q): decode only those positions,
     the others kept from source_tokens (an edit confined to a span; decoded without segment
@@ -166,6 +168,10 @@ def attention_edit_tokens(
     if mode not in EDIT_MODES:
         raise ValueError(f"attention edit: mode must be one of {', '.join(EDIT_MODES)}, "
                          f"got {mode!r}")
+    if mode == "reweight" and inject_until is not None:  # it would be ignored without a word
+        raise ValueError("attention edit: inject_until is for modes 'swap', 'add' and 'refine'; "
+                         "'reweight' edits every pass")
+    inject_until = INJECT_UNTIL if inject_until is None else inject_until
     if not 0.0 <= inject_until <= 1.0:
         raise ValueError(f"attention edit: inject_until must be in [0, 1], got {inject_until}")
     options = options or SamplingOptions()

@@ -257,14 +257,15 @@ def edit_main(argv: list[str] | None = None) -> None:
     parser.add_argument("--model", required=True, help="bundle directory (`segmo bundle`)")
     parser.add_argument("--source-text", required=True, help="the prompt of the source motion")
     parser.add_argument("--target-text", default=None,
-                        help="the edited prompt (swap, add, refine; reweight: the source's)")
+                        help="the edited prompt (swap, add, refine; reweight edits the "
+                             "--source-text and takes none)")
     parser.add_argument("--mode", choices=EDIT_MODES, default="swap")
     parser.add_argument("--weight", action="append", default=None, metavar="SEGMENT=FACTOR",
                         help="reweight: a segment (number from 1, or its text) and its factor; "
                              "repeat for several")
-    parser.add_argument("--inject-until", type=finite_float, default=INJECT_UNTIL,
-                        help=f"share of decoding steps with the source's attention (default "
-                             f"{INJECT_UNTIL:g})")
+    parser.add_argument("--inject-until", type=finite_float, default=None,
+                        help=f"share of decoding steps with the source's attention, for swap, "
+                             f"add and refine (default {INJECT_UNTIL:g})")
     parser.add_argument("--keep-outside", action="store_true",
                         help="keep every token outside the changed segment's attended span")
     parser.add_argument("--length", type=positive_int, default=None,
@@ -279,7 +280,14 @@ def edit_main(argv: list[str] | None = None) -> None:
         parser.error(f"--weight is for --mode reweight; --mode {args.mode} takes none")
     if args.mode != "reweight" and args.target_text is None:
         parser.error(f"--mode {args.mode} needs --target-text")
-    if not 0.0 <= args.inject_until <= 1.0:
+    # Each would be ignored without a word: a reweight edits the source's text, every pass.
+    if args.mode == "reweight" and args.inject_until is not None:
+        parser.error("--inject-until is for --mode swap, add and refine; --mode reweight edits "
+                     "every pass")
+    if args.mode == "reweight" and args.target_text not in (None, args.source_text):
+        parser.error("--target-text is for --mode swap, add and refine; --mode reweight edits "
+                     "the --source-text")
+    if args.inject_until is not None and not 0.0 <= args.inject_until <= 1.0:
         parser.error(f"argument --inject-until: expected a number in [0, 1], got "
                      f"{args.inject_until:g}")
     pairs = [_weight(parser, w) for w in args.weight or []]

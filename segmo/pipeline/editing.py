@@ -122,10 +122,11 @@ def edit(model: EditingModel, motion: GenerationOutput | Any, span: tuple[int, i
 
 def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | list[str] | None,
               mode: EditMode, *, target_segments: list[list[str]] | None,
-              weights: dict[str | int, float] | None, inject_until: float,
+              weights: dict[str | int, float] | None, inject_until: float | None,
               keep_outside: bool, precision: Precision) -> GenerationOutput:
     """`SegMo.edit_text`: `source` decoded again from its generator state, towards
-    `target_text`, while its attention is edited as `mode` says."""
+    `target_text`, while its attention is edited as `mode` says (inject_until None: the
+    default of the modes that read it)."""
     if not isinstance(source, GenerationOutput) or source.generator_state is None \
             or source.sampling is None:
         raise SegmoError("SegMo.edit_text: source must be a GenerationOutput of "
@@ -137,8 +138,11 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
     if not isinstance(keep_outside, bool):  # "no" was read as True
         raise SegmoError(f"SegMo.edit_text: keep_outside must be True or False, got "
                          f"{keep_outside!r:.40}")
-    if isinstance(inject_until, bool) or not (isinstance(inject_until, numbers.Real)
-                                              and 0.0 <= inject_until <= 1.0):
+    if mode == "reweight" and inject_until is not None:  # it would be ignored without a word
+        raise SegmoError("SegMo.edit_text: inject_until is for modes 'swap', 'add' and 'refine'; "
+                         "'reweight' edits every pass")
+    if inject_until is not None and (isinstance(inject_until, bool) or not (
+            isinstance(inject_until, numbers.Real) and 0.0 <= inject_until <= 1.0)):
         raise SegmoError(f"SegMo.edit_text: inject_until must be in [0, 1], got "
                          f"{inject_until!r}")
     if precision == "auto" and source.precision is not None:  # replay as the source ran
@@ -159,6 +163,8 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
         targets = [target_text] * b if isinstance(target_text, str) else list(target_text)
     if len(targets) != b:
         raise SegmoError(f"SegMo.edit_text: {len(targets)} target texts for {b} samples")
+    if mode == "reweight":  # another text would be generated anew, without a word
+        check_own_text(source, targets, target_segments)
     if target_segments is None:  # a source's own text keeps its segments (given, may be)
         changed = [t for t, s in zip(targets, source.texts) if t != s]
         fresh = iter(model.segment_texts(changed) if changed else [])
@@ -205,10 +211,31 @@ def edit_text(model: EditingModel, source: GenerationOutput, target_text: str | 
             editable[i, min(a for a, _ in spans):max(e for _, e in spans)] = True
     tokens, _ = attention_edit_tokens(
         model.mask, model.residual, source_side, target_side, lengths, mode=mode,
-        segment_map=segment_map, inject_until=float(inject_until), reweight=reweight,
+        segment_map=segment_map, reweight=reweight,
+        inject_until=None if inject_until is None else float(inject_until),
         editable=editable, source_tokens=None if editable is None else source.tokens.to(device),
         options=source.sampling, generator_state=source.generator_state, precision=precision)
     return model.decode(tokens, lengths, targets, used, precision)
+
+
+def check_own_text(source: GenerationOutput, targets: list[str],
+                   target_segments: list[list[str]] | None) -> None:
+    """SegmoError unless a reweight's target is its source's own text (and segments, when
+    given): a reweight edits the source's attention, not another text's."""
+    for target, text in zip(targets, source.texts):
+        if target != text:
+            raise SegmoError(f"SegMo.edit_text: mode 'reweight' edits the source's own text: "
+                             f"target_text {target!r:.80} is not {text!r:.80}; leave it out")
+    if target_segments is None:
+        return
+    try:
+        same = [list(s) for s in target_segments] == [list(s) for s in source.segments]
+    except TypeError:  # not lists of segments: not the source's either
+        same = False
+    if not same:
+        raise SegmoError(f"SegMo.edit_text: mode 'reweight' edits the source's own segments: "
+                         f"target_segments {target_segments!r:.120} are not "
+                         f"{source.segments!r:.120}; leave them out")
 
 
 def target_durations(source: GenerationOutput, used: list[list[str]], slots: int

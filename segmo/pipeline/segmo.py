@@ -28,7 +28,7 @@ from typing import Any
 import torch
 
 from segmo.errors import SegmoError
-from segmo.generation.attention_edit import INJECT_UNTIL, EditMode
+from segmo.generation.attention_edit import EditMode
 from segmo.generation.generate import (
     Precision,
     check_models,
@@ -446,7 +446,7 @@ class SegMo:
     def edit_text(self, source: GenerationOutput, target_text: str | list[str] | None = None,
                   mode: EditMode = "swap", *, target_segments: list[list[str]] | None = None,
                   weights: dict[str | int, float] | None = None,
-                  inject_until: float = INJECT_UNTIL, keep_outside: bool = False,
+                  inject_until: float | None = None, keep_outside: bool = False,
                   precision: Precision = "auto") -> GenerationOutput:
         """Edit generated motions by their attention (SALAD's zero-shot edits,
         `segmo.generation.attention_edit`): decode `target_text` (one for all samples or
@@ -460,11 +460,13 @@ class SegMo:
 
         mode "swap" (a segment's text replaced), "add" (a segment added), "refine" (a
         segment's text refined, e.g. a modifier added): the source's attention for the first
-        `inject_until` share of the decoding steps, on the keys with a counterpart (segments
-        matched by `segment_counterparts`). "reweight": `weights` maps a segment (its number
+        `inject_until` share of the decoding steps (default `INJECT_UNTIL`, 0.5), on the keys
+        with a counterpart (segments matched by `segment_counterparts`). "reweight": the
+        source's own text decoded again with `weights`, which maps a segment (its number
         from 1, its text, or a key label "segment k" / "word w", k and w whole numbers, w
-        from 0 in `word_texts` order) to the factor its attention is multiplied by; a key
-        that names no key of the caption is refused. keep_outside: decode only the tokens whose segment attention in the
+        from 0 in `word_texts` order) to the factor its attention is multiplied by in every
+        pass; a key that names no key of the caption is refused, and so are an
+        `inject_until` and a target text (or segments) other than the source's. keep_outside: decode only the tokens whose segment attention in the
         source went to a changed (or reweighted) segment, keeping every other token of the
         source (a span edit whose span comes from the attention). A source generated with
         `durations` is replayed with them, and a target with as many segments as the
