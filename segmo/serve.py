@@ -40,7 +40,6 @@ from segmo.errors import (
 )
 
 GROUNDING_METHODS = ("attention", "similarity")
-MAX_SECONDS = 9.8  # 196 frames at 20 fps
 # A caption a person types: longer ones are cut by the text encoder anyway, and a page of
 # text tied up the queue for half a minute.
 MAX_CAPTION_CHARACTERS = 2_000
@@ -53,8 +52,9 @@ MAX_UPLOAD = "1mb"
 def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance: float,
                    method: str, out: Path, durations: str = "") -> dict[str, Any]:
     """One generation written under `out`: {"segments", "gif", "bvh", "joints", "map"}.
-    seconds <= 0 lets the length estimator choose; durations ("1,4", one per text segment)
-    are given to a segment-timing model, empty lets it predict them."""
+    seconds <= 0 lets the length estimator choose, and more than the model's longest motion
+    (`longest_seconds`) is refused; durations ("1,4", one per text segment) are given to a
+    segment-timing model, empty lets it predict them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -86,10 +86,14 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
             timing = [parse_durations(durations)]
         except ValueError as error:
             raise SegmoError(f"segment durations {error}") from None
+    longest = longest_seconds(model)
+    if seconds > longest:  # it was cut to the longest without a word
+        raise SegmoError(f"a length of {seconds:g} s is longer than the model's {longest:g} s "
+                         f"({model.max_frames} frames at {model.fps:g} fps)")
     segmented = model.segment_texts([caption])  # once: a bundle may name an LLM segmenter
     lengths = None
     if seconds and seconds > 0:
-        frames = max(int(round(min(float(seconds), MAX_SECONDS) * model.fps / 4)) * 4, 4)
+        frames = max(int(round(float(seconds) * model.fps / 4)) * 4, 4)
         count = len(segmented[0])
         needed = count * MIN_TOKENS * FRAMES_PER_TOKEN  # what grounding each segment takes
         if frames < needed:  # it failed after the generation, naming tokens
@@ -111,6 +115,12 @@ def generate_files(model: Any, caption: str, seconds: float, seed: int, guidance
             "gif": by_suffix["sample_00.gif"], "bvh": by_suffix["sample_00.bvh"],
             "joints": by_suffix["sample_00_joints.npy"], "map": map_path,
             "frames": int(result.lengths[0])}
+
+
+def longest_seconds(model: Any) -> float:
+    """The longest motion `model` makes, in seconds: its frames over its frame rate (9.8 s
+    for 196 frames at 20 fps, 15.68 s at KIT's 12.5)."""
+    return model.max_frames / model.fps
 
 
 def _port(text: str) -> int:
@@ -176,7 +186,7 @@ def build_app(model: Any, workdir: str | os.PathLike | None = None):
             with gr.Column():
                 caption = gr.Textbox(label="caption", value="a person walks forward, then waves",
                                      lines=2)
-                seconds = gr.Slider(0, MAX_SECONDS, value=0, step=0.2,
+                seconds = gr.Slider(0, longest_seconds(model), value=0, step=0.2,
                                     label="length (s); 0: the model's estimate")
                 # precision None: Gradio would round 2.7 to 3 before generate_files sees it
                 seed = gr.Number(value=0, precision=None, label="seed (a whole number)")

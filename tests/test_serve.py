@@ -3,6 +3,7 @@ a caption in, the segments, a GIF, a BVH, the joints and a grounding map out."""
 
 from __future__ import annotations
 
+import re
 import socket
 from pathlib import Path
 
@@ -113,6 +114,8 @@ def test_a_request_out_of_range_names_its_field(served, tmp_path):
             ((caption, 2.4, 1e30, 4.0), r"seed must be a whole number from 0 to 2\^63 - 1"),
             ((caption, 2.4, 2.5, 4.0), r"seed must be a whole number"),
             ((caption, 2.4, 0, float("inf")), "guidance must be a finite number, got inf"),
+            ((caption, 12.0, 0, 4.0), r"a length of 12 s is longer than the model's 9.8 s \(196 "
+                                      r"frames at 20 fps\)"),  # was cut to 9.8 s
             (("walk " * MAX_CAPTION_CHARACTERS, 2.4, 0, 4.0), "characters; at most 2,000"),
             # it failed after the generation: "3 segments in order need 6 tokens"
             (("a person walks, then jumps, then sits, then waves, then kicks", 0.6, 0, 4.0),
@@ -120,6 +123,44 @@ def test_a_request_out_of_range_names_its_field(served, tmp_path):
         with pytest.raises(SegmoError, match=message):
             generate_files(model, *args, "similarity", tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("fps, max_frames, longest", [(20.0, 196, "9.8"), (12.5, 196, "15.68"),
+                                                     (20.0, 120, "6")])
+def test_the_longest_request_is_the_models(fps, max_frames, longest, tmp_path):
+    """The page's limit was 9.8 s whatever the model (196 frames at 20 fps): a KIT bundle
+    (12.5 fps, 15.68 s) was cut to 9.8 s, and a request beyond the limit was clamped to it
+    without a word. The slider now ends at the model's longest motion; a longer request is
+    refused."""
+    from types import SimpleNamespace
+
+    from segmo.serve import build_app, generate_files
+
+    asked = []
+
+    class Model:  # what generate_files and build_app read of a SegMo
+        config = SimpleNamespace(guidance_scale=4.0)
+
+        def segment_texts(self, texts):
+            return [["a person walks"]]
+
+        def generate(self, texts, lengths, **kwargs):
+            asked.append(lengths)
+            raise SegmoError("stop here")
+
+    model = Model()
+    model.fps, model.max_frames = fps, max_frames
+    with pytest.raises(SegmoError, match="stop here"):  # the longest is taken as it is
+        generate_files(model, "a person walks", float(longest), 0, 4.0, "similarity", tmp_path)
+    assert asked == [[max_frames]]
+    with pytest.raises(SegmoError, match=re.escape(
+            f"a length of {float(longest) + 0.2:g} s is longer than the model's {longest} s "
+            f"({max_frames} frames at {fps:g} fps)")):
+        generate_files(model, "a person walks", float(longest) + 0.2, 0, 4.0, "similarity", tmp_path)
+    assert len(asked) == 1
+    [slider] = [block for block in build_app(model, tmp_path / "work").blocks.values()
+                if isinstance(block, gr.Slider) and block.label.startswith("length (s)")]
+    assert slider.maximum == pytest.approx(max_frames / fps)
 
 
 def test_serve_refuses_a_port_beyond_65535_before_loading(tmp_path, capsys):
