@@ -95,7 +95,26 @@ def test_a_tiny_temperature_draws_the_best_token(sampler):
     for temperature in (1e-3, 1e-30, 1e-40):
         tokens, confidence = sample_tokens(logits, 1.0, temperature, sampler,
                                            torch.Generator().manual_seed(0))
-        assert tokens.tolist() == [1, 2] and confidence.tolist() == [1.0, 1.0], temperature
+        assert tokens.tolist() == [1, 2], temperature
+        torch.testing.assert_close(confidence, logits.softmax(-1).amax(-1))
+
+
+@pytest.mark.parametrize("sampler", ["categorical", "gumbel"])
+def test_confidence_does_not_depend_on_the_temperature(sampler):
+    # At T = 1e-3 the drawn tokens' probabilities under softmax(logits / T) were 1 almost
+    # everywhere, so re-masking "the least confident" fell to the last positions, while
+    # T = 0 ranked by softmax(logits). A draw's confidence is its temperature-free probability.
+    logits = torch.randn(200, 64, generator=torch.Generator().manual_seed(2)) * 3
+    greedy, greedy_conf = sample_tokens(logits, 0.1, 0.0, sampler)
+    for temperature in (1e-6, 1e-3):
+        tokens, conf = sample_tokens(logits, 0.1, temperature, sampler, torch.Generator().manual_seed(0))
+        assert torch.equal(tokens, greedy)
+        torch.testing.assert_close(conf, greedy_conf)
+        assert len(conf.unique()) > 150  # ranks, not ties
+    tokens, conf = sample_tokens(logits, 0.1, 0.5, sampler, torch.Generator().manual_seed(0))
+    top = logits.topk(7, dim=-1).values
+    expected = (logits.gather(-1, tokens[:, None])[:, 0] - top.logsumexp(-1)).exp()
+    torch.testing.assert_close(conf, expected)
 
 
 @pytest.mark.parametrize("name", SCALES)
@@ -732,3 +751,12 @@ def test_choice_temperature_changes_the_remasking_only_between_the_ends(monkeypa
         SamplingOptions(choice_temperature=-1.0)
     with pytest.raises(Exception, match="choice_temperature must be a finite number"):
         SamplingOptions(choice_temperature=float("nan"))
+
+
+@pytest.mark.parametrize("device", ["cpu", torch.device("cpu")])
+def test_inference_takes_its_device_by_name(device):
+    # The signature's own default "cpu" raised AttributeError: 'str' object has no attribute 'type'.
+    layer = torch.nn.Linear(2, 2).train()
+    with generate_module.inference([layer], "fp32", device):
+        assert not layer.training and torch.is_inference_mode_enabled()
+    assert layer.training

@@ -179,8 +179,9 @@ def resolve_precision(precision: Precision, device: torch.device | str = "cpu"
     return cpu.auto_precision()  # type: ignore[return-value]
 
 
-def _autocast(precision: Precision, device: torch.device) -> torch.autocast:
+def _autocast(precision: Precision, device: torch.device | str) -> torch.autocast:
     """bf16 autocast where `precision` resolves to "bf16", a disabled one for "fp32"."""
+    device = torch.device(device)
     precision, _ = resolve_precision(precision, device)
     if precision == "bf16" and device.type == "cpu" and not cpu.onednn_bf16():
         # Asked for explicitly: run it (the same bf16 arithmetic as on a native CPU, in

@@ -193,7 +193,10 @@ def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: f
     """Draw one token per row among its top-k logits and return it with its probability.
 
     logits (..., v) → (tokens (...) long, confidence (...) float32), where confidence is the
-    probability of the drawn token under softmax(top-k logits / T); temperature 0 is greedy.
+    probability of the drawn token under softmax(top-k logits), whatever the temperature T
+    of the draw (as MoMask's `probs_without_temperature`): at a small T the drawn tokens'
+    probabilities under softmax(top-k logits / T) are all 1, and ranking them for
+    re-masking would fall to their positions; temperature 0 is greedy.
     Only the k candidates are normalised and sampled, which is what filtering the others to
     −inf would give, at a fraction of the cost. "categorical" inverts the CDF with one
     uniform per row; "gumbel" adds Gumbel noise to the k scaled logits and takes the argmax.
@@ -215,9 +218,10 @@ def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: f
     # Less the row's largest first: a tiny temperature then takes the others to −inf and
     # keeps the best at 0, where values / 1e-40 overflowed to inf, NaN probabilities and
     # the worst token.
-    scaled = (values - values.amax(dim=-1, keepdim=True)) / temperature if temperature > 0 \
-        else values
+    shifted = values - values.amax(dim=-1, keepdim=True)
+    scaled = shifted / temperature if temperature > 0 else shifted
     probs = torch.softmax(scaled, dim=-1)
+    confidence = probs if temperature in (0, 1) else torch.softmax(shifted, dim=-1)
     if temperature == 0:
         choice = values.argmax(dim=-1, keepdim=True)
     elif sampler == "categorical":
@@ -229,4 +233,4 @@ def sample_tokens(logits: torch.Tensor, top_k_ratio: float = 0.1, temperature: f
         choice = (scaled + gumbel_noise(scaled.shape, generator, scaled.device)).argmax(
             dim=-1, keepdim=True)
     tokens = choice if candidates is None else candidates.gather(-1, choice)
-    return tokens[..., 0], probs.gather(-1, choice)[..., 0]
+    return tokens[..., 0], confidence.gather(-1, choice)[..., 0]
