@@ -73,8 +73,11 @@ def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = No
 
 class PackedLinear(Linear):
     """`Linear` computed by oneDNN with its weights converted and packed once per precision,
-    and packed again whenever the parameters change (an in-place update); `Linear` itself
-    wherever `onednn_mode` says no."""
+    and packed again whenever the parameters change (an in-place update, an optimizer step,
+    `load_state_dict`: anything that moves autograd's version counter); `Linear` itself
+    wherever `onednn_mode` says no. A write through ``param.data`` does not move that
+    counter, so the old packing would stay: write through the parameter under
+    ``torch.no_grad()`` instead, or clear ``_packed``."""
 
     def __init__(self, in_features: int, out_features: int, activation: str = "none") -> None:
         super().__init__(in_features, out_features, activation)
