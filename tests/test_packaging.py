@@ -56,6 +56,20 @@ def test_pyproject_lists_every_package() -> None:
     assert found | {"segmo._prompts", "segmo._configs"} | mapped == listed
 
 
+def test_the_huggingface_hub_floor_has_the_modules_segmo_imports() -> None:
+    """segmo.models.hub imports from huggingface_hub.errors, which came in 0.25; the floor
+    said 0.23, and an install that pip judged valid crashed with ModuleNotFoundError."""
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    needs = {"huggingface_hub.errors": (0, 25)}  # module -> first huggingface_hub release with it
+    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    [spec] = [d for d in deps if d.startswith("huggingface_hub")]
+    floor = tuple(int(part) for part in spec.split(">=")[1].split("."))
+    code = "\n".join(p.read_text() for p in (REPO / "segmo").rglob("*.py"))
+    for module, first in needs.items():
+        if f"from {module} import" in code or f"import {module}" in code:
+            assert floor >= first, f"pyproject.toml allows {spec}, but segmo imports {module}"
+
+
 @pytest.mark.slow
 def test_the_wheel_holds_the_code_prompts_and_configs(wheel: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
