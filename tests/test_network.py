@@ -11,6 +11,8 @@ import pytest
 from segmo.errors import SegmoError
 from segmo.network import hub_unreachable
 
+PROXY_VARIABLES = ("https_proxy", "HTTPS_PROXY", "all_proxy", "ALL_PROXY", "no_proxy", "NO_PROXY")
+
 
 @pytest.fixture
 def no_network(monkeypatch):
@@ -23,6 +25,8 @@ def no_network(monkeypatch):
 
     monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
     monkeypatch.delenv("TRANSFORMERS_OFFLINE", raising=False)
+    for name in PROXY_VARIABLES:  # no proxy either: nothing could reach the hub
+        monkeypatch.delenv(name, raising=False)
     monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", False)
     monkeypatch.setattr(socket, "getaddrinfo", lookup)
 
@@ -66,3 +70,19 @@ def test_a_text_encoder_id_fails_at_once_when_the_hub_cannot_be_reached(no_netwo
     with pytest.raises(OSError, match=r"not downloadable here \(huggingface.co cannot be reached"):
         get_text_encoder("someone/encoder-that-is-not-cached")
     assert time.monotonic() - start < 10
+
+
+def test_behind_a_proxy_the_local_name_lookup_is_not_asked(no_network, monkeypatch):
+    """Behind an HTTPS proxy local DNS often resolves nothing while the proxy reaches the
+    hub: the failed local lookup refused every download that would have worked."""
+    monkeypatch.setenv("HTTPS_PROXY", "http://proxy.example.org:3128")
+    assert hub_unreachable() is None
+    monkeypatch.delenv("HTTPS_PROXY")
+    monkeypatch.setenv("all_proxy", "http://proxy.example.org:3128")
+    assert hub_unreachable() is None
+
+
+def test_a_host_the_proxy_skips_is_still_looked_up(no_network, monkeypatch):
+    monkeypatch.setenv("HTTPS_PROXY", "http://proxy.example.org:3128")
+    monkeypatch.setenv("NO_PROXY", "localhost,.huggingface.co")
+    assert hub_unreachable().startswith("huggingface.co cannot be reached")
