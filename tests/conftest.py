@@ -167,3 +167,13 @@ def tokenizer_dir(tmp_path_factory) -> dict[str, Path]:
     """{skeleton name: exported tiny tokenizer directory}."""
     return {s: build_tokenizer(tmp_path_factory.mktemp(f"rvq-{s}"), get_skeleton(s).feature_dim,
                                skeleton=s) for s in ("t2m", "kit")}
+
+
+@pytest.fixture
+def hub_cache(tmp_path, monkeypatch) -> Path:
+    """An empty Hugging Face cache, read offline."""
+    import huggingface_hub.constants
+
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    return tmp_path / "hub"

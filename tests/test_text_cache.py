@@ -204,3 +204,21 @@ def test_an_encoder_identity_sees_a_change_in_the_middle_of_the_weights(tmp_path
     data[len(data) // 2] ^= 0xFF  # one byte of one tensor, the size unchanged
     weights.write_bytes(bytes(data))
     assert encoder_identity(copy) != encoder_identity(encoder_source("minilm"))
+
+
+def test_a_hub_name_whose_weights_changed_is_refused(tmp_path, hub_cache, capsys):
+    """A hub name's cache recorded no identity (the name is no folder to hash), so after the
+    hub's main moved to other weights encode-texts said "0 new, 5 reused" and training read
+    the old weights' features."""
+    from test_text_encoders import fake_hub_cache, make_tiny_clip
+
+    root = make_dataset(tmp_path / "data")
+    make_tiny_clip(fake_hub_cache(hub_cache, "someone/tiny-clip", "a" * 40))
+    main(["--data", str(root), "--encoder", "someone/tiny-clip", "--quiet"])
+    assert TextFeatureCache.open(root, "someone/tiny-clip").meta["identity"] is not None
+    make_tiny_clip(fake_hub_cache(hub_cache, "someone/tiny-clip", "b" * 40), full_clip=True)
+    with pytest.raises(SegmoError, match="the weights differ"):
+        main(["--data", str(root), "--encoder", "someone/tiny-clip", "--quiet"])
+    with pytest.raises(SegmoError, match="the weights differ"):
+        TextFeatureCache.open(root, "someone/tiny-clip")
+

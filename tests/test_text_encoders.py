@@ -76,6 +76,40 @@ def make_tiny_clip(directory: Path, full_clip: bool = False) -> str:
     return str(directory)
 
 
+def make_tiny_roberta(directory: Path, tokenizer_max: int | None = None) -> str:
+    """Save a randomly initialised one-layer RoBERTa (514 position rows, of which the first
+    pad_token_id + 1 are never used: 513 usable with pad id 0) with MiniLM's word-piece
+    tokenizer; tokenizer_config.json gives model_max_length `tokenizer_max` (None: none)."""
+    from transformers import AutoTokenizer, RobertaConfig, RobertaModel
+
+    from segmo.text.encoders import encoder_source
+
+    tokenizer = AutoTokenizer.from_pretrained(encoder_source("minilm"))
+    config = RobertaConfig(vocab_size=tokenizer.vocab_size, hidden_size=32, num_hidden_layers=1,
+                           num_attention_heads=2, intermediate_size=64, type_vocab_size=1,
+                           max_position_embeddings=514, pad_token_id=tokenizer.pad_token_id)
+    torch.manual_seed(0)  # tests only: the tiny model's random weights
+    RobertaModel(config).save_pretrained(directory)
+    tokenizer.save_pretrained(directory)
+    settings = json.loads((directory / "tokenizer_config.json").read_text())
+    settings.pop("model_max_length", None)
+    if tokenizer_max is not None:
+        settings["model_max_length"] = tokenizer_max
+    (directory / "tokenizer_config.json").write_text(json.dumps(settings))
+    return str(directory)
+
+
+def fake_hub_cache(cache: Path, repo: str, revision: str) -> Path:
+    """The folder of `repo` at `revision` in a Hugging Face cache, as a download leaves it
+    (refs/main names the snapshot); the caller saves the model files into it."""
+    entry = cache / f"models--{repo.replace('/', '--')}"
+    (entry / "refs").mkdir(parents=True, exist_ok=True)
+    (entry / "refs" / "main").write_text(revision)
+    folder = entry / "snapshots" / revision
+    folder.mkdir(parents=True)
+    return folder
+
+
 @pytest.fixture(scope="module")
 def tiny_clip(tmp_path_factory):
     return get_text_encoder(make_tiny_clip(tmp_path_factory.mktemp("tiny_clip")))
@@ -207,3 +241,27 @@ def test_token_texts_name_each_token_feature(minilm, tiny_clip):
         assert [len(p) for p in encoder.token_texts(texts)] == counts  # one text per feature
     clip = tiny_clip.token_texts(["walks"])[0]
     assert len(clip) >= 3 and not any(p.endswith("</w>") for p in clip[1:-1])
+
+
+def test_a_long_text_is_cut_to_the_positions_a_roberta_can_use(tmp_path):
+    """RoBERTa's position ids start after its padding id: max_position_embeddings 514 holds
+    512 (here 513) usable positions, and a text cut to 514 tokens raised IndexError."""
+    encoder = get_text_encoder(make_tiny_roberta(tmp_path))
+    assert encoder.max_length == 513
+    out = encoder.encode(["a person walks forward " * 200, "jump"])
+    assert out.token_mask.sum(1).tolist() == [513, 3]
+
+
+def test_the_tokenizer_limit_counts_when_it_is_lower(tmp_path):
+    assert get_text_encoder(make_tiny_roberta(tmp_path, tokenizer_max=100)).max_length == 100
+
+
+def test_a_hub_name_truncates_like_its_folder(tmp_path, hub_cache):
+    """sentence_bert_config.json was read for a folder only: by hub name the same model
+    cut texts at 512 tokens, by folder at its max_seq_length."""
+    folder = fake_hub_cache(hub_cache, "someone/tiny-roberta", "a" * 40)
+    make_tiny_roberta(folder)
+    (folder / "sentence_bert_config.json").write_text('{"max_seq_length": 64}')
+    by_name = get_text_encoder("someone/tiny-roberta")
+    assert by_name.max_length == get_text_encoder(str(folder)).max_length == 64
+    assert by_name.encode(["a person walks forward " * 20]).token_mask.sum().item() == 64

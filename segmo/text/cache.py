@@ -8,7 +8,8 @@ removed and inner runs of whitespace collapsed to one space; case and punctuatio
 
 Layout (all arrays ``.npy``, memory-mapped on read)::
 
-    meta.json                  encoder name, kind, dim, model path, library versions
+    meta.json                  encoder name, kind, dim, max_length, model path, identity
+                               (digest of its weights), library versions
     index.json                 {"format": 1, "shards": [{"name", "texts", "token_texts"}]}
     shard-00000.sentence.npy   (m, dim) float16, row i = shard["texts"][i]
     shard-00000.tokens.npy     (L, dim) float16, token features of shard["token_texts"]
@@ -26,9 +27,11 @@ atomically replaces ``index.json``; files of a killed run that never reached the
 are ignored and later overwritten, so a killed run resumes to the same files as an
 uninterrupted one. One writer per dataset folder: `update_cache` holds the folder's
 `FolderLock` for its whole run, so a second `encode-texts` (or a `segment-texts`) on the
-same folder stops at once naming the first one's PID, and nothing is lost. Expected
-failures (a missing folder, a file that is not UTF-8, a corrupt index.json or meta.json,
-an unknown encoder) raise `SegmoError` naming the file or argument.
+same folder stops at once naming the first one's PID, and nothing is lost. A cache is
+refused when the encoder's weights (a hub name's: its cached snapshot's) differ from the
+recorded ones. Expected failures (a missing folder, a
+file that is not UTF-8, a corrupt index.json or meta.json, an unknown encoder) raise
+`SegmoError` naming the file or argument.
 """
 
 from __future__ import annotations
@@ -269,8 +272,8 @@ class CacheSummary:
 def check_encoder(folder: Path, meta: dict, source: str | Path | None) -> None:
     """SegmoError when the cache in `folder` was encoded by other weights than the encoder
     in directory `source` (`encoder_identity`; not checked when either is unknown): two
-    encoder directories of one name share a folder, and one's features were served as the
-    other's."""
+    encoder directories of one name share a folder, or a hub name's main moved to new
+    weights, and one's features were served as the other's."""
     built, now = meta.get("identity"), encoder_identity(source)
     if built is not None and now is not None and built != now:
         raise SegmoError(f"{folder}: its features were encoded by another {meta.get('encoder')!r} "
@@ -295,7 +298,7 @@ def _meta(encoder: TextEncoder) -> dict:
 
     return {"encoder": encoder.name, "kind": type(encoder).__name__, "dim": encoder.dim,
             "max_length": encoder.max_length, "model_path": encoder.model_path,
-            "identity": encoder_identity(encoder.model_path),
+            "identity": encoder_identity(encoder.folder),
             "format": FORMAT, "sentence_dtype": "float16", "token_dtype": "float16",
             "versions": {"segmo": __version__, "torch": torch.__version__,
                          "transformers": transformers.__version__, "numpy": np.__version__}}
@@ -330,7 +333,7 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
         index = _read_index(folder) if (folder / INDEX).is_file() else {"format": FORMAT, "shards": []}
         old = _read_json(folder / META, "text-feature metadata") if (folder / META).is_file() else None
         if old is not None:  # before anything is reused
-            check_encoder(folder, old, encoder.model_path if isinstance(encoder, TextEncoder)
+            check_encoder(folder, old, encoder.folder if isinstance(encoder, TextEncoder)
                           else encoder_source(encoder))
         have = {t for shard in index["shards"] for t in shard["texts"]}
         have_tokens = {t for shard in index["shards"] for t in shard["token_texts"]}

@@ -15,6 +15,9 @@ Hugging Face hub name:
   (the model card's recipe); ``tokens`` are the raw last hidden states (384-d). Any other
   BERT-like model directory is encoded the same way.
 
+Texts are cut to `encoder_max_length` tokens, read from the model's files (a hub name's
+cached snapshot, as a directory's).
+
 Example::
 
     >>> enc = get_text_encoder("minilm")
@@ -78,11 +81,14 @@ class TextEncoder:
     """
 
     def __init__(self, name: str, model, tokenizer, dim: int, max_length: int,
-                 model_path: str, device: str | torch.device = "cpu"):
+                 model_path: str, device: str | torch.device = "cpu",
+                 folder: str | os.PathLike | None = None):
         self.name = name
         self.dim = dim
         self.max_length = max_length
-        self.model_path = model_path
+        self.model_path = model_path  # as given: a directory, or a hub name
+        # the directory the files were read from (a hub name's snapshot), for encoder_identity
+        self.folder = Path(folder) if folder is not None else encoder_source(model_path)
         self.device = torch.device(device)
         self.tokenizer = tokenizer
         self.model = model.to(self.device).eval().requires_grad_(False)
@@ -234,6 +240,49 @@ def encoder_source(name_or_path: str) -> Path | None:
     return Path(found).parent if isinstance(found, str) else None
 
 
+# Models whose position ids start after the padding id: of max_position_embeddings rows,
+# the first pad_token_id + 1 are never used (RoBERTa: 514 rows, 512 positions).
+_PADDING_OFFSET_TYPES = ("roberta", "roberta-prelayernorm", "xlm-roberta", "xlm-roberta-xl",
+                         "camembert", "longformer", "mpnet", "data2vec-text", "ibert", "luke", "xmod")
+_NO_TOKENIZER_LIMIT = 10**6  # transformers says 1e30 when the tokenizer names no length
+
+
+def encoder_max_length(source: str | os.PathLike | None) -> int | None:
+    """The number of tokens the encoder in directory `source` cuts texts to, from its files
+    alone (no model is loaded): CLIP at most 77; any other model the least of the positions
+    it can embed, its tokenizer's model_max_length and sentence_bert_config.json's
+    max_seq_length (the length sentence-transformers itself cuts to). None when unknown."""
+    if source is None or not (Path(source) / "config.json").is_file():
+        return None
+    folder = Path(source)
+
+    def read(name: str) -> dict:
+        path = folder / name
+        try:
+            found = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+        except (OSError, ValueError):
+            return {}
+        return found if isinstance(found, dict) else {}
+
+    config = read("config.json")
+    kind = config.get("model_type", "")
+    if kind in ("clip", "clip_text_model"):
+        text = (config.get("text_config") or {}) if kind == "clip" else config
+        positions = text.get("max_position_embeddings", CLIP_MAX_TOKENS)
+        return min(CLIP_MAX_TOKENS, positions) if isinstance(positions, int) else CLIP_MAX_TOKENS
+    limits = []
+    positions = config.get("max_position_embeddings")
+    if isinstance(positions, int):
+        pad = config.get("pad_token_id")
+        offset = pad + 1 if kind in _PADDING_OFFSET_TYPES and isinstance(pad, int) else 0
+        limits.append(positions - offset)
+    for value in (read("tokenizer_config.json").get("model_max_length"),
+                  read("sentence_bert_config.json").get("max_seq_length")):
+        if isinstance(value, int) and 0 < value < _NO_TOKENIZER_LIMIT:
+            limits.append(value)
+    return min(limits) if limits else None
+
+
 def encoder_identity(source: str | os.PathLike | None) -> str | None:
     """A short digest of the model in directory `source`, its config.json and weight files,
     so that two encoders of one folder name (two directories called "model") or weights
@@ -291,15 +340,20 @@ def get_text_encoder(name_or_path: str, device: str | torch.device = "cpu") -> T
         raise FileNotFoundError(f"text encoder {name_or_path!r}: {source} is not a model directory")
     config = _from_pretrained(AutoConfig, source, local)
     tokenizer = _from_pretrained(AutoTokenizer, source, local)
-    if _is_clip(config):
-        model = _from_pretrained(CLIPTextModelWithProjection, source, local)
-        max_length = min(CLIP_MAX_TOKENS, model.config.max_position_embeddings)
-        return ClipTextEncoder(name, model, tokenizer, model.config.projection_dim, max_length,
-                               source, device)
-    model = _from_pretrained(AutoModel, source, local)
-    max_length = model.config.max_position_embeddings
-    st_config = Path(source) / "sentence_bert_config.json"
-    if local and st_config.is_file():  # the length sentence-transformers itself truncates to
-        max_length = json.loads(st_config.read_text(encoding="utf-8")).get("max_seq_length", max_length)
-    return MeanPoolTextEncoder(name, model, tokenizer, model.config.hidden_size, max_length,
-                               source, device)
+    clip = _is_clip(config)
+    model = _from_pretrained(CLIPTextModelWithProjection if clip else AutoModel, source, local)
+    # Loaded, so here: a hub name's snapshot in the Hugging Face cache.
+    folder = Path(source) if local else encoder_source(source)
+    if folder is None:
+        raise OSError(f"text encoder {name_or_path!r} loaded, but its files are not found in the "
+                      "Hugging Face cache; pass its directory instead")
+    max_length = encoder_max_length(folder)
+    if max_length is None:
+        raise ValueError(f"text encoder {name_or_path!r}: {folder} names no length limit (no "
+                         "max_position_embeddings in config.json, model_max_length in "
+                         "tokenizer_config.json or max_seq_length in sentence_bert_config.json)")
+    if clip:
+        return ClipTextEncoder(name, model, tokenizer, model.config.projection_dim,
+                               max_length, source, device, folder)
+    return MeanPoolTextEncoder(name, model, tokenizer, model.config.hidden_size,
+                               max_length, source, device, folder)
