@@ -222,3 +222,23 @@ def test_a_hub_name_whose_weights_changed_is_refused(tmp_path, hub_cache, capsys
     with pytest.raises(SegmoError, match="the weights differ"):
         TextFeatureCache.open(root, "someone/tiny-clip")
 
+
+def test_features_cut_at_another_length_are_refused(tmp_path):
+    """sentence_bert_config.json's max_seq_length changed: encode-texts reused features cut
+    at the old length, which the live encoder no longer gives (cosine 0.85-0.9)."""
+    from test_text_encoders import make_tiny_roberta
+
+    root = make_dataset(tmp_path / "data")
+    model = tmp_path / "model"
+    model.mkdir()
+    make_tiny_roberta(model)
+    main(["--data", str(root), "--encoder", str(model), "--quiet"])
+    assert TextFeatureCache.open(root, str(model)).meta["max_length"] == 513
+    (model / "sentence_bert_config.json").write_text('{"max_seq_length": 4}')
+    with pytest.raises(SegmoError, match=r"text_features/model: its features were cut at 513 "
+                                         r"tokens, the encoder .*model now cuts at 4"):
+        main(["--data", str(root), "--encoder", str(model), "--quiet"])
+    with pytest.raises(SegmoError, match="now cuts at 4"):
+        TextFeatureCache.open(root, str(model))
+    with pytest.raises(SegmoError, match="now cuts at 4"):
+        update_cache(root, get_text_encoder(str(model)), progress=False)

@@ -28,8 +28,8 @@ are ignored and later overwritten, so a killed run resumes to the same files as 
 uninterrupted one. One writer per dataset folder: `update_cache` holds the folder's
 `FolderLock` for its whole run, so a second `encode-texts` (or a `segment-texts`) on the
 same folder stops at once naming the first one's PID, and nothing is lost. A cache is
-refused when the encoder's weights (a hub name's: its cached snapshot's) differ from the
-recorded ones. Expected failures (a missing folder, a
+refused when the encoder's weights (a hub name's: its cached snapshot's) or the length
+it cuts texts to differ from the recorded ones. Expected failures (a missing folder, a
 file that is not UTF-8, a corrupt index.json or meta.json, an unknown encoder) raise
 `SegmoError` naming the file or argument.
 """
@@ -56,6 +56,7 @@ from segmo.text.encoders import (
     TextEncoder,
     encoder_folder_name,
     encoder_identity,
+    encoder_max_length,
     encoder_source,
     get_text_encoder,
 )
@@ -204,7 +205,8 @@ class TextFeatureCache:
             raise FileNotFoundError(f"no text-feature cache at {folder}; build it with "
                                     f"`segmo encode-texts --data {root} --encoder {encoder}`")
         cache = cls(folder)
-        check_encoder(folder, cache.meta, encoder_source(encoder))
+        source = encoder_source(encoder)
+        check_encoder(folder, cache.meta, source, encoder_max_length(source))
         return cache
 
     def sentence(self, texts: list[str]) -> torch.Tensor:
@@ -269,16 +271,26 @@ class CacheSummary:
                 f"reused, {self.seconds:.1f} s, {self.bytes_on_disk / 2**20:.1f} MiB on disk")
 
 
-def check_encoder(folder: Path, meta: dict, source: str | Path | None) -> None:
+def check_encoder(folder: Path, meta: dict, source: str | Path | None,
+                  max_length: int | None = None) -> None:
     """SegmoError when the cache in `folder` was encoded by other weights than the encoder
-    in directory `source` (`encoder_identity`; not checked when either is unknown): two
-    encoder directories of one name share a folder, or a hub name's main moved to new
-    weights, and one's features were served as the other's."""
+    in directory `source` (`encoder_identity`), or by the same weights with texts cut at
+    another length than its `max_length`; not checked when either identity is unknown (an
+    encoder object not read from a directory): two encoder directories of one name share
+    a folder, a hub name's main moved to new weights, or sentence_bert_config.json
+    changed, and old features were served as the encoder's."""
     built, now = meta.get("identity"), encoder_identity(source)
-    if built is not None and now is not None and built != now:
+    if built is None or now is None:
+        return
+    if built != now:
         raise SegmoError(f"{folder}: its features were encoded by another {meta.get('encoder')!r} "
                          f"encoder than {source} (the weights differ); delete the folder to "
                          "encode again, or give this encoder a directory of another name")
+    cut = meta.get("max_length")
+    if isinstance(cut, int) and max_length is not None and cut != max_length:
+        raise SegmoError(f"{folder}: its features were cut at {cut} tokens, the encoder {source} "
+                         f"now cuts at {max_length} (its tokenizer or sentence_bert_config.json "
+                         "changed); delete the folder to encode again")
 
 
 def _load_array(path: str, mmap_mode: str | None = None) -> np.ndarray:
@@ -333,8 +345,11 @@ def update_cache(root: str | Path, encoder: str | TextEncoder, segments: list[st
         index = _read_index(folder) if (folder / INDEX).is_file() else {"format": FORMAT, "shards": []}
         old = _read_json(folder / META, "text-feature metadata") if (folder / META).is_file() else None
         if old is not None:  # before anything is reused
-            check_encoder(folder, old, encoder.folder if isinstance(encoder, TextEncoder)
-                          else encoder_source(encoder))
+            if isinstance(encoder, TextEncoder):
+                check_encoder(folder, old, encoder.folder, encoder.max_length)
+            else:
+                source = encoder_source(encoder)
+                check_encoder(folder, old, source, encoder_max_length(source))
         have = {t for shard in index["shards"] for t in shard["texts"]}
         have_tokens = {t for shard in index["shards"] for t in shard["token_texts"]}
         todo = [t for t in all_texts if t not in have or (t in caption_set and t not in have_tokens)]
