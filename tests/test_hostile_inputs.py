@@ -152,6 +152,12 @@ CLI_CASES = [
         "is a number"),
     Cli("generate-bundle-steps", "generate --model {bad_steps} --text walk --out {tmp}/g",
         "segmo.json: steps", "a segmo.json with 0 decoding steps"),
+    Cli("generate-bundle-no-text-encoder", "generate --model {no_text_encoder} --text walk "
+        "--out {tmp}/g", "segmo.json: missing key 'text_encoder'", "a segmo.json without "
+        "'text_encoder' (was a TypeError)"),
+    Cli("generate-bundle-skeleton-list", "generate --model {skeleton_list} --text walk "
+        "--out {tmp}/g", "segmo.json: 'skeleton'", "a segmo.json whose skeleton is a list (was "
+        "a TypeError: unhashable type)"),
     Cli("generate-residual-layers", GEN + " --text walk --residual-guided-layers -1",
         "--residual-guided-layers", "a negative number of guided residual layers"),
     Cli("generate-config-json", "generate --model {bad_config_json} --text walk --out {tmp}/g",
@@ -233,6 +239,12 @@ CLI_CASES = [
         "`--push-to-hub` with no repository id (was refused after the bundle was written)"),
     Cli("bundle-segmenter", "bundle --tokenizer {bundle}/tokenizer --mask {bundle}/mask "
         "--segmenter llama --out {tmp}/b", "--segmenter", "an unknown text segmenter"),
+    Cli("bundle-stage-meta", "bundle --tokenizer {bundle}/tokenizer --mask {meta_string}/mask "
+        "--out {tmp}/b", "mask/config.json: 'meta'", "a stage whose config.json's meta is a "
+        "string (was an AttributeError)"),
+    Cli("bundle-tokenizer-bad-id", "bundle --tokenizer foo/bar..baz --mask {bundle}/mask "
+        "--out {tmp}/b", "foo/bar..baz", "a tokenizer that is neither a folder nor a valid hub "
+        "id (was an HFValidationError traceback)"),
     Cli("bundle-stage-json", "bundle --tokenizer {bundle}/tokenizer --mask {bad_config_json}/mask "
         "--out {tmp}/b", "config.json:1", "a stage whose config.json is invalid JSON"),
     # -- segmo render
@@ -297,6 +309,9 @@ CLI_CASES = [
         "a digit int() refuses (was a ValueError traceback)"),
     Cli("evaluate-evaluator-kind", "evaluate --real-only --data {corpus} --evaluator "
         "{bundle}/mask --out {tmp}/e", "--evaluator", "a mask stage as evaluator"),
+    Cli("evaluate-evaluator-kind-list", "evaluate --real-only --data {corpus} --evaluator "
+        "{kind_list}/mask --out {tmp}/e", "config.json: 'kind'", "a config.json whose kind is "
+        "a list (was a TypeError: unhashable type)"),
     Cli("evaluate-device", "evaluate --real-only --data {corpus} --evaluator {tmp} "
         "--out {tmp}/e --device toaster", "--device toaster", "a device torch does not know"),
     Cli("evaluate-threads-huge", "evaluate --real-only --data {corpus} --evaluator {tmp} "
@@ -650,6 +665,14 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
                                                       lambda p: p.update(text_segmenter="llama")))
     variant("bad_motion_segmenter", lambda d: edit_json(d / "segmo.json",
                                                         lambda p: p.update(motion_segmenter=42)))
+    variant("no_text_encoder", lambda d: edit_json(d / "segmo.json",
+                                                   lambda p: p.pop("text_encoder")))
+    variant("skeleton_list", lambda d: edit_json(d / "segmo.json",
+                                                 lambda p: p.update(skeleton=["t2m"])))
+    variant("kind_list", lambda d: edit_json(d / "mask" / "config.json",
+                                             lambda p: p.update(kind=["mask"])))
+    variant("meta_string", lambda d: edit_json(d / "mask" / "config.json",
+                                               lambda p: p.update(meta="x")))
     variant("bad_config_json", lambda d: (d / "mask" / "config.json").write_text("{kind"))
     variant("extra_field", lambda d: edit_json(d / "mask" / "config.json",
                                                lambda p: p["config"].update(wings=2)))

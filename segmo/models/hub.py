@@ -75,6 +75,7 @@ def resolve(name: str | os.PathLike, revision: str | None = None) -> Path:
     from huggingface_hub import constants, snapshot_download
     from huggingface_hub.errors import (
         HfHubHTTPError,
+        HFValidationError,
         LocalEntryNotFoundError,
         RepositoryNotFoundError,
         RevisionNotFoundError,
@@ -93,6 +94,8 @@ def resolve(name: str | os.PathLike, revision: str | None = None) -> Path:
         raise SegmoError(f"{text}: no such model folder, and no such hub repository"
                          f"{f' at revision {revision!r}' if revision else ''} "
                          f"({type(error).__name__})") from None
+    except HFValidationError as error:  # shaped like owner/name, but e.g. "a/b..c"
+        raise SegmoError(f"{text}: no such model folder, nor a valid hub id ({error})") from None
     except HfHubHTTPError as error:
         raise SegmoError(f"{text}: the hub answered {error}") from None
 

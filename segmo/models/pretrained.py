@@ -198,6 +198,8 @@ def read_json(path: str | os.PathLike) -> dict:
 
 
 def read_config(directory: str | os.PathLike) -> dict:
+    """The payload of ``DIR/config.json``; SegmoError naming the file and key when it lacks
+    'kind' or 'config', or 'kind' or 'meta' is of the wrong type."""
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not a segmo model directory (no {CONFIG_FILE})")
@@ -205,6 +207,10 @@ def read_config(directory: str | os.PathLike) -> dict:
     for key in ("kind", "config"):
         if key not in payload:
             raise SegmoError(f"{path}: missing key {key!r}")
+    if not isinstance(payload["kind"], str):
+        raise SegmoError(f"{path}: 'kind' must name a model kind, got {payload['kind']!r:.80}")
+    if not isinstance(payload.get("meta", {}), dict):
+        raise SegmoError(f"{path}: 'meta' must be an object, got {payload['meta']!r:.80}")
     check_format(payload, path)
     return payload
 

@@ -47,6 +47,7 @@ from segmo.models.pretrained import (
     read_config,
     read_json,
 )
+from segmo.motion.skeleton import SKELETONS
 from segmo.pipeline.model_card import CARD_FILE, model_card
 from segmo.segmentation import SegmenterName
 
@@ -120,11 +121,16 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
         raise FileNotFoundError(f"{path}: not a SegMo bundle (no {BUNDLE_FILE}){hint}")
     payload = read_json(path)
     check_format(payload, path)
+    if "text_encoder" not in payload:
+        raise SegmoError(f"{path}: missing key 'text_encoder' (the text encoder's name)")
     known = {f.name for f in dataclasses.fields(SegMoConfig)}
     config = SegMoConfig(**{k: v for k, v in payload.items() if k in known})
     if not isinstance(config.text_encoder, str):
         raise SegmoError(f"{path}: 'text_encoder' must name the text encoder, got "
                          f"{config.text_encoder!r}")
+    if not isinstance(config.skeleton, str) or config.skeleton not in SKELETONS:
+        raise SegmoError(f"{path}: 'skeleton' must be one of {', '.join(SKELETONS)}, got "
+                         f"{config.skeleton!r:.80}")
     fps = config.fps  # the frame rate of the motions, which the GIFs and BVH files play at
     if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not 1 <= fps <= 1000:
         raise SegmoError(f"{path}: 'fps' must be a frame rate from 1 to 1000, got {fps!r}")
