@@ -177,6 +177,9 @@ CLI_CASES = [
         "NaN or inf", "weights holding NaN (a diverged run)"),
     Cli("generate-stage-missing", "generate --model {no_mask} --text walk --out {tmp}/g",
         "mask", "a bundle without its mask stage"),
+    Cli("generate-stage-folder-missing", "generate --model {no_residual} --text walk --out "
+        "{tmp}/g", "no_residual/residual: missing, but segmo.json lists", "a bundle whose "
+        "residual folder was lost in a copy (generated without it, without a word)"),
     # -- segmo ground
     Cli("ground-motion-nan", GROUND + " --motion {nan_motion}", "nan_motion.npy",
         "a motion with a NaN frame"),
@@ -692,6 +695,7 @@ def _corrupt_files(tmp: Path, bundle: Path) -> dict[str, Path]:
 
     variant("nan_weights", poison)
     variant("no_mask", lambda d: shutil.rmtree(d / "mask"))
+    variant("no_residual", lambda d: shutil.rmtree(d / "residual"))
 
     def residual_loop(d: Path) -> None:
         shutil.rmtree(d / "residual")

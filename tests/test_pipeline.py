@@ -255,6 +255,22 @@ def test_bundle_records_versions_and_writes_a_model_card(bundle, tmp_path):
     assert "## Evaluation" in card and "| 0.500 | 1.250 |" in card
 
 
+def test_a_bundle_missing_a_stage_folder_it_records_is_refused(bundle, tmp_path):
+    """A partial copy or download (no residual/) is refused, not loaded without the stage;
+    a bundle written before the stages were recorded loads what it holds, as before."""
+    copy = tmp_path / "copy"
+    shutil.copytree(bundle, copy)
+    payload = json.loads((copy / "segmo.json").read_text())
+    assert payload["stages"] == ["tokenizer", "mask", "residual", "length"]
+    shutil.rmtree(copy / "residual")
+    with pytest.raises(SegmoError, match=r"copy/residual: missing, but segmo.json lists"):
+        SegMo.from_pretrained(copy, text_encoder=hash_encoder("hash", TEXT_DIM))
+    del payload["stages"]  # as a bundle of an earlier segmo
+    (copy / "segmo.json").write_text(json.dumps(payload))
+    old = SegMo.from_pretrained(copy, text_encoder=hash_encoder("hash", TEXT_DIM))
+    assert old.residual is None and old.length is not None
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

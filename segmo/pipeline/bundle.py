@@ -1,8 +1,8 @@
 """The bundle directory: every stage `SegMo` needs, and `segmo.json` saying how to use them.
 
-    DIR/segmo.json     {"format": 1, "segmo_version", "text_encoder", "text_segmenter",
-                        "skeleton", "fps", "guidance_scale", "residual_guidance_scale",
-                        "motion_segmenter"}
+    DIR/segmo.json     {"format": 1, "segmo_version", "stages", "text_encoder",
+                        "text_segmenter", "skeleton", "fps", "guidance_scale",
+                        "residual_guidance_scale", "motion_segmenter", ...}
     DIR/README.md      the model card (`segmo.pipeline.model_card`)
     DIR/tokenizer/     RVQ-VAE model directory (its buffers hold the feature statistics)
     DIR/mask/          mask transformer (+ alignment head)
@@ -14,6 +14,9 @@ bundle is read from a folder or a Hugging Face hub id (`segmo.models.hub`). It i
 whole (`segmo.files.replacing_folder`): `SegMo.from_pretrained` loads every stage folder it
 finds, so no stage of an earlier bundle may stay behind. A folder that holds anything a
 rebuild would delete (such a stage, a file of the user's) is refused without ``overwrite``.
+`segmo.json`'s "stages" lists the stage folders written, so that a bundle missing one of
+them (a partial copy or download) is refused rather than loaded without it; a bundle of an
+earlier segmo, without the list, loads the stages it holds.
 """
 
 from __future__ import annotations
@@ -149,6 +152,15 @@ def read_bundle(directory: str | os.PathLike, revision: str | None = None
         SamplingOptions(**sampling_fields(config))
     except SegmoError as error:
         raise SegmoError(f"{path}: {str(error).removeprefix('SegMo: ')}") from None
+    recorded = payload.get("stages", [])  # not recorded by earlier bundles
+    if not isinstance(recorded, list) or not all(isinstance(n, str) and n in STAGES
+                                                 for n in recorded):
+        raise SegmoError(f"{path}: 'stages' must be a list of stage names "
+                         f"({', '.join(STAGES)}), got {recorded!r:.80}")
+    for name in recorded:  # a partial copy or download does not load without a stage
+        if not (directory / name).exists() and not (directory / name).is_symlink():
+            raise SegmoError(f"{directory / name}: missing, but {BUNDLE_FILE} lists the {name} "
+                             "stage (an incomplete copy or download?)")
     for name in STAGES:  # an optional stage that is there but broken is not left out
         path = directory / name
         if (path.exists() or path.is_symlink()) and not path.is_dir():
@@ -184,8 +196,9 @@ def write_bundle(directory: str | os.PathLike, config: SegMoConfig,
     with replacing_folder(directory) as tmp:
         for name in given:
             stages[name].save_pretrained(tmp / name)
+        # A new optional key: an earlier segmo reads the bundle as before (no format bump).
         payload = {**dataclasses.asdict(config), "format": BUNDLE_FORMAT,
-                   "segmo_version": segmo_version()}
+                   "segmo_version": segmo_version(), "stages": given}
         write_atomic(tmp / BUNDLE_FILE, json.dumps(payload, indent=2) + "\n")
         write_atomic(tmp / CARD_FILE, model_card(config, stages, metrics))
     if push_to_hub:
