@@ -15,6 +15,7 @@ import torch
 import yaml
 from conftest import cli_failure
 
+from segmo.data.motion_tokens import tokenizer_digest
 from segmo.models.mask_transformer import masked_token_loss
 from segmo.models.pretrained import load_pretrained
 from segmo.tasks.common import text_condition, token_lengths
@@ -154,6 +155,8 @@ def test_max_segments_is_stated_by_the_data_and_reaches_the_model(text_dataset, 
     cli = cli_main(["fit", "--config", str(config), *args, "--data.init_args.max_segments=4"])
     assert cli.model.model.config.max_segments == 4 == cli.datamodule.max_segments
     assert cli.datamodule.dataset("train")[0]["segment_mask"].shape == (4,)
+    assert cli.model.export_model().meta["tokenizer_digest"] == tokenizer_digest(
+        load_pretrained(tokenizer_dir["t2m"]))  # what `segmo bundle` compares
     old = tmp_path / "old.yaml"
     old.write_text(config.read_text().replace("    max_tokens: 49\n",
                                               "    max_segments: 5\n    max_tokens: 49\n", 1))
@@ -202,6 +205,8 @@ def test_export_reproduces_the_task(text_dataset, tokenizer_dir, tmp_path):
         assert not Path(model.meta[key]).is_absolute() and model.meta[key].endswith(
             ("last.ckpt", "rvq", checkpoint.name, Path(str(tokenizer_dir["t2m"])).name)), model.meta[key]
     assert model.meta["data"]["root"] and model.meta["global_step"] == 2
+    # the digest `segmo bundle` compares: that of the exported tokenizer it was trained with
+    assert model.meta["tokenizer_digest"] == tokenizer_digest(load_pretrained(tokenizer_dir["t2m"]))
     task = MaskTask.load_from_checkpoint(checkpoint).eval()
     g = torch.Generator().manual_seed(0)
     b, n, a = 2, 6, 5

@@ -1141,6 +1141,35 @@ def test_cli_bundle_options_and_errors(stages, tmp_path, capsys):
     assert "--tokenizer" in line and "no such directory" in line
 
 
+def test_cli_bundle_refuses_a_tokenizer_other_than_the_stages_were_trained_with(
+        stages, tmp_path, capsys):
+    """A tokenizer of the same config but other codebooks made garbage motions: the stages
+    record the digest of theirs, and `segmo bundle` compares it; stages exported before
+    (no digest) are bundled as before."""
+    from segmo.data.motion_tokens import tokenizer_digest
+    from segmo.models.pretrained import load_pretrained
+
+    tokenizer = load_pretrained(stages["tokenizer"])
+    other = load_pretrained(stages["tokenizer"])
+    with torch.no_grad():
+        for parameter in other.parameters():
+            parameter.add_(0.5)
+    other.save_pretrained(tmp_path / "other_rvq")
+    assert tokenizer_digest(other) != tokenizer_digest(tokenizer)
+    for name in ("mask", "residual"):
+        model = load_pretrained(stages[name])
+        model.save_pretrained(tmp_path / name, meta={"tokenizer_digest": tokenizer_digest(tokenizer)})
+    argv = ["bundle", "--mask", str(tmp_path / "mask"), "--residual", str(tmp_path / "residual")]
+    line = cli_failure([*argv, "--tokenizer", str(tmp_path / "other_rvq"), "--out",
+                        str(tmp_path / "b")], capsys)
+    assert "mask stage was trained with the tokenizer" in line and str(stages["tokenizer"]) in line
+    assert "other_rvq" in line and not (tmp_path / "b").exists()
+    bundle_main([*argv[1:], "--tokenizer", str(stages["tokenizer"]), "--out", str(tmp_path / "b")])
+    bundle_main(["--mask", str(stages["mask"]), "--tokenizer", str(tmp_path / "other_rvq"),
+                 "--out", str(tmp_path / "old")])  # no digest recorded: as before
+    assert SegMo.from_pretrained(tmp_path / "b").residual is not None
+
+
 def test_cli_bundle_into_an_existing_folder(stages, tmp_path, capsys):
     """Writing the same bundle again works; a folder holding what the new bundle would not
     write back (an earlier bundle's stages, the user's files) is refused untouched without

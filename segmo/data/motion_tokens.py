@@ -72,6 +72,13 @@ def cache_key(tokenizer: torch.nn.Module, mean: np.ndarray, std: np.ndarray) -> 
     return h.hexdigest()[:16]
 
 
+def tokenizer_digest(tokenizer: torch.nn.Module) -> str:
+    """16 hex digits naming a tokenizer alone (config, weights, its own statistics): the
+    cache key of data z-scored as it z-scores them. Exported mask and residual transformers
+    record it in meta ("tokenizer_digest"); `segmo bundle` refuses another tokenizer."""
+    return cache_key(tokenizer, tokenizer.mean.cpu(), tokenizer.std.cpu())
+
+
 def clip_key(raw: np.ndarray) -> str:
     """The key of a clip: a hash of its raw (t, d) frames."""
     h = hashlib.blake2b(str(raw.shape).encode(), digest_size=12)

@@ -112,6 +112,25 @@ def load_stage(directory: str | os.PathLike, kind: str) -> torch.nn.Module:
     return load_pretrained(directory)
 
 
+def check_tokenizer(stages: dict[str, torch.nn.Module | None], tokenizer: str | os.PathLike) -> None:
+    """Refuse a tokenizer (`stages["tokenizer"]`, loaded from `tokenizer`) other than the
+    one the mask and residual stages were trained with, where they record its digest: one
+    of the same config but other codebooks decodes their tokens into garbage motions."""
+    from segmo.data.motion_tokens import tokenizer_digest  # hashes every weight: only when needed
+
+    digest = None
+    for name in ("mask", "residual"):
+        meta = getattr(stages[name], "meta", None) or {}
+        if meta.get("tokenizer_digest") is None:
+            continue  # exported before the digest was recorded
+        digest = digest or tokenizer_digest(stages["tokenizer"])
+        if meta["tokenizer_digest"] != digest:
+            raise SegmoError(f"SegMo.from_stages: the {name} stage was trained with the tokenizer "
+                             f"{meta.get('tokenizer', '?')} (digest {meta['tokenizer_digest']}), "
+                             f"not {tokenizer} (digest {digest}); pass the tokenizer it was "
+                             "trained with")
+
+
 def read_bundle(directory: str | os.PathLike, revision: str | None = None
                 ) -> tuple[SegMoConfig, dict[str, torch.nn.Module | None]]:
     """`segmo.json` and the stages of a bundle (a folder or a hub id); one SegmoError

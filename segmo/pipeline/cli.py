@@ -464,7 +464,9 @@ def bundle_main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(
         prog="segmo bundle",
         description="assemble exported stage directories into one SegMo bundle directory")
-    parser.add_argument("--tokenizer", required=True, help="exported RVQ-VAE directory")
+    parser.add_argument("--tokenizer", required=True,
+                        help="exported RVQ-VAE directory: the one the mask and residual stages "
+                             "were trained with (checked where they record its digest)")
     parser.add_argument("--mask", required=True, help="exported mask transformer directory")
     parser.add_argument("--residual", default=None, help="exported residual transformer")
     parser.add_argument("--length", default=None, help="exported length estimator")

@@ -52,6 +52,7 @@ from segmo.pipeline.bundle import (
     KIT_GUIDANCE_SCALE,
     STAGES,
     SegMoConfig,
+    check_tokenizer,
     load_stage,
     read_bundle,
     sampling_fields,
@@ -143,10 +144,13 @@ class SegMo:
                     residual: str | os.PathLike | None = None,
                     length: str | os.PathLike | None = None, segmenter: str = "rule",
                     **kwargs: Any) -> SegMo:
-        """Assemble from exported stage directories (`segmo export` outputs)."""
+        """Assemble from exported stage directories (`segmo export` outputs). The mask and
+        residual stages must have been trained with `tokenizer` where they record its digest
+        (meta "tokenizer_digest"; stages exported before it was recorded are not checked)."""
         stages = {"tokenizer": load_stage(tokenizer, "rvq"), "mask": load_stage(mask, "mask"),
                   "residual": load_stage(residual, "residual") if residual else None,
                   "length": load_stage(length, "length") if length else None}
+        check_tokenizer(stages, tokenizer)
         names = {n: (getattr(m, "meta", {}) or {}).get("text_encoder")
                  for n, m in stages.items() if m is not None and n != "tokenizer"}
         if len({v for v in names.values() if v is not None}) > 1:

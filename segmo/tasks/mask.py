@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from segmo.data.collate import related_samples
+from segmo.data.motion_tokens import tokenizer_digest
 from segmo.errors import SegmoError
 from segmo.models.alignment import AlignmentConfig
 from segmo.models.hub import portable_path
@@ -486,6 +487,7 @@ class MaskTask(TransformerTask):
     def export_model(self) -> MaskTransformer:
         self.model.meta = {
             "tokenizer": portable_path(self.hparams.tokenizer),
+            "tokenizer_digest": tokenizer_digest(self.tokenizer),  # checked by `segmo bundle`
             "text_encoder": self.hparams.text_encoder,
             "alignment": self.hparams.alignment,
             "segmenter": self.hparams.segmenter,

@@ -14,6 +14,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from segmo.data.motion_tokens import tokenizer_digest
 from segmo.models.hub import portable_path
 from segmo.models.mask_transformer import masked_token_loss
 from segmo.models.residual_transformer import (
@@ -80,6 +81,7 @@ class ResidualTask(TransformerTask):
 
     def export_model(self) -> ResidualTransformer:
         self.model.meta = {"tokenizer": portable_path(self.hparams.tokenizer),
+                           "tokenizer_digest": tokenizer_digest(self.tokenizer),  # `segmo bundle`
                            "text_encoder": self.hparams.text_encoder,
                            "cond_drop_prob": self.hparams.cond_drop_prob}
         return self.model
