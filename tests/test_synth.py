@@ -364,9 +364,14 @@ def test_cli_refuses_a_foreign_folder(tmp_path, capsys):
 
 def test_leftovers_of_a_killed_build_go_and_folders_named_alike_stay(tmp_path, capsys):
     out = tmp_path / "data"
-    killed = tmp_path / "data.tmp-4242"  # what a build killed midway leaves
+    killed = tmp_path / "data.tmp-99999999-0"  # what a build killed midway leaves (<pid>-<n>)
     (killed / "new_joint_vecs").mkdir(parents=True)
     (killed / "train.txt").write_text("000000\n")
+    # The user's dated backup of a corpus: corpus entries and a digit suffix, but not a
+    # writer's name; an earlier clean-up took it for a leftover and deleted it.
+    backup = tmp_path / "data.old-20240101"
+    (backup / "new_joint_vecs").mkdir(parents=True)
+    (backup / "train.txt").write_text("000000\n")
     photos = tmp_path / "data.old-photos"  # the user's, named alike
     photos.mkdir()
     (photos / "a.jpg").write_text("mine")
@@ -376,6 +381,9 @@ def test_leftovers_of_a_killed_build_go_and_folders_named_alike_stay(tmp_path, c
     main(["--out", str(out), "--num-motions", "3", "--workers", "1"])
     assert not killed.exists()
     assert (photos / "a.jpg").read_text() == "mine" and (notes / "notes.txt").read_text() == "mine"
+    assert (backup / "train.txt").read_text() == "000000\n"
+    main(["--out", str(out), "--num-motions", "3", "--workers", "1"])  # the same corpus: nothing to do
+    assert (backup / "train.txt").read_text() == "000000\n"
     line = cli_failure(["synth", "--out", str(tmp_path / "huge"), "--num-motions", "99999999999"],
                        capsys)
     assert "num_motions must be in [1, 1,000,000]" in line and not (tmp_path / "huge").exists()

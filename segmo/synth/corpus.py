@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import shutil
 import signal
 import sys
 from pathlib import Path
@@ -151,18 +150,6 @@ def _corpus_of(path: Path) -> dict | None:
         return None
 
 
-def remove_leftovers(out: Path) -> None:
-    """Delete the folders a killed build of `out` left beside it (``OUT.tmp-<pid>``,
-    ``OUT.old-<pid>``): only folders of that exact name holding nothing but a corpus' own
-    entries, so that a folder of the user's named alike (``corpus.old-photos``) stays."""
-    for kind in ("tmp", "old"):
-        for leftover in out.parent.glob(f"{out.name}.{kind}-*"):
-            pid = leftover.name.removeprefix(f"{out.name}.{kind}-")
-            if (pid.isascii() and pid.isdigit() and leftover.is_dir() and not leftover.is_symlink()
-                    and all(p.name in CORPUS_ENTRIES for p in leftover.iterdir())):
-                shutil.rmtree(leftover, ignore_errors=True)
-
-
 def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int = 1,
                  overwrite: bool = False, progress: bool = True, version: int = VERSION) -> Path:
     """Write a corpus of `num_motions` motions (sampled as corpus `version` does) to `out`;
@@ -186,7 +173,6 @@ def build_corpus(out: str | Path, num_motions: int, seed: int = 0, workers: int 
         raise SegmoError(f"build_corpus: {out} exists and is not a folder")
     check_replaceable_place(out)  # before the lock, whose file would land there
     with FolderLock(out, "segmo synth"):
-        remove_leftovers(out)
         existing = _corpus_of(out)
         wanted = {"version": version, "seed": seed, "num_motions": num_motions}
         extra = sorted(p.name for p in out.iterdir() if p.name not in CORPUS_ENTRIES)
