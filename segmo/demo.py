@@ -23,6 +23,7 @@ when its output already exists, so an interrupted demo resumes where it stopped.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import re
 import time
@@ -33,12 +34,13 @@ from pathlib import Path
 import torch
 
 from segmo.data.layout import read_ground_truth, read_motion, read_split
-from segmo.errors import ArgumentParser, non_negative_int
+from segmo.errors import ArgumentParser, SegmoError, non_negative_int
 from segmo.export import export
 from segmo.files import output_folder
 from segmo.pipeline import SegMo
 from segmo.pipeline.grounding import plot_similarity_map
 from segmo.synth import build_corpus
+from segmo.synth.sequence import VERSION
 from segmo.text.cache import update_cache
 from segmo.text.extract import segment_folder
 from segmo.text.rules import RuleSegmenter
@@ -147,6 +149,23 @@ def _train(stage: str, root: Path, out: Path, overrides: list[str],
     return model_dir
 
 
+def _check_same_corpus(root: Path, num_motions: int, seed: int) -> None:
+    """Refuse to resume a demo whose corpus was built with another seed, size or version:
+    its trained stages are skipped on resuming, so the new settings would be ignored (or
+    the corpus rebuilt under models trained on the old one)."""
+    try:
+        built = json.loads((root / "corpus.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return  # none yet (or unreadable: build_corpus says so)
+    wanted = {"version": VERSION, "seed": seed, "num_motions": num_motions}
+    if isinstance(built, dict) and any(built.get(k) != v for k, v in wanted.items()):
+        raise SegmoError(
+            f"{root.parent}: holds an earlier demo on corpus version {built.get('version')}, "
+            f"seed {built.get('seed')}, {built.get('num_motions')} motions; this one asks for "
+            f"version {VERSION}, seed {seed}, {num_motions} motions. A demo resumes only its "
+            "own run: give another --out, or delete that folder")
+
+
 def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     root = out / "corpus"
@@ -169,8 +188,8 @@ def run(out: Path, budget: Budget, seed: int = 0) -> dict[str, float]:
 
     t = _step("1/8 build the built-in corpus",
               f"segmo synth --out {root} --num-motions {budget.num_motions} --seed {seed}")
-    if not (root / "corpus.json").is_file():
-        build_corpus(root, budget.num_motions, seed)
+    _check_same_corpus(root, budget.num_motions, seed)
+    build_corpus(root, budget.num_motions, seed)  # returns at once when the corpus is whole
     _done(t, timings, "corpus")
 
     t = _step("2/8 extract text segments", f"segmo segment-texts --data {root} --backend rule")

@@ -9,6 +9,7 @@ import json
 import pytest
 
 from segmo.demo import QUICK, Budget, main, parse_budget, run
+from segmo.errors import SegmoError
 
 pytestmark = pytest.mark.slow
 
@@ -35,6 +36,14 @@ def test_demo_runs_every_step_on_a_time_budget_and_resumes(tmp_path, capsys):
     # A second run resumes: nothing is trained again.
     main(["--out", str(out), "--budget", "quick"])
     assert capsys.readouterr().out.count("exists, skipped") == 4
+    # Another seed or size would be ignored (stages skipped) or rebuild the corpus under
+    # the trained models: refused, and nothing changes.
+    before = (out / "corpus" / "corpus.json").read_bytes()
+    for seed, budget in ((1, QUICK), (0, Budget(num_motions=30, rvq_steps=2, mask_steps=2,
+                                                 residual_steps=2, length_epochs=1))):
+        with pytest.raises(SegmoError, match="seed 0, 24 motions; this one asks for"):
+            run(out, budget, seed)
+    assert (out / "corpus" / "corpus.json").read_bytes() == before
 
 
 def test_parse_budget():
