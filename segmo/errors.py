@@ -85,6 +85,18 @@ def _whole_number(text: str, minimum: int) -> int:
     return value
 
 
+def ascii_whole_number(text: str) -> int | None:
+    """`text` read as a whole number written in the ASCII digits 0-9 alone, or None: for a
+    sign, a space, an '_' or a digit int() refuses ('²'), and for more digits than int()
+    converts (over 4300, a ValueError "Exceeds the limit")."""
+    if not (text.isascii() and text.isdigit()):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
 def positive_int(text: str) -> int:
     """argparse type: a whole number >= 1."""
     return _whole_number(text, 1)

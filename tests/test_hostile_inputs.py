@@ -126,6 +126,9 @@ CLI_CASES = [
     Cli("edit-weight-superscript", "edit --model {bundle} --source-text walk --mode reweight "
         "--weight ²=2 --out {tmp}/e", "weights key '²'",
         "`--weight ²=2`, a digit int() refuses (was a traceback)"),
+    Cli("edit-weight-huge", "edit --model {bundle} --source-text walk --mode reweight "
+        "--weight {huge}=2 --out {tmp}/e", "weights key '999",
+        "`--weight` of a 5000-digit segment, more than int() reads (was a ValueError traceback)"),
     Cli("generate-model-missing", "generate --model {tmp}/nope --text walk --out {tmp}/g",
         "--model", "a model folder that does not exist"),
     Cli("generate-model-is-stage", "generate --model {bundle}/mask --text walk --out {tmp}/g",
@@ -310,6 +313,9 @@ CLI_CASES = [
     Cli("evaluate-window-superscript", "evaluate --real-only --data {corpus} --evaluator {tmp} "
         "--out {tmp}/e --grounding-window ²", "--grounding-window", "`--grounding-window ²`, "
         "a digit int() refuses (was a ValueError traceback)"),
+    Cli("evaluate-window-huge", "evaluate --real-only --data {corpus} --evaluator {tmp} "
+        "--out {tmp}/e --grounding-window {huge}", "--grounding-window", "`--grounding-window` of "
+        "5000 digits, more than int() reads (was a ValueError traceback)"),
     Cli("evaluate-evaluator-kind", "evaluate --real-only --data {corpus} --evaluator "
         "{bundle}/mask --out {tmp}/e", "--evaluator", "a mask stage as evaluator"),
     Cli("evaluate-evaluator-kind-list", "evaluate --real-only --data {corpus} --evaluator "
@@ -461,6 +467,11 @@ API_CASES = [
         lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), mode="reweight",
                                  weights={"": 2.0}),
         SegmoError, "names no segment", "an empty weights key (took segment 1)"),
+    Api("api-edit-text-huge-key",
+        lambda m, w: m.edit_text(m.generate(["walk, then run"], [40]), mode="reweight",
+                                 weights={"segment " + w["huge"]: 2.0}),
+        SegmoError, "must be 'segment k'", "a weights key 'segment 999…' of 5000 digits, more "
+        "than int() reads (was a ValueError traceback)"),
     Api("api-compose-no-context",
         lambda m, w: m.compose([("walk", 40), ("run", 40)], m.max_frames - 12), SegmoError,
         "too little room for context", "a transition that leaves one token of context (was a "
@@ -722,6 +733,7 @@ def world(tmp_path_factory, tokenizer_dir) -> dict[str, Path]:
     cwd.mkdir()
     (cwd / "notes.txt").write_text("mine")
     return {"bundle": root / "bundle", "corpus": corpus, "tmp": tmp, "cwd": cwd, "empty": "",
+            "huge": "9" * 5000,
             **_corrupt_files(tmp, root / "bundle")}
 
 
@@ -774,6 +786,7 @@ def test_api_raises_a_clear_error(case: Api, model, world):
     MESSAGES[case.id] = f"{type(info.value).__name__}: {message}".replace(
         str(world["tmp"].parent), "…")
     assert case.names in message and "\n" not in message, message
+    assert len(message) < 600, "one line, not a dump"
 
 
 # Hostile-input tests that live beside the code they exercise; the table names them too.

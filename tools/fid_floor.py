@@ -62,7 +62,13 @@ import torch
 from torch.nn.utils.rnn import pad_sequence
 
 from segmo.data.layout import ground_truth_file, read_ground_truth
-from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
+from segmo.errors import (
+    ArgumentParser,
+    SegmoError,
+    ascii_whole_number,
+    non_negative_int,
+    positive_int,
+)
 from segmo.evaluation.action_order import sequence_accuracy
 from segmo.evaluation.metrics import fid, mean_and_interval, row_metrics, t2m_embedders
 from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load_batches
@@ -304,10 +310,11 @@ def table(rows: dict[str, dict[str, Any]], split: str, other: str) -> str:
 
 def sizes_argument(text: str) -> list[int]:
     """`--sizes`: whole numbers of at least 2, comma-separated."""
-    parts = [s.strip() for s in text.split(",") if s.strip()]
-    if not all(p.isascii() and p.isdigit() and int(p) >= 2 for p in parts):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected whole numbers of at least 2, separated by commas")
-    return [int(p) for p in parts]
+    sizes = [ascii_whole_number(s.strip()) for s in text.split(",") if s.strip()]
+    if not all(size is not None and size >= 2 for size in sizes):
+        raise argparse.ArgumentTypeError(f"{text!r:.80}: expected whole numbers of at least 2, separated by "
+                                         "commas")
+    return sizes
 
 
 def rates_argument(text: str) -> list[float]:

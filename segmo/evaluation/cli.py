@@ -50,6 +50,7 @@ from segmo.data.layout import has_ground_truth, split_file
 from segmo.errors import (
     ArgumentParser,
     SegmoError,
+    ascii_whole_number,
     finite_float,
     non_negative_float,
     non_negative_int,
@@ -506,11 +507,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.action_classifier not in (None, "train") and not Path(args.action_classifier).is_dir():
         parser.error(f"--action-classifier {args.action_classifier}: no such directory (or 'train')")
     window = args.grounding_window
-    # ASCII digits: str.isdigit() takes '²', which int() refuses (a ValueError traceback).
-    if window != "auto" and not all(w.strip().isascii() and w.strip().isdigit() and int(w) >= 1
-                                    for w in window.split(",")):
+    sizes = [ascii_whole_number(w.strip()) for w in window.split(",")]
+    if window != "auto" and not all(size is not None and size >= 1 for size in sizes):
         parser.error(f"argument --grounding-window: 'auto' or window sizes >= 1 such as 5 or "
-                     f"4,8,16, got {window!r}")
+                     f"4,8,16, got {window!r:.80}")
     skip = tuple(x for x in args.skip.split(",") if x)
     unknown = set(skip) - set(SECTIONS)
     if unknown:

@@ -27,6 +27,7 @@ import torch
 from segmo.errors import (
     ArgumentParser,
     SegmoError,
+    ascii_whole_number,
     finite_float,
     non_negative_float,
     non_negative_int,
@@ -244,9 +245,10 @@ def _weight(parser: argparse.ArgumentParser, value: str) -> tuple[str | int, flo
     except ValueError:
         number = None
     if not sep or not key.strip() or number is None or not math.isfinite(number):
-        parser.error(f"--weight {value!r}: expected SEGMENT=FACTOR, e.g. 2=1.5 or jumps=-1")
+        parser.error(f"--weight {value!r:.80}: expected SEGMENT=FACTOR, e.g. 2=1.5 or jumps=-1")
     key = key.strip()
-    return (int(key) if key.isdecimal() and key.isascii() else key), number
+    segment = ascii_whole_number(key)
+    return (key if segment is None else segment), number
 
 
 def edit_main(argv: list[str] | None = None) -> None:

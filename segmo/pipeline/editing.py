@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from segmo.errors import SegmoError
+from segmo.errors import SegmoError, ascii_whole_number
 from segmo.generation.attention_edit import (
     EDIT_MODES,
     EditMode,
@@ -264,28 +264,28 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
         # Attention weights are float32: a factor beyond its range would be inf.
         if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
                 or not np.isfinite(factor) or abs(factor) > np.finfo(np.float32).max:
-            raise SegmoError(f"SegMo.edit_text: weight of {key!r} must be a finite float32 "
+            raise SegmoError(f"SegMo.edit_text: weight of {key!r:.80} must be a finite float32 "
                              f"number, got {factor!r}")
         if isinstance(key, numbers.Integral) and not isinstance(key, bool):
             label = f"segment {int(key)}"
         elif isinstance(key, str) and (key.startswith("segment ") or key.startswith("word ")):
             # Rebuilt from its number: "segment 01" names the key labelled "segment 1".
             kind, _, number = key.partition(" ")
-            if not (number.isdecimal() and number.isascii()):
-                raise SegmoError(f"SegMo.edit_text: weights key {key!r} must be 'segment k' "
+            if ascii_whole_number(number) is None:
+                raise SegmoError(f"SegMo.edit_text: weights key {key!r:.80} must be 'segment k' "
                                  "or 'word w' with k, w whole numbers")
-            label = f"{kind} {int(number)}"
+            label = f"{kind} {ascii_whole_number(number)}"
         elif isinstance(key, str) and key in segments:
             label = f"segment {segments.index(key) + 1}"
         elif isinstance(key, str) and any(c.isalnum() for c in key) \
                 and len(found := [i for i, s in enumerate(segments) if key in s]) == 1:
             label = f"segment {found[0] + 1}"
         elif isinstance(key, str) and any(c.isalnum() for c in key) and found:
-            raise SegmoError(f"SegMo.edit_text: weights key {key!r} is part of segments "
+            raise SegmoError(f"SegMo.edit_text: weights key {key!r:.80} is part of segments "
                              f"{[i + 1 for i in found]} of {segments!r}; give one's number or "
                              "whole text")
         else:
-            raise SegmoError(f"SegMo.edit_text: weights key {key!r} names no segment of "
+            raise SegmoError(f"SegMo.edit_text: weights key {key!r:.80} names no segment of "
                              f"{segments!r} (give its number, its text, or 'segment k')")
         kind, number = label.split()
         if kind == "word" and words is None:
@@ -298,7 +298,7 @@ def weight_labels(weights: dict[str | int, float], segments: list[str],
             raise SegmoError(f"SegMo.edit_text: {label!r}: the caption has {words} word keys "
                              f"(word 0 to word {words - 1}, `SegMo.word_texts`)")
         if label in keys:  # the last one won without a word
-            raise SegmoError(f"SegMo.edit_text: weights keys {keys[label]!r} and {key!r} both "
+            raise SegmoError(f"SegMo.edit_text: weights keys {keys[label]!r:.80} and {key!r:.80} both "
                              f"name {label}; give each segment one factor")
         keys[label] = key
         labels[label] = float(factor)
