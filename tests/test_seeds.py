@@ -32,6 +32,15 @@ def test_figures_flattens_means_and_numbers_and_ignores_text():
                     "action_order/generated/sequence_accuracy": 0.35}
 
 
+def test_figures_keep_every_number_of_an_isc_entry():
+    """An ISC entry {"mean", "cv", "pairs"} is three figures: collapsing it to its mean lost
+    the CV (the paper's Fig. 4 figure) and the pair count."""
+    run = {"isc": {"uniform": {"mean": 0.8, "cv": 0.25, "pairs": 12.0}},
+           "generation": {"generated": {"multimodality": {"mean": 1.5}}}}
+    assert figures(run) == {"isc/uniform/mean": 0.8, "isc/uniform/cv": 0.25, "isc/uniform/pairs": 12.0,
+                            "generation/generated/multimodality": 1.5}
+
+
 def test_interval_is_the_student_t_half_width():
     values = [0.70, 0.72, 0.75]
     mean, half = interval(values)

@@ -7,9 +7,9 @@ and the paired difference, for chosen figures of their result files.
 
 A result file is a `segmo evaluate` metrics.json or what `tools/order_by_template.py`
 printed (its last line is the JSON object; the lines before it are passed over). A figure is
-a path into that object (`segmo.evaluation.seeds.figures`: a {"mean", ...} entry is its
-mean), e.g. `generation/generated/top1`; without --figure the tool lists the figures every
-file holds. The files of --base and --new are paired in the order given: list the seeds in
+a path into that object (`segmo.evaluation.seeds.figures`: a {"mean", "interval"} entry is
+its mean), e.g. `generation/generated/top1` or `isc/uniform/cv`; without --figure the tool
+lists the figures every file holds. The files of --base and --new are paired in the order given: list the seeds in
 the same order. Prints a Markdown table: each arm's mean ± interval (Student t over the
 seeds), the paired difference new − base with its interval, and "beyond the seeds' spread"
 where that interval leaves out zero, else "no difference"; with one seed a side there is no

@@ -25,13 +25,15 @@ from scipy import stats
 
 
 def figures(metrics: Mapping[str, Any], prefix: str = "") -> dict[str, float]:
-    """Flatten a metrics dict to {"a/b/c": value}: a dict with a "mean" is one figure (its
-    mean: the evaluation repeats' average), other numbers are taken as they are."""
+    """Flatten a metrics dict to {"a/b/c": value}: a {"mean", "interval"} dict is one figure
+    (its mean: the evaluation repeats' average), other numbers are taken as they are. Any
+    other dict is walked into, so an ISC entry {"mean", "cv", "pairs"} gives three figures
+    (isc/uniform/mean, isc/uniform/cv, isc/uniform/pairs)."""
     out: dict[str, float] = {}
     for key, value in metrics.items():
         path = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            if "mean" in value and isinstance(value["mean"], (int, float)):
+            if set(value) <= {"mean", "interval"} and isinstance(value.get("mean"), (int, float)):
                 out[path] = float(value["mean"])
             else:
                 out |= figures(value, path + "/")
