@@ -18,6 +18,7 @@ from segmo.cli import run as run_command
 from segmo.errors import SegmoError
 from segmo.evaluation import report
 from segmo.evaluation.cli import main
+from segmo.evaluation.sections import SECTIONS
 from segmo.pipeline import SegMo
 
 REPO = Path(__file__).resolve().parents[1]
@@ -226,6 +227,21 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert table[0].startswith("| Method | Top-1") and [r.split(" |")[0] for r in table[2:]] == [
         "| Real", "| segmo tokenizer (reconstruction)", "| segmo", "| no_align tokenizer (reconstruction)",
         "| no_align"]
+
+
+def test_multimodality_records_the_prompts_it_had(setup, hash_text_encoder, tmp_path: Path) -> None:
+    """Fewer motions than --mm-prompts: MultiModality ran over every motion there was, but
+    the report said "of 100 prompts" and metrics.json kept only the request."""
+    out = tmp_path / "mm"
+    with pytest.warns(UserWarning, match="--mm-prompts 100: the split has 10 motions"):
+        main(["--model", str(setup["segmo"]), "--data", str(setup["data"]), "--evaluator",
+              str(setup["evaluator"]), "--mm-prompts", "100", "--mm-repeats", "11",
+              "--skip", ",".join(SECTIONS), "--out", str(out), *COMMON])
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["generation"]["generated"]["multimodality_prompts"] == 10
+    assert metrics["config"]["mm_prompts"] == 100  # what was asked, beside what ran
+    text = (out / "report.md").read_text()
+    assert "MModality over 1 run(s) of 10 prompts × 11 generations (--mm-prompts 100" in text
 
 
 def test_real_only(setup, tmp_path: Path) -> None:

@@ -9,7 +9,9 @@ Sections (spec §9, paper §4):
 - generation: the T2M protocol (`metrics.evaluate_generation`), a "Real" row and the
   model's row, mean ± 95 % interval over `--repeats`; the generator gets the ground-truth
   lengths and a seeded `torch.Generator` per batch. MultiModality runs `--mm-runs` times
-  (not once per repeat: 20 × 100 prompts × 30 generations is out of reach on a CPU).
+  (not once per repeat: 20 × 100 prompts × 30 generations is out of reach on a CPU), one
+  prompt per motion: a split with fewer motions than `--mm-prompts` gives fewer (a warning;
+  metrics.json records the number as generated.multimodality_prompts).
   A reconstruction row (`Reconstructor`: real motion → the bundle's tokenizer → decoded,
   the generator's ceiling, with its MPJPE; `--skip reconstruction` leaves it out), and every
   row again per bucket of the caption's number of text segments ("1", "2", "3", "4-5").
@@ -38,6 +40,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, get_args
@@ -210,11 +213,17 @@ def generation_section(cfg: EvaluateConfig, evaluator: Any, ds: Any, batches: li
     if reconstruct is not None:
         result["reconstruction"] |= reconstruct.errors
     if generate is not None and cfg.mm_prompts > 0 and cfg.mm_runs > 0:
-        generate.expect(cfg.mm_runs * cfg.mm_prompts * cfg.mm_repeats, "multimodality")
-        runs = multimodality_runs(embed_motion, generate, batches, cfg.mm_runs, cfg.mm_prompts,
+        # One prompt per motion: a split with fewer motions than --mm-prompts gives fewer.
+        prompts = min(cfg.mm_prompts, len({str(i) for b in batches for i in b["id"]}))
+        if prompts < cfg.mm_prompts:
+            warnings.warn(f"--mm-prompts {cfg.mm_prompts}: the split has {prompts} motions; "
+                          f"MultiModality uses {prompts} prompts", stacklevel=2)
+        generate.expect(cfg.mm_runs * prompts * cfg.mm_repeats, "multimodality")
+        runs = multimodality_runs(embed_motion, generate, batches, cfg.mm_runs, prompts,
                                    cfg.mm_repeats, 10, cfg.seed)
         mean, interval = mean_and_interval(runs)
         result["generated"]["multimodality"] = {"mean": mean, "interval": interval}
+        result["generated"]["multimodality_prompts"] = prompts
     return result
 
 
@@ -420,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default="test")
     p.add_argument("--repeats", type=positive_int, default=20)
     p.add_argument("--batch-size", type=positive_int, default=32)
-    p.add_argument("--mm-prompts", type=non_negative_int, default=100, help="MultiModality prompts; 0 disables")
+    p.add_argument("--mm-prompts", type=non_negative_int, default=100, help="MultiModality prompts (one per motion: at most the split's motions); 0 disables")
     p.add_argument("--mm-repeats", type=positive_int, default=30, help="generations per prompt (> 10)")
     p.add_argument("--mm-runs", type=non_negative_int, default=1, help="MultiModality repetitions")
     p.add_argument("--action-classifier", help="action-classifier directory, or 'train' to fit one")

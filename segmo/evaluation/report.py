@@ -221,6 +221,18 @@ def attributes_table(attributes: dict[str, Any]) -> str:
                     str(int(v.get("checks", 0)))] for row, v in attributes.items()])
 
 
+def _multimodality_note(config: dict[str, Any], generated: dict[str, Any]) -> str:
+    """"; MModality over R run(s) of P prompts × G generations": P the prompts it ran with
+    (one per motion, so fewer than --mm-prompts on a small split; a metrics.json from before
+    `multimodality_prompts` was recorded gives the request)."""
+    asked = config.get("mm_prompts")
+    used = generated.get("multimodality_prompts", asked)
+    note = f"; MModality over {config.get('mm_runs')} run(s) of {used} prompts × {config.get('mm_repeats')} generations"
+    if isinstance(used, int) and isinstance(asked, int) and used < asked:
+        note += f" (--mm-prompts {asked}; the split has {used} motions)"
+    return note
+
+
 def render_report(metrics: dict[str, Any]) -> str:
     """The whole report.md of one evaluation."""
     config = metrics.get("config", {})
@@ -233,8 +245,7 @@ def render_report(metrics: dict[str, Any]) -> str:
         out += ["## Generation (T2M protocol)", "",
                 "R-precision and MM-Dist in batches of "
                 f"{config.get('batch_size')}; mean±95 % interval over {config.get('repeats')} repeats"
-                + (f"; MModality over {config.get('mm_runs')} run(s) of {config.get('mm_prompts')} prompts "
-                   f"× {config.get('mm_repeats')} generations"
+                + (_multimodality_note(config, metrics["generation"]["generated"])
                    if config.get("mm_prompts") and "generated" in metrics["generation"] else "") + ".", "",
                 generation_table(_generation_rows(metrics)), ""]
         reconstruction = metrics["generation"].get("reconstruction")
