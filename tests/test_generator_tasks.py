@@ -75,6 +75,25 @@ def test_alignment_ablations_train(method, segmenter, text_dataset, tokenizer_di
     assert ("train/align" in cli.trainer.callback_metrics) == (method != "none")
 
 
+def _alignment_arguments(task, batch) -> tuple:
+    """The arguments `task.step(batch)` (eval mode, no grad) hands its alignment loss."""
+    handed, loss = [], task.alignment_loss
+
+    class Recorder:  # the loss as it is, remembering what it was handed
+        weight = loss.weight
+
+        def __call__(self, *args):
+            handed.append(args)
+            return loss(*args)
+
+    task.alignment_loss = Recorder()
+    task.eval()
+    with torch.no_grad():
+        task.step(batch)
+    task.alignment_loss = loss
+    return handed[0]
+
+
 def test_alignment_loss_is_handed_the_batch_s_related_samples(text_dataset, tokenizer_dir, tmp_path):
     """The task tells the loss which samples are one motion or one caption, so that the
     batch and global ablations do not take them as each other's negatives."""
@@ -87,20 +106,8 @@ def test_alignment_loss_is_handed_the_batch_s_related_samples(text_dataset, toke
     task, ds = cli.model, cli.datamodule.dataset("train")
     assert ds[0]["id"] == ds[1]["id"] != ds[2]["id"]  # two captions of one motion, another
     batch = collate([ds[0], ds[1], ds[2]])
-    handed, loss = [], task.alignment_loss
-
-    class Recorder:  # the loss as it is, remembering the related samples it was handed
-        weight = loss.weight
-
-        def __call__(self, *args):
-            handed.append(args[7])
-            return loss(*args)
-
-    task.alignment_loss = Recorder()
-    task.eval()
-    with torch.no_grad():
-        task.step(batch)
-    assert torch.equal(handed[0].cpu(), related_samples(batch)) and handed[0][0, 1]
+    related = _alignment_arguments(task, batch)[7]
+    assert torch.equal(related.cpu(), related_samples(batch)) and related[0, 1]
 
 
 @pytest.mark.parametrize("stage,option", [
@@ -421,20 +428,7 @@ def test_alignment_spans_come_from_the_ground_truth_or_the_segmenter(source, tex
                     "--data.init_args.batch_size=16", "--trainer.fast_dev_run=true"])
     assert torch.isfinite(cli.trainer.callback_metrics["train/align"])
     task, batch = cli.model, next(iter(cli.datamodule.train_dataloader()))
-    handed = []
-    loss = task.alignment_loss
-
-    class Recorder:  # the loss as it is, remembering the spans it was handed
-        weight = loss.weight
-
-        def __call__(self, *args):
-            handed.append(args[5])
-            return loss(*args)
-
-    task.alignment_loss = Recorder()
-    task.eval()
-    with torch.no_grad():
-        task.step(batch)
+    handed_spans = _alignment_arguments(task, batch)[5]
     _, segments, segment_mask = text_condition(batch)
     lengths = token_lengths(batch["lengths"])
     num_segments = torch.minimum(segment_mask.sum(1), lengths)
@@ -443,7 +437,7 @@ def test_alignment_spans_come_from_the_ground_truth_or_the_segmenter(source, tex
                                    segment_mask.shape[1])
     assert usable.any() and not torch.equal(truth[usable], cut[usable])  # the two sources differ
     expected = torch.where(usable[:, None, None], truth, cut) if source == "truth" else cut
-    assert torch.equal(handed[0].cpu(), expected)
+    assert torch.equal(handed_spans.cpu(), expected)
 
 
 def test_segment_balanced_weights_give_every_segment_the_same_total():
