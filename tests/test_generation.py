@@ -44,14 +44,15 @@ def text(b: int, seed: int = 1):
 
 
 class StubTokenizer:
-    """decode(indices (b, n, q)) → (b, 4n, d): sum of per-layer codes, upsampled ×4."""
+    """decode(indices (b, n, q), lengths) → (b, 4n, d): sum of per-layer codes, upsampled ×4
+    (each position on its own, so lengths change nothing)."""
 
     codebook_size, num_quantizers, code_dim = 16, 3, 5
 
     def __init__(self) -> None:
         self.codes = torch.randn(3, 16, 5, generator=torch.Generator().manual_seed(0))
 
-    def decode(self, indices: torch.Tensor) -> torch.Tensor:
+    def decode(self, indices: torch.Tensor, lengths: torch.Tensor | None = None) -> torch.Tensor:
         assert indices.shape[2] == self.num_quantizers
         picked = self.codes[torch.arange(3), indices.clamp(min=0)]  # (b, n, q, d)
         summed = (picked * (indices >= 0)[..., None]).sum(2)

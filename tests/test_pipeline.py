@@ -518,6 +518,34 @@ def test_retrieval_ranks(model, generated):
     assert [s for _, s in ranked] == sorted((s for _, s in ranked), reverse=True)
 
 
+def test_a_motion_decodes_alike_alone_and_beside_a_longer_one(model, generated):
+    """The decoder runs each sample at its own length: a longer batch-mate's padding
+    (index -1, decoded as zero codes, then non-zero after the first convolution) no longer
+    leaks into the last frames of the shorter motion."""
+    n = int(generated.lengths[1]) // 4  # 32 frames beside a 48-frame motion
+    alone = model.decode(generated.tokens[1:2, :n], generated.lengths[1:2], PROMPTS[1:],
+                         generated.segments[1:])
+    torch.testing.assert_close(generated.features[1], torch.cat(
+        [alone.features[0], torch.zeros(16, alone.features.shape[2])]), rtol=0, atol=1e-6)
+    torch.testing.assert_close(generated.joints[1, :32], alone.joints[0], rtol=0, atol=1e-6)
+
+
+def test_a_motion_encodes_alike_alone_and_beside_a_longer_one(model, generated):
+    """embed_segments (grounding, retrieval, the cpd/kmeans spans) encodes each motion at
+    its own length: a longer motion in the batch changes none of its latents, motion
+    features or retrieval scores."""
+    short, long = generated.motion(1), np.concatenate([generated.motion(0), generated.motion(0)])
+    alone = model.embed_segments(PROMPTS[1:], [short])
+    batch = model.embed_segments([PROMPTS[1], PROMPTS[0]], [short, long])
+    n = int(alone.num_tokens[0])
+    torch.testing.assert_close(batch.latents[0, :n], alone.latents[0], rtol=0, atol=1e-6)
+    assert bool((batch.latents[0, n:] == 0).all())
+    torch.testing.assert_close(batch.features[0, :n], alone.features[0], rtol=0, atol=1e-5)
+    score = dict(model.retrieve_motions(PROMPTS[1], [short], top_k=1))[0]
+    beside = dict(model.retrieve_motions(PROMPTS[1], [short, long], top_k=2))[0]
+    assert beside == pytest.approx(score, abs=1e-6)
+
+
 def test_a_model_left_in_train_mode_grounds_and_retrieves_as_in_eval_mode(bundle, generated):
     """Grounding, retrieval and generation run without dropout whatever mode the caller left
     the stages in (fine-tuning in a notebook), and give the caller's mode back."""

@@ -57,6 +57,49 @@ def test_bad_inputs_raise():
         model.decode(torch.full((1, 8, 4), 16))
 
 
+def test_lengths_encode_and_decode_each_motion_as_alone():
+    """With lengths, a motion's latents and decoded frames are those of the motion alone,
+    whatever its batch-mates' lengths (without, the padding leaks into its last frames);
+    samples of one length share one encoder/decoder call."""
+    model = RVQVAE(tiny_config()).eval()
+    model.quantizer.codebooks.normal_(generator=torch.Generator().manual_seed(0))
+    x = torch.randn(3, 40, 263, generator=torch.Generator().manual_seed(1))
+    lengths = torch.tensor([16, 40, 16])
+    x[0, 16:] = x[2, 16:] = 0  # zero-padded, as a batch is
+    calls = []
+    model.encoder.register_forward_pre_hook(lambda _, args: calls.append(tuple(args[0].shape)))
+    with torch.no_grad():
+        latents = model.latents(x, lengths)
+        assert calls == [(2, 263, 16), (1, 263, 40)]  # one call per length
+        padded = model.latents(x)
+        alone = model.latents(x[:1, :16])
+    torch.testing.assert_close(latents[0, :4], alone[0], rtol=0, atol=1e-6)
+    assert not torch.allclose(padded[0, :4], alone[0], atol=1e-4)  # what lengths prevent
+    assert bool((latents[[0, 2], 4:] == 0).all())
+    torch.testing.assert_close(latents[1], padded[1], rtol=0, atol=1e-6)
+    calls.clear()
+    with torch.no_grad():
+        assert torch.equal(model.latents(x, torch.full((3,), 40)), padded)
+    assert calls == [(3, 263, 40)]  # equal lengths: the one call over the batch
+
+    indices = torch.randint(0, 16, (3, 10, 4), generator=torch.Generator().manual_seed(2))
+    indices[0, 4:] = indices[2, 4:] = -1
+    with torch.no_grad():
+        decoded = model.decode(indices, lengths)
+        alone = model.decode(indices[:1, :4])
+        padded = model.decode(indices)
+    torch.testing.assert_close(decoded[0, :16], alone[0], rtol=0, atol=1e-6)
+    assert not torch.allclose(padded[0, :16], alone[0], atol=1e-4)
+    assert bool((decoded[[0, 2], 16:] == 0).all())
+    torch.testing.assert_close(decoded[1], padded[1], rtol=0, atol=1e-6)
+    for bad in (torch.tensor([16, 40]), torch.tensor([16, 44, 16]), torch.tensor([16, 18, 16]),
+                torch.tensor([0, 40, 16]), torch.tensor([16.0, 40.0, 16.0])):
+        with pytest.raises(ValueError, match="lengths"):
+            model.latents(x, bad)
+        with pytest.raises(ValueError, match="lengths"):
+            model.decode(indices, bad)
+
+
 def test_encoder_output_is_the_nearest_code_sum():
     """The gradient path is straight-through and the forward value is the code sum."""
     rq = quantizer()

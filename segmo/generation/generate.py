@@ -556,9 +556,11 @@ def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,
     """Tokens → motion features with a tokenizer (design.md, `RVQVAE.decode`).
 
     indices (b, n, q') with q' ≤ tokenizer.num_quantizers (missing layers decode as zero
-    codes, index −1); lengths (b,) frames → features (b, t, d) float32, frames ≥ length set
-    to 0. precision "bf16" runs the decoder under bf16 autocast (half the time on a CPU with
-    native bf16), "auto" does so where the CPU has it (`resolve_precision`).
+    codes, index −1); lengths (b,) frames (multiples of 4) → features (b, t, d) float32,
+    frames ≥ length set to 0. Each sample is decoded from its own tokens only, so the same
+    tokens give the same motion whatever the other samples' lengths (`RVQVAE.decode` with
+    lengths). precision "bf16" runs the decoder under bf16 autocast (half the time on a CPU
+    with native bf16), "auto" does so where the CPU has it (`resolve_precision`).
     """
     b, n, q = indices.shape
     missing = tokenizer.num_quantizers - q
@@ -568,6 +570,6 @@ def decode_tokens(tokenizer, indices: torch.Tensor, lengths: torch.Tensor,
     if missing:
         indices = torch.cat([indices, indices.new_full((b, n, missing), -1)], dim=2)
     with torch.inference_mode(), _autocast(precision, indices.device):
-        features = tokenizer.decode(indices).float()
+        features = tokenizer.decode(indices, lengths.to(indices.device)).float()
     frames = torch.arange(features.shape[1], device=features.device)
     return features * (frames < lengths.to(features.device)[:, None])[..., None]

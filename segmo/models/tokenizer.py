@@ -10,6 +10,10 @@ Model directories record it as kind "rvq"; it is trained by `segmo.tasks.tokeniz
     >>> indices = model.encode(torch.randn(2, 64, 263))   # (2, 16, 6)
     >>> model.decode(indices).shape
     torch.Size([2, 64, 263])
+
+A batch of motions of different lengths is encoded and decoded with `lengths`: each motion
+at its own length, so that its latents and decoded frames are the same alone and beside a
+longer one (`run_at_lengths`).
 """
 
 from __future__ import annotations
@@ -132,6 +136,38 @@ class Decoder(nn.Module):
         return self.layers(x)
 
 
+def run_at_lengths(net: nn.Module, x: Tensor, lengths: Tensor, out_steps: int) -> Tensor:
+    """net over x (b, c, s), each sample cut to its own length first → (b, c', out_steps),
+    zero past each sample's output. lengths (b,) in steps of x, each in [1, s].
+
+    A convolution near a sample's end reads the batch's padding (zero features, or zero
+    codes for index −1) through its biases, which would change the last frames of the
+    shorter samples with their batch-mates' lengths. Cut, a sample's output is its output
+    alone. Samples of one length share one call, so an equal-length batch costs what
+    one call over the padded batch costs.
+    """
+    if bool((lengths == x.shape[-1]).all()):
+        return net(x)
+    out = None
+    for length in lengths.unique().tolist():
+        rows = (lengths == length).nonzero().flatten()
+        y = net(x[rows, :, :length])
+        if out is None:
+            out = y.new_zeros(x.shape[0], y.shape[1], out_steps)
+        out[rows, :, : y.shape[-1]] = y
+    return out
+
+
+def _check_lengths(lengths: Tensor, b: int, t: int, unit: int, caller: str) -> None:
+    """lengths (b,) frames, multiples of `unit` in [unit, t], or ValueError."""
+    if lengths.shape != (b,) or lengths.dtype.is_floating_point or lengths.dtype == torch.bool:
+        raise ValueError(f"RVQVAE.{caller}: expected lengths ({b},) integer frames, got "
+                         f"{tuple(lengths.shape)} {lengths.dtype}")
+    if bool(((lengths < unit) | (lengths > t) | (lengths % unit != 0)).any()):
+        raise ValueError(f"RVQVAE.{caller}: lengths must be multiples of {unit} in [{unit}, {t}], "
+                         f"got {lengths.tolist()}")
+
+
 class RVQVAE(nn.Module, Pretrained):
     """Residual VQ-VAE over z-scored motion features.
 
@@ -227,12 +263,21 @@ class RVQVAE(nn.Module, Pretrained):
             code_usage=out.code_usage,
         )
 
-    def latents(self, features: Tensor) -> Tensor:
+    def latents(self, features: Tensor, lengths: Tensor | None = None) -> Tensor:
         """z-scored features (b, t, d), t a multiple of 4 -> the encoder's latents
         (b, t // 4, code_dim) before quantization (what the cpd/kmeans motion segmenters
-        split); `quantize` turns them into indices."""
+        split); `quantize` turns them into indices.
+
+        lengths (b,) frames (multiples of 4) of a zero-padded batch: each motion is encoded
+        at its own length (`run_at_lengths`), its latents past length // 4 are zero.
+        """
         self._check_features(features, "latents")
-        return self.encoder(features.transpose(1, 2)).transpose(1, 2)
+        x = features.transpose(1, 2)
+        if lengths is None:
+            return self.encoder(x).transpose(1, 2)
+        b, t, _ = features.shape
+        _check_lengths(lengths, b, t, FRAMES_PER_TOKEN, "latents")
+        return run_at_lengths(self.encoder, x, lengths, t // FRAMES_PER_TOKEN).transpose(1, 2)
 
     @torch.no_grad()
     def encode(self, features: Tensor) -> Tensor:
@@ -253,9 +298,18 @@ class RVQVAE(nn.Module, Pretrained):
             indices.append(index)
         return torch.stack(indices, dim=-1).reshape(b, n, self.num_quantizers)
 
-    def decode(self, indices: Tensor) -> Tensor:
-        """indices (b, n, q') with q' ≤ q, −1 = zero code -> z-scored features (b, 4 n, d)."""
+    def decode(self, indices: Tensor, lengths: Tensor | None = None) -> Tensor:
+        """indices (b, n, q') with q' ≤ q, −1 = zero code -> z-scored features (b, 4 n, d).
+
+        lengths (b,) frames (multiples of 4) of a padded batch: each motion is decoded from
+        its own length // 4 tokens (`run_at_lengths`), its frames past length are zero.
+        """
         if indices.ndim != 3:
             raise ValueError(f"RVQVAE.decode: expected indices (b, n, q), got {tuple(indices.shape)}")
-        codes = self.quantizer.codes(indices).to(self.mean.dtype)  # (b, n, c)
-        return self.decoder(codes.transpose(1, 2)).transpose(1, 2)
+        codes = self.quantizer.codes(indices).to(self.mean.dtype).transpose(1, 2)  # (b, c, n)
+        if lengths is None:
+            return self.decoder(codes).transpose(1, 2)
+        b, n, _ = indices.shape
+        _check_lengths(lengths, b, n * FRAMES_PER_TOKEN, FRAMES_PER_TOKEN, "decode")
+        steps = lengths // FRAMES_PER_TOKEN
+        return run_at_lengths(self.decoder, codes, steps, n * FRAMES_PER_TOKEN).transpose(1, 2)

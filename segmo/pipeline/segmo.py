@@ -310,7 +310,8 @@ class SegMo:
 
     def decode(self, tokens: torch.Tensor, lengths: torch.Tensor, texts: list[str],
                segments: list[list[str]], precision: Precision = "auto") -> GenerationOutput:
-        """tokens (b, n, q) + lengths (b,) frames → GenerationOutput (raw features, joints)."""
+        """tokens (b, n, q) + lengths (b,) frames → GenerationOutput (raw features, joints).
+        Each motion is decoded from its own tokens, as it would be alone (`decode_tokens`)."""
         with inference([self.tokenizer], "fp32", self.device):  # decode_tokens: bf16 itself
             z = decode_tokens(self.tokenizer, tokens, lengths, precision)
             features = self.tokenizer.denormalize(z)
@@ -536,7 +537,8 @@ class SegMo:
 
         motions: a list of (t_i, d) arrays/tensors, or a (b, t, d) tensor with `lengths`
         (b,) frames; raw features unless `normalized` (z-scored already). Each motion is
-        cut to a multiple of 4 frames (the tokenizer's unit). segments: one list per text
+        cut to a multiple of 4 frames (the tokenizer's unit) and encoded at that length, as
+        it would be alone (`space.embed_segments`). segments: one list per text
         (default: the bundle's text segmenter).
         """
         alignment_head(self.mask)  # before any work: a model without one cannot do this

@@ -40,7 +40,8 @@ class SegmentEmbeddings:
     segment_mask: (b, a) bool, slots that hold a text segment;
     num_tokens: (b,) long, valid motion tokens (frames // 4) of each motion;
     latents: (b, n, code_dim) the tokenizer's latents of the motions (the input of the
-        cpd/kmeans motion segmenters).
+        cpd/kmeans motion segmenters), each motion encoded at its own length, zero past
+        its num_tokens.
     """
 
     segments: list[list[str]]
@@ -93,13 +94,14 @@ def embed_segments(tokenizer: RVQVAE, mask: MaskTransformer, z: torch.Tensor,
     """One unmasked pass of the mask transformer over b pairs.
 
     z (b, t, d) z-scored motions padded with zeros, frames (b,) their lengths (multiples
-    of 4); sentence (b, text_dim), vectors (b, a, text_dim), segment_mask (b, a) bool and
+    of 4; each motion is encoded at its own length, so the padding changes none of its
+    latents, and its latents past its tokens are zero); sentence (b, text_dim), vectors (b, a, text_dim), segment_mask (b, a) bool and
     segments: the text condition (`SegMo.text_condition`); words, word_mask: the texts'
     word features for a model with word keys (`SegMo.word_condition`).
     """
     head = alignment_head(mask)
     with inference([tokenizer, mask], "fp32", z.device):
-        latents = tokenizer.latents(z)
+        latents = tokenizer.latents(z, frames)
         base = tokenizer.quantize(latents)[..., 0]
         num_tokens = frames // FRAMES_PER_TOKEN
         token_mask = torch.arange(base.shape[1], device=z.device) < num_tokens[:, None]
