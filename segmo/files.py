@@ -29,6 +29,7 @@ import glob
 import itertools
 import json
 import logging
+import math
 import os
 import shutil
 import socket
@@ -94,6 +95,22 @@ def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as f:
         f.write(data)
     return Path(path)
+
+
+def json_text(value: Any, indent: int | None = None) -> str:
+    """`value` as strict JSON (RFC 8259, what JavaScript's JSON.parse reads), with NaN and
+    ±inf written as null: `json.dumps` would write them as bare NaN/Infinity, which only
+    Python and a few lenient readers accept. segmo's readers take such a null as NaN."""
+    def finite(x: Any) -> Any:
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: finite(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [finite(v) for v in x]
+        return x
+
+    return json.dumps(finite(value), indent=indent, allow_nan=False)
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> None:

@@ -89,6 +89,14 @@ def hash_text_encoder(monkeypatch):
                         lambda name, *a, **k: hash_encoder(name, 16) if name == ENCODER else real(name, *a, **k))
 
 
+def _strict_json(path: Path) -> dict:
+    """A file as a strict JSON reader (JavaScript's JSON.parse) reads it: no NaN or Infinity."""
+    def refuse(constant: str):
+        raise ValueError(f"{path}: {constant} is not JSON")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
 def _check_repeated(values: dict, names) -> None:
     for name in names:
         entry = values[name]
@@ -102,13 +110,13 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
           "--action-classifier", str(setup["classifier"]), "--mm-prompts", "2", "--mm-repeats", "11",
           "--attribute-classifier", str(setup["attributes"]),
           "--retrieval-motions", "6", "--similarity-maps", "1", "--out", str(out), *COMMON])
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = _strict_json(out / "metrics.json")
     generation = metrics["generation"]
     _check_repeated(generation["real"], GENERATION)
     _check_repeated(generation["generated"], GENERATION)
-    # One MultiModality run (--mm-runs 1, the default): a mean without an interval
+    # One MultiModality run (--mm-runs 1, the default): a mean without an interval (null)
     multimodality = generation["generated"]["multimodality"]
-    assert multimodality["mean"] >= 0 and multimodality["interval"] != multimodality["interval"]
+    assert multimodality["mean"] >= 0 and multimodality["interval"] is None
     assert 0 <= generation["generated"]["top1"]["mean"] <= generation["generated"]["top3"]["mean"] <= 1
     assert generation["real"]["fid"]["mean"] < 1e-6 + generation["real"]["fid"]["interval"] * 10
     reconstruction = generation["reconstruction"]
@@ -227,6 +235,8 @@ def test_evaluate_writes_every_metric(setup, hash_text_encoder, tmp_path: Path) 
     assert table[0].startswith("| Method | Top-1") and [r.split(" |")[0] for r in table[2:]] == [
         "| Real", "| segmo tokenizer (reconstruction)", "| segmo", "| no_align tokenizer (reconstruction)",
         "| no_align"]
+    # The null interval of MultiModality reads as NaN: the mean alone.
+    assert table[4].endswith(f"| {multimodality['mean']:.3f} |")
 
 
 def test_multimodality_records_the_prompts_it_had(setup, hash_text_encoder, tmp_path: Path) -> None:
@@ -316,6 +326,46 @@ def test_errors_name_the_flag(setup, tmp_path: Path, capsys) -> None:
     for flag, value in (("--repeats", "0"), ("--batch-size", "1"), ("--seed", "-2"),
                         ("--grounding-window", "4,x"), ("--split", "nosuch")):
         assert flag in cli_failure([*base, "--real-only", flag, value], capsys)
+
+
+def test_metrics_readers_take_null_as_nan_and_older_files_read_as_before(tmp_path: Path) -> None:
+    """metrics.json holds null where a figure is NaN (one repeat, one MultiModality run);
+    one written before holds bare NaN. Every reader shows both alike."""
+    from segmo.evaluation.seeds import figures, seed_table
+    from segmo.pipeline.bundle import SegMoConfig
+    from segmo.pipeline.model_card import model_card, read_metrics
+
+    nan = float("nan")
+    row = {"top1": {"mean": 0.5, "interval": nan}, "fid": {"mean": 1.25, "interval": nan},
+           "multimodality": {"mean": 2.0, "interval": nan}}
+    metrics = {"generation": {"real": row, "generated": row},
+               "action_order": {"generated": {"sequence_accuracy": nan, "motions": 3.0}},
+               "isc": {"uniform": {"mean": 0.25, "cv": nan, "pairs": 4.0}},
+               "config": {"name": "m", "segmenter": None}}
+    older = json.dumps(metrics, indent=2)
+    assert "NaN" in older
+    newer = older.replace("NaN", "null")
+    outputs = []
+    for name, text in (("older", older), ("newer", newer)):
+        (tmp_path / name).mkdir()
+        path = tmp_path / name / "metrics.json"
+        path.write_text(text)
+        read = read_metrics(path)
+        main(["--compare", str(path), "--out", str(tmp_path / name)])
+        grid = load_tool("ablation_grid")
+        seeds = load_tool("compare_seeds")
+        outputs.append([
+            (tmp_path / name / "compare.md").read_text(),
+            report.generation_table([("m", read["generation"]["generated"])]),
+            seed_table([("m", [read], ["generation/generated/top1", "generation/generated/fid"])], ["a", "b"]),
+            sorted(k for k, v in figures(read).items() if v == v),
+            grid.isc_grid({"in_sample": read}),
+            seeds.compare([seeds.read_result(path)], [read], ("a", "b"), ["generation/generated/top1"]),
+            model_card(SegMoConfig(text_encoder="hash16"), {}, read)])
+    assert outputs[0] == outputs[1]
+    assert "| m | 0.500 | - | - | 1.250 | - | - | 2.000 |" in outputs[1][1]
+    assert "| Top-1 | FID |" in outputs[1][-1] and "| 0.500 | 0.500 | 1.250 |" in outputs[1][-1]
+    assert "nan |" in outputs[1][-1]  # the NaN (null) action order figure, as before
 
 
 def test_report_tables() -> None:
@@ -445,7 +495,7 @@ def test_attention_report_on_words_read_by_cross_attention(setup, hash_text_enco
     # panel (it once asked the recording for word keys it does not have), the gates instead.
     from segmo.models.mask_transformer import MaskTransformer, MaskTransformerConfig
     from segmo.models.residual_transformer import ResidualTransformer, ResidualTransformerConfig
-    from segmo.pipeline.segmo import SegMoConfig
+    from segmo.pipeline.bundle import SegMoConfig
 
     tool = load_tool("attention_report")
     tokenizer = SegMo.from_pretrained(setup["segmo"]).tokenizer

@@ -40,7 +40,7 @@ from pathlib import Path
 
 from segmo.cli import run
 from segmo.errors import ArgumentParser, SegmoError, positive_int
-from segmo.evaluation.report import compare_table
+from segmo.evaluation.report import compare_table, number
 from segmo.files import write_atomic
 
 # variant → (alignment method, motion segmenter, row name in the paper's Table 3)
@@ -234,7 +234,8 @@ def isc_grid(evaluations: dict[str, dict]) -> str:
              "| --- |" + " --- |" * len(columns)]
     for variant, metrics in evaluations.items():
         isc = metrics.get("isc", {})
-        cells = [f"{isc[c]['mean']:.3f} (CV {isc[c]['cv']:.2f})" if c in isc else "–" for c in columns]
+        cells = [f"{number(isc[c]['mean']):.3f} (CV {number(isc[c]['cv']):.2f})" if c in isc else "–"
+                 for c in columns]
         lines.append(f"| {VARIANTS[variant][1]} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

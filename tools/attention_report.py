@@ -26,7 +26,6 @@ Writes OUT/attention.json and OUT/attention.md; the last stdout line is the JSON
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -44,6 +43,7 @@ from segmo.evaluation.attention import (
     sentence_share,
     sink_ratio,
 )
+from segmo.files import json_text
 from segmo.models.tokenizer import FRAMES_PER_TOKEN
 from segmo.pipeline import SegMo
 
@@ -162,10 +162,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     result["plots"] = plots(maps, args.out, args.plots, model.fps)
-    (args.out / "attention.json").write_text(json.dumps(result, indent=1) + "\n")
+    (args.out / "attention.json").write_text(json_text(result, indent=1) + "\n")
     (args.out / "attention.md").write_text(markdown(result))
     print(markdown(result))
-    print(json.dumps(result))
+    print(json_text(result))
     return 0
 
 

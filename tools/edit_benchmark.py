@@ -34,7 +34,6 @@ model or data folder is one line on stderr (exit status 2).
 
 from __future__ import annotations
 
-import json
 import math
 import random
 import statistics
@@ -50,6 +49,7 @@ from segmo.cli import run
 from segmo.data.layout import read_ground_truth, read_split
 from segmo.errors import ArgumentParser, SegmoError, non_negative_int, positive_int
 from segmo.evaluation.report import cell
+from segmo.files import json_text
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
 from segmo.motion.features import features_to_joints
@@ -298,9 +298,9 @@ def main(argv: list[str] | None = None) -> dict:
     result["seconds"] = round(time.perf_counter() - started, 1)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "edits.md").write_text("\n".join(lines) + "\n")
-    (args.out / "edits.json").write_text(json.dumps(result, indent=1) + "\n")
+    (args.out / "edits.json").write_text(json_text(result, indent=1) + "\n")
     print("\n".join(lines))
-    print(json.dumps(result))
+    print(json_text(result))
     return result
 
 

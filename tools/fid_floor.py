@@ -72,7 +72,7 @@ from segmo.errors import (
 from segmo.evaluation.action_order import sequence_accuracy
 from segmo.evaluation.metrics import fid, mean_and_interval, row_metrics, t2m_embedders
 from segmo.evaluation.sections import EvaluateConfig, all_rows, first_rows, load_batches
-from segmo.files import write_atomic
+from segmo.files import json_text, write_atomic
 from segmo.models.action_classifier import ActionClassifier, collapse
 from segmo.models.evaluator import T2MEvaluator
 from segmo.motion.features import joints_to_features
@@ -417,8 +417,8 @@ def main(argv: list[str] | None = None) -> int:
                  {name: [e for e, _ in per_repeat] for name, per_repeat in made.items()}, args.batch_size, orders)
     print(table(rows, args.split, args.other))
     if args.out:
-        write_atomic(args.out, json.dumps({"split": args.split, "other": args.other, "rows": rows},
-                                          indent=2) + "\n")
+        write_atomic(args.out, json_text({"split": args.split, "other": args.other, "rows": rows},
+                                         indent=2) + "\n")
     return 0
 
 

@@ -33,7 +33,6 @@ Every bucket also counts its captions that no repeat got right (`never_right`).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -45,6 +44,7 @@ import torch
 from segmo.data.layout import first_captions, read_motion
 from segmo.errors import SegmoError, non_negative_float, positive_int
 from segmo.evaluation.metrics import segment_bucket
+from segmo.files import json_text
 from segmo.generation.sampling import Remasking, SegmentTiming, WordText
 from segmo.models.action_classifier import collapse
 from segmo.models.pretrained import load_pretrained
@@ -246,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         for bucket, value in result.get(name, {}).items():
             print(f"{name} {bucket} actions: {value['sequence_accuracy']:.3f} ({value['motions']} motions)")
     timing = args.segment_timing or sampling.segment_timing
-    print(json.dumps({**result, "word_text": sampling.word_text, "segment_timing": timing,
+    print(json_text({**result, "word_text": sampling.word_text, "segment_timing": timing,
                       "remasking": sampling.remasking,
                       "segment_guidance": sampling.segment_guidance,
                       "choice_temperature": sampling.choice_temperature, "compose": args.compose}))

@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import sys
 from pathlib import Path
 
 from segmo.cli import run
 from segmo.errors import ArgumentParser, SegmoError, non_negative_float, positive_int
-from segmo.files import write_atomic
+from segmo.files import json_text, write_atomic
 
 # Words of the metric names the tasks log (`self.log` in segmo/tasks) for which higher is
 # better: accuracy, frame_accuracy, top1, segment_top1*, R@k, timing_iou, code_usage_q*,
@@ -159,7 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"| {r['run']} | {r['metric']} | {r['points']} | {r['first']:.4g} | {r['best']:.4g} | "
               f"{r['last']:.4g} ({r['last_step']}) | {r['plateau']} |")
     result = {"runs": rows, "window": args.window, "tolerance": args.tolerance, "smooth": args.smooth}
-    print(json.dumps(result))
+    print(json_text(result))
     return result
 
 

@@ -36,7 +36,6 @@ Sections (spec §9, paper §4):
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -82,7 +81,7 @@ from segmo.evaluation.sections import (
     raw_features,
     segmo_retrieval,
 )
-from segmo.files import output_folder, write_atomic
+from segmo.files import json_text, output_folder, write_atomic
 from segmo.generation.allocator import keep_freed_memory
 from segmo.generation.generate import resolve_precision
 from segmo.generation.sampling import Remasking, SamplingOptions, SegmentTiming, WordText
@@ -349,7 +348,8 @@ def evaluate(cfg: EvaluateConfig, model: Any = None) -> dict[str, Any]:
     metrics["config"] = asdict(cfg) | {"motions": len({i for b in batches for i in b["id"]}),
                                        "captions": sum(len(b["id"]) for b in batches)}
     _remove_earlier_plots(out, started)
-    write_atomic(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    # strict JSON: a NaN (one repeat's interval) is written as null, which report.cell reads as NaN
+    write_atomic(out / "metrics.json", json_text(metrics, indent=2) + "\n")
     write_atomic(out / "report.md", report.render_report(metrics))
     return metrics
 

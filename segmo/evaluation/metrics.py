@@ -128,7 +128,8 @@ def multimodality(emb: Any, num_pairs: int = 10, generator: np.random.Generator 
 def mean_and_interval(values: Any) -> tuple[float, float]:
     """(mean, 1.96·std/√n) of n repeated measurements (population std, as the T2M code);
     the interval is NaN for one measurement, which has no spread to estimate (it was 0, and
-    a single MultiModality run read "± 0.000"), as across seeds (`segmo.evaluation.seeds`)."""
+    a single MultiModality run read "± 0.000"), as across seeds (`segmo.evaluation.seeds`);
+    metrics.json writes it as null."""
     v = _np(values).reshape(-1)
     if v.size == 0:
         raise ValueError("mean_and_interval: no values")

@@ -5,7 +5,9 @@ columns Top-1/2/3, FID, MM-Dist, Diversity, MModality, cells "mean±interval" (9
 interval over the evaluation repeats). The other sections (retrieval, grounding, ISC,
 action order) are single measurements. Everything here reads the plain `metrics.json`
 dict written by `segmo.evaluation.cli`, so reports can be rebuilt and compared later
-without the models.
+without the models. metrics.json is strict JSON: a NaN figure (the interval of a single
+measurement) is written as null, and `cell` reads null as NaN; an older file's bare NaN
+reads as it always did.
 
 Example::
 
@@ -79,26 +81,33 @@ NOTES: dict[str, str] = {
 }
 
 
-def cell(entry: dict[str, float] | float | None, digits: int = 3) -> str:
+def number(value: float | None) -> float:
+    """A figure of a metrics.json as a float: null (how the file writes NaN) is NaN."""
+    return math.nan if value is None else float(value)
+
+
+def cell(entry: dict[str, float | None] | float | None, digits: int = 3) -> str:
     """"mean±interval" of a repeated metric, the plain number of a single one (or of one
-    whose interval is NaN: one measurement), "-" if absent."""
+    whose interval is NaN or null: one measurement), "-" if absent (or null)."""
     if entry is None:
         return "-"
     if isinstance(entry, dict):
-        if math.isnan(entry["interval"]):
-            return f"{entry['mean']:.{digits}f}"
-        return f"{entry['mean']:.{digits}f}±{entry['interval']:.{digits}f}"
+        mean, interval = number(entry["mean"]), number(entry["interval"])
+        if math.isnan(interval):
+            return f"{mean:.{digits}f}"
+        return f"{mean:.{digits}f}±{interval:.{digits}f}"
     return f"{float(entry):.{digits}f}"
 
 
 def is_metric(value: Any) -> bool:
-    """A metric as `cell` shows it: a number, or {"mean": number, "interval": number}."""
-    def number(x: Any) -> bool:
+    """A metric as `cell` shows it: a number, or {"mean": number, "interval": number}, where
+    a number of the dict may be null (NaN in metrics.json)."""
+    def real(x: Any) -> bool:
         return isinstance(x, (int, float)) and not isinstance(x, bool)
 
     if isinstance(value, dict):
-        return number(value.get("mean")) and number(value.get("interval"))
-    return number(value)
+        return all(real(value.get(k)) or (k in value and value[k] is None) for k in ("mean", "interval"))
+    return real(value)
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:

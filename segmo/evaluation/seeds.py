@@ -26,15 +26,17 @@ from scipy import stats
 
 def figures(metrics: Mapping[str, Any], prefix: str = "") -> dict[str, float]:
     """Flatten a metrics dict to {"a/b/c": value}: a {"mean", "interval"} dict is one figure
-    (its mean: the evaluation repeats' average), other numbers are taken as they are. Any
+    (its mean: the evaluation repeats' average; a null mean, how metrics.json writes NaN, is
+    NaN), other numbers are taken as they are (a bare null is left out, like config's). Any
     other dict is walked into, so an ISC entry {"mean", "cv", "pairs"} gives three figures
     (isc/uniform/mean, isc/uniform/cv, isc/uniform/pairs)."""
     out: dict[str, float] = {}
     for key, value in metrics.items():
         path = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            if set(value) <= {"mean", "interval"} and isinstance(value.get("mean"), (int, float)):
-                out[path] = float(value["mean"])
+            mean = value.get("mean", "absent")
+            if set(value) <= {"mean", "interval"} and (mean is None or isinstance(mean, (int, float))):
+                out[path] = math.nan if mean is None else float(mean)
             else:
                 out |= figures(value, path + "/")
         elif isinstance(value, (int, float)) and not isinstance(value, bool):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -30,8 +31,10 @@ def _lookup(metrics: dict, key: str):
             return None
         value = value[part]
     if isinstance(value, dict):  # {"mean": ..., "interval": ...} from `segmo evaluate`
+        if "mean" not in value and "value" not in value:
+            return None
         value = value.get("mean", value.get("value"))
-    return value
+    return math.nan if value is None else value  # metrics.json writes NaN as null
 
 
 def _data_line(meta: dict) -> str:
