@@ -80,9 +80,7 @@ class TransformerTask(Task):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
-        for name, share in (("cond_drop_prob", cond_drop_prob), ("local_uncond_prob", local_uncond_prob)):
-            if not 0.0 <= share <= 1.0:
-                raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
+        check_shares(cond_drop_prob=cond_drop_prob, local_uncond_prob=local_uncond_prob)
         self.tokenizer = load_tokenizer(tokenizer)
         # Checkpoints record it absolute: `segmo export` rebuilds the task from any folder.
         self.hparams.tokenizer = str(Path(tokenizer).resolve())
@@ -117,6 +115,14 @@ class TransformerTask(Task):
             return batch["tokens"]
         self.tokenizer.eval()
         return self.tokenizer.encode(batch["motion"])
+
+
+def check_shares(**shares: float) -> None:
+    """SegmoError naming the first model option given as a share outside [0, 1] (a
+    probability: 1.5 would drop every condition without a word)."""
+    for name, share in shares.items():
+        if not 0.0 <= share <= 1.0:
+            raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
 
 
 def check_max_tokens(datamodule: Any, max_tokens: int) -> None:

@@ -40,6 +40,7 @@ from segmo.segmentation import SegmenterName, segment_batch
 from segmo.tasks.alignment_loss import AlignmentLoss, AlignMethod
 from segmo.tasks.common import (
     TransformerTask,
+    check_shares,
     text_condition,
     token_lengths,
     token_mask,
@@ -212,12 +213,8 @@ class MaskTask(TransformerTask):
             alignment_temperature = former_temperature(temperature, alignment_temperature)
             self.hparams.update(alignment_temperature=alignment_temperature, temperature=None)
         # cond_drop_prob and local_uncond_prob: TransformerTask.
-        for name, share in (("order_drop_prob", order_drop_prob),
-                            ("timing_drop_prob", timing_drop_prob),
-                            ("segment_mask_prob", segment_mask_prob),
-                            ("segment_drop_prob", segment_drop_prob)):
-            if not 0.0 <= share <= 1.0:
-                raise SegmoError(f"model.init_args.{name}={share}: a share in [0, 1]")
+        check_shares(order_drop_prob=order_drop_prob, timing_drop_prob=timing_drop_prob,
+                     segment_mask_prob=segment_mask_prob, segment_drop_prob=segment_drop_prob)
         for name, weight in (("alignment_weight", alignment_weight), ("timing_weight", timing_weight)):
             if not weight >= 0.0:
                 raise SegmoError(f"model.init_args.{name}={weight}: a weight >= 0")
