@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from segmo.models.dropout import Dropout
 from segmo.models.pretrained import Pretrained, check_config_numbers
 from segmo.models.quantizer import ResidualQuantizer
 
@@ -82,7 +83,7 @@ class ResidualBlock(nn.Module):
             nn.Conv1d(width, width, 3, padding=dilation, dilation=dilation),
             nn.ReLU(),
             nn.Conv1d(width, width, 1),
-            nn.Dropout(dropout),
+            Dropout(dropout),
         )
 
     def forward(self, x: Tensor) -> Tensor:

@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from segmo.models.dropout import Dropout
+from segmo.models.dropout import dropout as segmo_dropout
 from segmo.models.pretrained import check_config_numbers
 from segmo.models.text_prefix import Condition, EncodedPrefix, PrefixKeys, prefix_labels
 from segmo.text.rules import MAX_SEGMENTS
@@ -108,7 +110,13 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torc
     that may be attended to (every row needs one) → (b, heads, l, head_dim).
     """
     mask = key_valid[:, None, None, :]  # True = take part; broadcast over heads and queries
-    return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
+    if dropout == 0.0 or q.device.type != "cpu":
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
+    # Training on the CPU: PyTorch's own math path (no fused kernel takes dropout there),
+    # with the cheaper dropout mask of `segmo.models.dropout`.
+    scores = (q * q.shape[-1] ** -0.5) @ k.transpose(-2, -1)
+    weights = scores.masked_fill(~mask, float("-inf")).softmax(-1)
+    return segmo_dropout(weights, dropout) @ v
 
 
 class SelfAttention(nn.Module):
@@ -203,9 +211,9 @@ class Block(nn.Module):
             self.cross_norm = nn.LayerNorm(dim)
         self.norm1 = nn.LayerNorm(dim)
         self.norm2 = nn.LayerNorm(dim)
-        self.ff = nn.Sequential(Linear(dim, ff_dim, activation="gelu"), nn.Dropout(dropout),
+        self.ff = nn.Sequential(Linear(dim, ff_dim, activation="gelu"), Dropout(dropout),
                                 Linear(ff_dim, dim))
-        self.drop = nn.Dropout(dropout)
+        self.drop = Dropout(dropout)
 
     def forward(self, x: torch.Tensor, valid: torch.Tensor, prefix: PrefixKeys | None = None,
                 queries: torch.Tensor | None = None
@@ -245,7 +253,7 @@ class Trunk(nn.Module):
         # Absent without slots, so that such a model is exactly the one without them.
         if memory_slots:
             self.memory = nn.Parameter(torch.randn(memory_slots, dim) * 0.02)
-        self.drop = nn.Dropout(dropout)
+        self.drop = Dropout(dropout)
         self.blocks = nn.ModuleList(
             Block(dim, heads, ff_dim, dropout, norm_first, cross_words) for _ in range(depth)
         )
