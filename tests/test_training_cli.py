@@ -22,7 +22,7 @@ from segmo.export import main as export_main
 from segmo.models.pretrained import load_pretrained
 from segmo.models.tokenizer import RVQVAE, RVQOutput
 from segmo.motion.skeleton import get_skeleton
-from segmo.tasks.base import step_schedule
+from segmo.tasks.base import adamw_with_schedule, step_schedule
 from segmo.tasks.tokenizer import RVQTask
 from segmo.training.cli import main as cli_main
 
@@ -373,6 +373,24 @@ def test_learning_rate_schedule():
     assert factor(0) == pytest.approx(0.1) and factor(9) == pytest.approx(1.0)
     assert factor(99) == pytest.approx(1.0) and factor(100) == pytest.approx(0.05)
     assert factor(250) == pytest.approx(0.05**2)
+
+
+def test_optimiser_is_the_fused_adamw_on_the_cpu_with_the_same_update():
+    torch.manual_seed(0)
+    weights = [torch.nn.Parameter(torch.randn(8, 4)), torch.nn.Parameter(torch.randn(4))]
+    plain = [torch.nn.Parameter(w.detach().clone()) for w in weights]
+    fused = adamw_with_schedule(iter(weights), 1e-2, 0.01, 0, [], 1.0)["optimizer"]
+    reference = torch.optim.AdamW(plain, lr=1e-2, betas=(0.9, 0.99), weight_decay=0.01)
+    assert fused.defaults["fused"] is True and len(fused.param_groups[0]["params"]) == 2
+    for _ in range(5):
+        for a, b in zip(weights, plain, strict=True):
+            a.grad = torch.randn_like(a)
+            b.grad = a.grad.clone()
+        fused.step(), reference.step()
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(weights, plain, strict=True))
+    # Where the fused kernel does not run (here: integer tensors), the default AdamW.
+    assert adamw_with_schedule([torch.zeros(2, dtype=torch.long)], 1e-2, 0.0, 0, [], 1.0)[
+        "optimizer"].defaults["fused"] is None
 
 
 # --------------------------------------------------------------------------- hostile input
