@@ -556,3 +556,46 @@ def test_memory_keys_are_encoded_once_in_inference_and_again_when_anything_chang
     model.eval()
     assert trunk.memory_keys(torch.float32)[0][0].requires_grad  # with gradients: not kept
     assert trunk.__dict__["_memory_cache"] is None
+
+
+@pytest.mark.parametrize("norm_first", [False, True])
+def test_prefix_keys_are_those_of_every_slot_run_through_every_block_in_full(norm_first):
+    # The prefix pass runs the valid slots alone (packed) and the last block's keys and
+    # values alone: the same keys at the valid slots as the full pass over all slots.
+    from segmo.models.transformer import Trunk
+
+    torch.manual_seed(0)
+    trunk = Trunk(32, 3, 2, 64, 0.0, norm_first, 12, memory_slots=2).eval()
+    prefix = torch.randn(3, 4, 32)
+    mask = torch.tensor([[True, True, False, False], [True] * 4, [False] * 4])
+    among = mask | ~mask.any(1, keepdim=True)
+    with torch.no_grad():
+        encoded = trunk.encode_prefix(prefix, mask)
+        x, m = prefix, trunk.memory[None]
+        for block, kv in zip(trunk.blocks, encoded.blocks, strict=True):
+            x, (keys, values) = block(x, among)
+            m, (memory_keys, memory_values) = block(m, torch.ones(1, 2, dtype=torch.bool))
+            for got, full in ((kv.keys, keys), (kv.values, values)):
+                torch.testing.assert_close(got[:, :, :4].transpose(1, 2)[mask],
+                                           full.transpose(1, 2)[mask], rtol=1e-5, atol=1e-6)
+                # A row without a valid slot (its condition dropped): zeros, finite.
+                assert not got[2, :, :4].any()
+            assert torch.equal(kv.keys[:, :, 4:], memory_keys.expand(3, -1, -1, -1))
+            assert torch.equal(kv.values[:, :, 4:], memory_values.expand(3, -1, -1, -1))
+
+
+def test_packed_prefix_pass_trains_with_finite_gradients_and_refuses_other_keys():
+    from segmo.models.transformer import SelfAttention, Trunk
+
+    torch.manual_seed(0)
+    trunk = Trunk(32, 2, 2, 64, 0.2, False, 12).train()
+    prefix = torch.randn(2, 3, 32, requires_grad=True)
+    mask = torch.tensor([[True, False, False], [False, False, False]])
+    encoded = trunk.encode_prefix(prefix, mask)
+    sum(b.keys.sum() + b.values.sum() for b in encoded.blocks).backward()
+    assert torch.isfinite(prefix.grad).all() and prefix.grad[0, 0].abs().sum() > 0
+    assert not prefix.grad[:, 1:].any() and not prefix.grad[1].any()  # padding: no part
+    assert all(torch.isfinite(p.grad).all() for p in trunk.parameters() if p.grad is not None)
+    attention = SelfAttention(32, 2, 0.0)
+    with pytest.raises(ValueError, match="packed x takes no prefix and no queries"):
+        attention(torch.randn(1, 32), mask, queries=torch.zeros(2, 1, dtype=torch.long))
