@@ -14,6 +14,8 @@ puts back (`segmo.tasks.base`). Other devices keep PyTorch's kernel, which is fa
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -24,9 +26,7 @@ def keep_scale(shape: torch.Size | tuple[int, ...], p: float, dtype: torch.dtype
     """A CPU dropout mask of `shape`: 1 / (1 − p') where an element is kept, else 0, with
     p' = round(p · 2¹⁶) / 2¹⁶ the probability that it is dropped."""
     dropped = round(p * LEVELS)
-    count = 1
-    for size in shape:
-        count *= size
+    count = math.prod(shape)
     bits = torch.empty((count + 3) // 4, dtype=torch.int64).random_(-(1 << 63), None)
     numbers = bits.view(torch.int16)[:count].view(shape)  # uniform over [-2¹⁵, 2¹⁵)
     keep = numbers >= dropped - LEVELS // 2
